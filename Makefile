@@ -1,0 +1,37 @@
+# Two entry points for a fresh machine (see README):
+#   make repro   install into .venv, then run the whole pipeline (dvc repro on params.yaml)
+#   make test    install into .venv, then run the test suite
+#
+# torch: the CPU build is installed first, so nothing later pulls the multi-GB CUDA build.
+# TORCH_SPEC and TORCH_INDEX choose another build, e.g. for a CUDA 12.8 machine:
+#   make install TORCH_SPEC=torch==2.13.0 TORCH_INDEX=https://download.pytorch.org/whl/cu128
+PYTHON ?= python3.11
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+BIN := $(VENV)/bin
+
+.PHONY: install repro test bench clean-venv
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+install: $(BIN)/python
+	@# torch alone first: a local wheel (pip's find-links) if there is one, else the PyTorch
+	@# index named by TORCH_INDEX (CPU by default), never PyPI's CUDA default. Its own
+	@# dependencies then come from the usual index together with the project's.
+	$(BIN)/pip install -q --no-index --no-deps "$(TORCH_SPEC)" 2>/dev/null \
+	  || $(BIN)/pip install -q --no-deps "$(TORCH_SPEC)" --index-url $(TORCH_INDEX)
+	$(BIN)/pip install -q "$(TORCH_SPEC)" -e ".[dev]" 2>&1 | grep -v "is ignored: it is neither" || true
+
+repro: install
+	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
+
+test: install
+	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
+
+bench: install
+	$(BIN)/pip install -q -e ".[bench]"
+
+clean-venv:
+	rm -rf $(VENV)

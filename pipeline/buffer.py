@@ -1,0 +1,167 @@
+"""Replay buffer: an in-RAM ring used while training, saved as a Zarr v3 group.
+
+Zarr layout (format "mapex.replay_buffer", version 1), T transitions in chronological order:
+
+    obs           (T, obs_dim)       float32
+    action        (T, act_dim)       float32
+    reward        (T, n_objectives)  float32   full reward vector, every objective
+    next_obs      (T, obs_dim)       float32
+    terminated    (T,)               bool      true terminal state: no bootstrap
+    truncated     (T,)               bool      time-limit cut: bootstrap through it
+    episode       (T,)               int64     global episode index (contiguous runs)
+    episode_step  (T,)               int32     step index inside its episode
+
+Group attributes: format, format_version, env_id, objective, seed, obs_dim, act_dim,
+n_objectives, n_transitions, max_episode_steps, complete, checksums (CRC32 of each array's
+bytes, so a lost or damaged chunk, which Zarr would silently read as zeros, is caught). Arrays are chunked along time
+only (CHUNK_ROWS rows a chunk), so a 1M-row buffer is a few dozen files.
+"""
+
+from __future__ import annotations
+
+import zlib
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+import zarr
+
+from pipeline.artifacts import ArtifactError, atomic_path
+
+FORMAT = "mapex.replay_buffer"
+FORMAT_VERSION = 1
+CHUNK_ROWS = 131_072
+
+FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated", "episode", "episode_step")
+
+
+class Batch(NamedTuple):
+    """A minibatch of transitions as tensors."""
+
+    obs: torch.Tensor  # (B, obs_dim) float32
+    action: torch.Tensor  # (B, act_dim) float32
+    reward: torch.Tensor  # (B, n_objectives) float32
+    next_obs: torch.Tensor  # (B, obs_dim) float32
+    terminated: torch.Tensor  # (B,) float32, 1.0 where s' is terminal
+
+
+class ReplayBuffer:
+    """Fixed-capacity ring of transitions in numpy arrays; oldest rows are overwritten."""
+
+    def __init__(self, capacity: int, obs_dim: int, act_dim: int, n_objectives: int):
+        self.capacity = capacity
+        self.data: dict[str, np.ndarray] = {
+            "obs": np.zeros((capacity, obs_dim), np.float32),
+            "action": np.zeros((capacity, act_dim), np.float32),
+            "reward": np.zeros((capacity, n_objectives), np.float32),
+            "next_obs": np.zeros((capacity, obs_dim), np.float32),
+            "terminated": np.zeros(capacity, bool),
+            "truncated": np.zeros(capacity, bool),
+            "episode": np.zeros(capacity, np.int64),
+            "episode_step": np.zeros(capacity, np.int32),
+        }
+        self.ptr = 0
+        self.size = 0
+
+    def add(self, obs, action, reward, next_obs, terminated: bool, truncated: bool, episode: int, step: int) -> None:
+        i = self.ptr
+        d = self.data
+        d["obs"][i] = obs
+        d["action"][i] = action
+        d["reward"][i] = reward
+        d["next_obs"][i] = next_obs
+        d["terminated"][i] = terminated
+        d["truncated"][i] = truncated
+        d["episode"][i] = episode
+        d["episode_step"][i] = step
+        self.ptr = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def chronological(self) -> dict[str, np.ndarray]:
+        """The stored rows, oldest first."""
+        if self.size < self.capacity:
+            return {k: v[: self.size] for k, v in self.data.items()}
+        order = np.concatenate([np.arange(self.ptr, self.capacity), np.arange(0, self.ptr)])
+        return {k: v[order] for k, v in self.data.items()}
+
+    def sample(self, batch_size: int, rng: np.random.Generator, device: torch.device) -> Batch:
+        idx = rng.integers(0, self.size, size=batch_size)
+        return batch_at(self.data, idx, device)
+
+
+def batch_at(data: dict[str, np.ndarray], idx: np.ndarray, device: torch.device | str = "cpu") -> Batch:
+    """The rows `idx` of a buffer's arrays as a Batch on `device`."""
+
+    def t(name: str) -> torch.Tensor:
+        return torch.from_numpy(data[name][idx]).to(device)
+
+    return Batch(t("obs"), t("action"), t("reward"), t("next_obs"), t("terminated").float())
+
+
+def _crc(arr: np.ndarray) -> str:
+    return f"{zlib.crc32(np.ascontiguousarray(arr).tobytes()):08x}"
+
+
+def save_buffer(path: str | Path, data: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
+    """Write transitions `data` (fields of FIELDS, equal length) as a Zarr v3 group, atomically."""
+    n = len(data["obs"])
+    for name in FIELDS:
+        if len(data[name]) != n:
+            raise ValueError(f"field {name} has {len(data[name])} rows, expected {n}")
+    with atomic_path(path) as tmp:
+        group = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+        for name in FIELDS:
+            arr = np.ascontiguousarray(data[name])
+            chunks = (min(CHUNK_ROWS, max(n, 1)), *arr.shape[1:])
+            z = group.create_array(name, shape=arr.shape, dtype=arr.dtype, chunks=chunks)
+            if n:
+                z[...] = arr
+        group.attrs.update(
+            {
+                **attrs,
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "n_transitions": int(n),
+                "complete": True,
+                "checksums": {name: _crc(data[name]) for name in FIELDS},
+            }
+        )
+
+
+def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read a replay buffer fully into RAM; returns (arrays, attributes).
+
+    Raises ArtifactError naming the path if it is missing, not a mapex buffer, or truncated.
+    """
+    path = Path(path)
+    if not (path / "zarr.json").is_file():
+        raise ArtifactError(f"{path}: no Zarr group here (expected a {FORMAT} directory)")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        attrs = dict(group.attrs)
+    except Exception as exc:
+        raise ArtifactError(f"{path}: cannot open as a Zarr group ({exc})") from None
+    if attrs.get("format") != FORMAT:
+        raise ArtifactError(f"{path}: format is {attrs.get('format')!r}, expected {FORMAT!r}")
+    if attrs.get("format_version") != FORMAT_VERSION:
+        raise ArtifactError(f"{path}: format_version {attrs.get('format_version')!r}, expected {FORMAT_VERSION}")
+    if not attrs.get("complete"):
+        raise ArtifactError(f"{path}: buffer was not completely written")
+    n = attrs["n_transitions"]
+    data = {}
+    for name in FIELDS:
+        try:
+            arr = group[name][...]
+        except Exception as exc:
+            raise ArtifactError(f"{path}: array {name!r} is missing or unreadable ({exc})") from None
+        if len(arr) != n:
+            raise ArtifactError(f"{path}: array {name!r} has {len(arr)} rows, attributes say {n}")
+        if attrs.get("checksums", {}).get(name) != _crc(arr):
+            raise ArtifactError(f"{path}: array {name!r} fails its checksum (a chunk is missing or damaged)")
+        data[name] = arr
+    expect = {"obs": attrs["obs_dim"], "next_obs": attrs["obs_dim"], "action": attrs["act_dim"], "reward": attrs["n_objectives"]}
+    for name, dim in expect.items():
+        if data[name].ndim != 2 or data[name].shape[1] != dim:
+            raise ArtifactError(f"{path}: array {name!r} has shape {data[name].shape}, expected (T, {dim})")
+    return data, attrs

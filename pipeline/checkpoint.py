@@ -1,0 +1,99 @@
+"""Policy and critics artifacts (torch files loadable with `torch.load(weights_only=True)`).
+
+policy.pt  (format "mapex.policy", version 1)
+    meta:          env_id, obs_dim, act_dim, n_objectives, action_low, action_high,
+                   hidden_sizes, objective (the specialist's objective, or None for a child), seed, params
+    actor:         state dict of `nets.Actor`
+    actor_target:  state dict of the TD3 target actor (absent for extracted children)
+
+critics.pt (format "mapex.critics", version 1)
+    meta:          env_id, obs_dim, act_dim, n_objectives, hidden_sizes, seed, params,
+                   buffer_objective  k: the specialist whose buffer D_k the critics were trained on,
+                   objectives        [m, ...]: the objectives covered, in member order,
+                   source            "joint" (trained with the specialist) or "posthoc" (fitted offline)
+    online:        state dict of `nets.CriticEnsemble` with 2 * len(objectives) members
+    target:        state dict of its target copy
+
+Member 2*j + h of the ensemble is head h of objective meta["objectives"][j]. Jointly trained
+and post-hoc critics use exactly this format, so extraction loads either with `load_critics`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.nets import Actor, CriticEnsemble
+
+POLICY_FORMAT = "mapex.policy"
+CRITICS_FORMAT = "mapex.critics"
+FORMAT_VERSION = 1
+
+_SPEC_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives")
+
+
+def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}
+
+
+def save_policy(path: str | Path, actor: Actor, meta: dict[str, Any], actor_target: Actor | None = None) -> None:
+    obj: dict[str, Any] = {"format": POLICY_FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "actor": _cpu_state(actor)}
+    if actor_target is not None:
+        obj["actor_target"] = _cpu_state(actor_target)
+    torch_save_atomic(obj, path)
+
+
+def actor_from_meta(meta: dict[str, Any]) -> Actor:
+    return Actor(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
+
+
+def load_policy(path: str | Path) -> tuple[Actor, dict[str, Any]]:
+    """Load an actor (in eval mode, on CPU) and its metadata."""
+    obj = torch_load_checked(path, POLICY_FORMAT, FORMAT_VERSION)
+    meta = obj["meta"]
+    actor = actor_from_meta(meta)
+    try:
+        actor.load_state_dict(obj["actor"])
+    except (RuntimeError, KeyError) as exc:
+        raise ArtifactError(f"{path}: actor weights do not match its metadata ({exc})") from None
+    return actor.eval(), meta
+
+
+def save_critics(path: str | Path, online: CriticEnsemble, target: CriticEnsemble, meta: dict[str, Any]) -> None:
+    if online.n_members != 2 * len(meta["objectives"]):
+        raise ValueError("critic ensemble must hold two heads per covered objective")
+    obj = {
+        "format": CRITICS_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "meta": meta,
+        "online": _cpu_state(online),
+        "target": _cpu_state(target),
+    }
+    torch_save_atomic(obj, path)
+
+
+def load_critics(path: str | Path) -> tuple[CriticEnsemble, CriticEnsemble, dict[str, Any]]:
+    """Load (online, target, meta) of a critics artifact, either source (joint or post-hoc)."""
+    obj = torch_load_checked(path, CRITICS_FORMAT, FORMAT_VERSION)
+    meta = obj["meta"]
+    nets = []
+    for key in ("online", "target"):
+        net = CriticEnsemble(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], 2 * len(meta["objectives"]))
+        try:
+            net.load_state_dict(obj[key])
+        except (RuntimeError, KeyError) as exc:
+            raise ArtifactError(f"{path}: {key} critic weights do not match its metadata ({exc})") from None
+        nets.append(net.eval())
+    return nets[0], nets[1], meta
+
+
+def check_matches(path: str | Path, meta: dict[str, Any], ref: dict[str, Any], ref_name: str) -> None:
+    """Raise ArtifactError if `meta` (of artifact `path`) disagrees with `ref` on env and dims."""
+    for key in _SPEC_KEYS:
+        if meta.get(key) != ref.get(key):
+            raise ArtifactError(
+                f"{path}: {key} = {meta.get(key)!r} does not match {ref_name} ({key} = {ref.get(key)!r})"
+            )

@@ -1,0 +1,83 @@
+"""Validated params.yaml: one pydantic model per stage section, plus the shared sections.
+
+A stage validates the shared sections and its own section before it touches any artifact.
+Every validation failure becomes one `ParamsError` whose message names the file, the key
+path, the offending value and what was expected.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ValidationError
+
+from pipeline.params.common import EnvParams, RunParams
+
+__all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "KNOWN_SECTIONS"]
+
+# Top-level keys params.yaml may hold. Shared: env, seeds, objectives. The others are the
+# stage sections, each named like its stage (dvc.yaml stage = stages/<name>.py = section).
+KNOWN_SECTIONS = (
+    "env",
+    "seeds",
+    "objectives",
+    "train_specialist",
+    "fit_critics",
+    "extract",
+    "evaluate",
+    "report",
+)
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class ParamsError(ValueError):
+    """params.yaml is missing, unreadable or fails validation; the message says where and why."""
+
+
+def load_params(path: str | Path) -> dict[str, Any]:
+    """Read params.yaml into a dict, rejecting unknown top-level keys."""
+    path = Path(path)
+    if not path.is_file():
+        raise ParamsError(f"{path}: params file not found")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ParamsError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(raw, dict):
+        raise ParamsError(f"{path}: expected a mapping of sections at the top level, got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(KNOWN_SECTIONS))
+    if unknown:
+        raise ParamsError(
+            f"{path}: unknown top-level key(s) {unknown}; expected some of {list(KNOWN_SECTIONS)}"
+        )
+    return raw
+
+
+def _describe(err: dict[str, Any], prefix: str) -> str:
+    loc = ".".join(str(p) for p in (prefix, *err["loc"]) if p != "")
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown key (value {err['input']!r})"
+    if err["type"] == "missing":
+        return f"{loc}: required key is missing"
+    return f"{loc} = {err['input']!r}: {err['msg']}"
+
+
+def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "params.yaml") -> M:
+    """Validate section `name` of a loaded params dict with `model`.
+
+    A missing section is validated as empty, so models whose fields all have defaults accept it.
+    """
+    data = raw.get(name, {})
+    if model is RunParams:
+        data = {k: raw[k] for k in ("seeds", "objectives") if k in raw}
+        name = ""
+    if data is None:
+        data = {}
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe(e, name) for e in exc.errors()]
+        raise ParamsError(f"{path}: invalid params:\n  " + "\n  ".join(lines)) from None

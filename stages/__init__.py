@@ -1,0 +1,1 @@
+"""The I/O shell: one typer command per DVC stage (stage name = module = params section)."""

@@ -1,0 +1,50 @@
+"""Helpers shared by the stage commands: error reporting, params loading, progress bars."""
+
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+from typing import Any, Callable, TypeVar
+
+import typer
+from pydantic import BaseModel
+from tqdm import tqdm
+
+from pipeline.artifacts import ArtifactError
+from pipeline.envs import EnvError
+from pipeline.params import EnvParams, ParamsError, load_params, section
+
+F = TypeVar("F", bound=Callable[..., Any])
+M = TypeVar("M", bound=BaseModel)
+
+PARAMS_OPTION = typer.Option(Path("params.yaml"), "--params", help="params file (validated before anything is read or written)")
+
+
+def reports_errors(fn: F) -> F:
+    """Turn the pipeline's input errors into one readable line on stderr and exit code 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except (ParamsError, ArtifactError, EnvError) as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def read_params(path: Path, name: str, model: type[M]) -> tuple[dict[str, Any], EnvParams, M]:
+    """Load params.yaml and validate the `env` section and stage section `name`."""
+    raw = load_params(path)
+    return raw, section(raw, "env", EnvParams, path), section(raw, name, model, path)
+
+
+def progress(total: int, desc: str, unit: str = "step") -> tqdm:
+    """A progress bar on stderr (rate in unit/s); quiet when stderr is not a terminal and CI is set."""
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, mininterval=0.5)
+
+
+def fmt_vec(v) -> str:
+    return "[" + ", ".join(f"{x:.1f}" for x in v) + "]"
