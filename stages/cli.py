@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import typer
 
+from stages.extract import extract
+from stages.critic_fidelity import critic_fidelity
+from stages.fit_critics import fit_critics
 from stages.train_specialist import train_specialist
 
 app = typer.Typer(
@@ -23,6 +26,9 @@ def main() -> None:
     Each subcommand is one DVC stage (see dvc.yaml); hyperparameters come from params.yaml.
     """
 app.command("train-specialist")(train_specialist)
+app.command("fit-critics")(fit_critics)
+app.command("critic-fidelity")(critic_fidelity)
+app.command("extract")(extract)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,61 @@
+"""Section `extract`: MAPEX extraction (paper Algorithm 1 and its appendix tables).
+
+`epochs`, `beta` and `omega_max` left at null take the paper's per-environment values
+(appendix table "Environment-specific MAPEX hyperparameters"); the other defaults are the
+paper's shared MAPEX table, or the precursor code's value where the paper gives none.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from pipeline.params.common import Strict
+
+# Paper, appendix table "Environment-specific MAPEX hyperparameters": (epochs, beta, omega_max).
+PAPER_ENV_SETTINGS: dict[str, tuple[int, float, float]] = {
+    "mo-ant-2obj-v5": (20, 0.5, 1.0),
+    "mo-hopper-2obj-v5": (10, 0.1, 20.0),
+    "mo-swimmer-v5": (10, 1.0, 20.0),
+    "mo-walker2d-v5": (20, 0.5, 20.0),
+    "mo-halfcheetah-v5": (20, 1.0, 1.0),
+}
+
+
+class ExtractParams(Strict):
+    iterations: int = Field(1200, ge=0, description="children to extract, one per iteration (paper: 1,200)")
+    child_buffer_size: int = Field(200_000, gt=0, description="rows of each child's hybrid buffer (paper: 200,000)")
+    eval_episodes: int = Field(5, gt=0, description="evaluation episodes per policy (paper: 5)")
+    warmup_steps: int = Field(1000, ge=0, description="gradient steps regressing onto the mean parent action (paper: 1,000)")
+    warmup_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the warm-up (paper: 3e-4)")
+    warmup_batch_size: int = Field(256, gt=0, description="minibatch of the warm-up (paper: 256)")
+    epochs: int | None = Field(None, ge=0, description="passes over the hybrid buffer; null = the paper's value for env.id")
+    beta: float | None = Field(None, gt=0, description="AWR temperature; null = the paper's value for env.id")
+    omega_max: float | None = Field(None, gt=0, description="clip of the AWR weight; null = the paper's value for env.id")
+    lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the weighted regression (precursor: 3e-4)")
+    batch_size: int = Field(256, gt=0, description="minibatch of the weighted regression (precursor: 256)")
+    max_grad_norm: float | None = Field(None, gt=0, description="clip the child's gradient norm (precursor: 1.0); null = off")
+    hidden_sizes: list[int] = Field([256, 256], min_length=1, description="hidden widths of each child policy")
+    weight_norm: Literal["l2", "l1"] = Field("l2", description="target weight = centroid / its L2 norm (paper) or L1 sum (precursor)")
+    advantage_recompute: Literal["every_step", "once"] = Field(
+        "every_step", description="Q(s, pi_new(s)) at every step (Algorithm 1) or once after warm-up (precursor)"
+    )
+    advantage_norm: Literal["none", "zscore", "objective_range"] = Field(
+        "none",
+        description="none (paper); zscore of A_mixed (precursor); objective_range: each A_m divided by objective m's population range",
+    )
+    critics: Literal["joint", "posthoc"] = Field("joint", description="critics trained with the specialists, or fitted offline")
+    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+
+    def resolved(self, env_id: str) -> "ExtractParams":
+        """A copy with epochs, beta and omega_max filled from the paper's table for `env_id`."""
+        defaults = PAPER_ENV_SETTINGS.get(env_id)
+        missing = [k for k in ("epochs", "beta", "omega_max") if getattr(self, k) is None]
+        if missing and defaults is None:
+            raise ValueError(
+                f"extract.{missing[0]} is null but env {env_id!r} has no paper preset; set it explicitly "
+                f"(presets exist for {sorted(PAPER_ENV_SETTINGS)})"
+            )
+        fill = dict(zip(("epochs", "beta", "omega_max"), defaults or (None, None, None)))
+        return self.model_copy(update={k: fill[k] for k in missing})
