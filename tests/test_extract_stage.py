@@ -1,0 +1,167 @@
+"""The extract stage end to end through the real `mapex` command, including kill-and-resume."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pipeline.population import load_population
+from pipeline.resume import FORMAT as RESUME_FORMAT
+
+ROOT = Path(__file__).resolve().parents[1]
+
+TINY = {
+    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0]},
+    "seeds": [0],
+    "objectives": [0, 1],
+    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [32, 32]},
+    "extract": {
+        "iterations": 3,
+        "child_buffer_size": 200,
+        "eval_episodes": 2,
+        "warmup_steps": 20,
+        "warmup_batch_size": 32,
+        "epochs": 1,
+        "beta": 1.0,
+        "omega_max": 1.0,
+        "batch_size": 32,
+        "hidden_sizes": [16, 16],
+    },
+}
+
+
+def mapex(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=cwd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+def write_params(path: Path, **extract_updates) -> Path:
+    p = {**TINY, "extract": {**TINY["extract"], **extract_updates}}
+    path.write_text(yaml.safe_dump(p))
+    return path
+
+
+@pytest.fixture(scope="module")
+def specialists(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("specs")
+    params = write_params(root / "params.yaml")
+    for k in (0, 1):
+        r = mapex("train-specialist", "--objective", str(k), "--out", str(root / f"obj{k}"), "--params", str(params), cwd=root)
+        assert r.returncode == 0, r.stderr
+    return root
+
+
+def extract_cmd(specialists: Path, out: Path, params: Path, resume: Path, variant: str = "mapex") -> list[str]:
+    return ["extract", "--seed", "0", "--variant", variant, "--specialists", str(specialists), "--out", str(out),
+            "--resume-dir", str(resume), "--params", str(params)]
+
+
+def test_extract_end_to_end_population_and_history(specialists, tmp_path):
+    params = write_params(tmp_path / "params.yaml")
+    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, tmp_path / "resume"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members, meta = load_population(tmp_path / "out" / "population.pt")
+    assert [m.origin for m in members] == ["specialist", "specialist", "child", "child", "child"]
+    assert [m.iteration for m in members] == [0, 0, 1, 2, 3]
+    assert meta["env_id"] == "mo-halfcheetah-v5" and meta["n_objectives"] == 2
+    samples = [m.env_samples for m in members]
+    assert samples == sorted(samples) and samples[0] == 2 * 40  # 2 episodes capped at 40 steps
+    for i, m in enumerate(members[2:], start=2):
+        assert len(m.parents) == 2 and all(0 <= p < i for p in m.parents)
+        assert np.linalg.norm(m.target_weight) == pytest.approx(1.0)
+        assert len(m.returns) == 2 and m.eval_episodes == 2
+    lines = (tmp_path / "out" / "history.csv").read_text().splitlines()
+    assert lines[0] == "iteration,population,front_size,hypervolume,env_samples"
+    assert len(lines) == 1 + 4
+    assert not (tmp_path / "resume" / "extract" / "mapex" / "seed0.pt").exists()  # cleaned up when done
+
+
+def _population_equal(a: Path, b: Path) -> None:
+    ma, meta_a = load_population(a)
+    mb, meta_b = load_population(b)
+    assert meta_a == meta_b
+    assert len(ma) == len(mb)
+    for x, y in zip(ma, mb):
+        assert (x.returns, x.parents, x.target_weight, x.env_samples) == (y.returns, y.parents, y.target_weight, y.env_samples)
+        for k in x.actor:
+            assert torch.equal(x.actor[k], y.actor[k]), k
+
+
+def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
+    params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200)
+    # uninterrupted reference run
+    r = mapex(*extract_cmd(specialists, tmp_path / "ref", params, tmp_path / "resume_ref"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    # run again, SIGKILL it as soon as its first iteration is checkpointed
+    resume = tmp_path / "resume"
+    state_file = resume / "extract" / "mapex" / "seed0.pt"
+    cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, resume)]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not state_file.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert state_file.exists(), "the run ended before it could be killed mid-way"
+    saved = torch.load(state_file, weights_only=True)
+    assert saved["format"] == RESUME_FORMAT
+    done = len(saved["state"]["members"]) - 2
+    assert 1 <= done < 8
+    assert not (tmp_path / "out" / "population.pt").exists()  # nothing final written by the killed run
+    # rerun: resumes from the checkpoint and ends with the same artifacts
+    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, resume), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _population_equal(tmp_path / "ref" / "population.pt", tmp_path / "out" / "population.pt")
+    assert (tmp_path / "ref" / "history.csv").read_text() == (tmp_path / "out" / "history.csv").read_text()
+
+
+def test_changed_params_start_over_instead_of_resuming(specialists, tmp_path):
+    from dataclasses import asdict
+
+    from pipeline.resume import load_resume, save_resume
+
+    state = tmp_path / "s.pt"
+    save_resume(state, "fingerprint-a", {"members": [], "history": []})
+    assert load_resume(state, "fingerprint-a") == {"members": [], "history": []}
+    assert load_resume(state, "fingerprint-b") is None
+    # end to end: a finished run's state planted as the checkpoint of a run with another beta
+    params_a = write_params(tmp_path / "a.yaml", beta=1.0)
+    r = mapex(*extract_cmd(specialists, tmp_path / "a", params_a, tmp_path / "resume_a"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members_a, _ = load_population(tmp_path / "a" / "population.pt")
+    planted = tmp_path / "resume_b" / "extract" / "mapex" / "seed0.pt"
+    save_resume(planted, "stale", {"members": [asdict(m) for m in members_a], "history": []})
+    params_b = write_params(tmp_path / "b.yaml", beta=0.3)
+    r = mapex(*extract_cmd(specialists, tmp_path / "b", params_b, tmp_path / "resume_b"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members_b, meta_b = load_population(tmp_path / "b" / "population.pt")
+    assert meta_b["params"]["extract"]["beta"] == 0.3
+    assert len(members_b) == len(members_a)
+    # the children were retrained (a resumed stale run would have copied a's children)
+    assert not torch.equal(members_a[-1].actor["net.0.weight"], members_b[-1].actor["net.0.weight"])
+
+
+def test_warmup_only_variant_and_bad_inputs(specialists, tmp_path):
+    params = write_params(tmp_path / "params.yaml")
+    r = mapex(*extract_cmd(specialists, tmp_path / "w", params, tmp_path / "r", variant="warmup_only"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _, meta = load_population(tmp_path / "w" / "population.pt")
+    assert meta["params"]["extract"]["epochs"] == 0 and meta["variant"] == "warmup_only"
+    # missing specialist directory: the file is named, nothing is written
+    r = mapex(*extract_cmd(tmp_path / "nowhere", tmp_path / "x", params, tmp_path / "r"), cwd=tmp_path)
+    assert r.returncode == 2
+    assert "nowhere/obj0/policy.pt" in r.stderr and "not found" in r.stderr
+    assert not (tmp_path / "x").exists()
+    # a bad param value: key, value and expectation named
+    bad = write_params(tmp_path / "bad.yaml", beta=-1)
+    r = mapex(*extract_cmd(specialists, tmp_path / "y", bad, tmp_path / "r"), cwd=tmp_path)
+    assert r.returncode == 2 and "extract.beta = -1" in r.stderr and "greater than 0" in r.stderr
+    assert not (tmp_path / "y").exists()
