@@ -3,7 +3,7 @@
 population.pt (format "mapex.population", version 1), loadable with torch.load(weights_only=True):
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
-              objective_names, reference_point, params, variant
+              reference_point, params, variant
     members:  list, in the order policies joined the population (index = policy id):
         origin         "specialist" or "child"
         objective      the specialist's objective (None for a child)

@@ -23,5 +23,7 @@ def select_device(choice: str) -> torch.device:
     if choice == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if choice == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device = 'cuda' but no CUDA device is available; use 'auto' or 'cpu'")
+        from pipeline.params import ParamsError
+
+        raise ParamsError("device = 'cuda' but no CUDA device is available; use 'auto' or 'cpu'")
     return torch.device(choice)

@@ -8,6 +8,8 @@ from stages.extract import extract
 from stages.critic_fidelity import critic_fidelity
 from stages.fit_critics import fit_critics
 from stages.train_specialist import train_specialist
+from stages.evaluate import evaluate
+from stages.report import report
 
 app = typer.Typer(
     help="MAPEX: extract Pareto fronts of continuous-control policies from single-objective specialists.\n\n"
@@ -29,6 +31,8 @@ app.command("train-specialist")(train_specialist)
 app.command("fit-critics")(fit_critics)
 app.command("critic-fidelity")(critic_fidelity)
 app.command("extract")(extract)
+app.command("evaluate")(evaluate)
+app.command("report")(report)
 
 
 if __name__ == "__main__":

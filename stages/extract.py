@@ -12,7 +12,7 @@ import typer
 from pipeline.artifacts import ArtifactError, write_text_atomic
 from pipeline.buffer import load_buffer
 from pipeline.checkpoint import check_matches, load_critics, load_policy
-from pipeline.envs import EnvError, env_spec, make_env, objective_names
+from pipeline.envs import EnvError, env_spec, make_env
 from pipeline.evaluation import eval_seeds, evaluate_policy
 from pipeline.extraction import AdvantageConfig, make_child
 from pipeline.pareto import hypervolume, pareto_mask
@@ -127,7 +127,7 @@ def extract(
     device = select_device(cfg.device)
     actors = [a.to(device) for a in actors]
     critics = [c.to(device) for c in critics]
-    config = {"env": env_p.model_dump(), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
+    config = {"env": env_p.model_dump(exclude={"objective_names"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
     fp = fingerprint(config, files)
     resume_path = resume_dir / "extract" / variant / f"seed{seed}.pt"
     state = load_resume(resume_path, fp)
@@ -177,7 +177,6 @@ def extract(
         "action_high": list(spec.action_high),
         "seed": seed,
         "variant": variant,
-        "objective_names": objective_names(env_p.id, spec.n_objectives, env_p.objective_names),
         "reference_point": list(ref),
         "params": config,
     }

@@ -25,6 +25,7 @@ KNOWN_SECTIONS = (
     "objectives",
     "train_specialist",
     "fit_critics",
+    "critic_fidelity",
     "extract",
     "evaluate",
     "report",

@@ -1,0 +1,26 @@
+"""Section `report`: how the report stage draws its figures."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from pipeline.params.common import Strict
+
+
+class ReportParams(Strict):
+    dpi: int = Field(120, ge=50, le=600, description="resolution of the raster figures")
+    formats: list[Literal["png", "svg", "pdf"]] = Field(
+        ["png"], min_length=1, description="figure file formats; png is required (report.md embeds it)"
+    )
+    figure_width: float = Field(11.0, gt=2, le=40, description="width of a figure in inches")
+
+    @field_validator("formats")
+    @classmethod
+    def _png_and_unique(cls, v: list[str]) -> list[str]:
+        if "png" not in v:
+            raise ValueError(f"must include 'png' (report.md embeds the PNG figures), got {v}")
+        if len(set(v)) != len(v):
+            raise ValueError(f"entries must be unique, got {v}")
+        return v

@@ -1,0 +1,56 @@
+"""Stage critic_fidelity: score a critics.pt (normally the joint one) against its buffer's returns."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Optional
+
+import typer
+
+from pipeline.artifacts import ArtifactError, write_text_atomic
+from pipeline.checkpoint import check_matches, load_critics
+from pipeline.fidelity import score_critics
+from pipeline.params import load_params, section
+from pipeline.params.critic_fidelity import CriticFidelityParams
+from stages.common import PARAMS_OPTION, reports_errors
+from stages.fit_critics import fidelity_json, load_specialist
+
+# Which params section of a critics file's meta holds the discount it was trained with.
+_GAMMA_SECTION = {"joint": "train_specialist", "posthoc": "fit_critics"}
+
+
+def trained_gamma(path: Path, meta: dict[str, Any]) -> float:
+    """The discount a critics artifact was trained with, read from its own metadata."""
+    name = _GAMMA_SECTION.get(meta.get("source"))
+    gamma = (meta.get("params") or {}).get(name, {}).get("gamma") if name else None
+    if not isinstance(gamma, (int, float)):
+        raise ArtifactError(f"{path}: metadata does not record the critics' discount (source {meta.get('source')!r})")
+    return float(gamma)
+
+
+@reports_errors
+def critic_fidelity(
+    objective: int = typer.Option(..., help="k: the specialist whose buffer D_k the critics were trained on"),
+    specialist: Path = typer.Option(..., help="specialist directory holding buffer.zarr and policy.pt"),
+    critics: Optional[Path] = typer.Option(None, help="critics file to score (default: SPECIALIST/critics.pt, the joint critics)"),
+    out: Path = typer.Option(..., help="output JSON file (DVC metrics)"),
+    params: Path = PARAMS_OPTION,
+) -> None:
+    """Score critics Q^(k)_m against discounted Monte-Carlo returns of their own buffer D_k.
+
+    Params: section `critic_fidelity` (the same rule `fit-critics` applies to post-hoc
+    critics, so joint and post-hoc scores compare like with like). The discount is the one
+    the critics were trained with, read from their metadata. For each covered objective m,
+    OUT holds the Pearson correlation and normalised error mean|Q - G| / mean|G| of
+    Q^(k)_m(s, pi_k(s)) against the return G_m over the buffer's last episodes.
+    """
+    fid = section(load_params(params), "critic_fidelity", CriticFidelityParams, params)
+    spec = load_specialist(specialist, objective)
+    critics_path = critics if critics is not None else specialist / "critics.pt"
+    online, _, meta = load_critics(critics_path)
+    check_matches(critics_path, meta, spec.attrs, str(spec.buffer_path))
+    if meta.get("buffer_objective") != objective:
+        raise ArtifactError(f"{critics_path}: critics of buffer objective {meta.get('buffer_objective')!r}, expected {objective}")
+    gamma = trained_gamma(critics_path, meta)
+    report = score_critics(spec.data, online, meta["objectives"], spec.actor, gamma, fid.episodes, fid.tail_tolerance)
+    write_text_atomic(out, fidelity_json(report, objective))
