@@ -148,6 +148,9 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
         raise ArtifactError(f"{path}: format_version {attrs.get('format_version')!r}, expected {FORMAT_VERSION}")
     if not attrs.get("complete"):
         raise ArtifactError(f"{path}: buffer was not completely written")
+    missing = [k for k in ("n_transitions", "obs_dim", "act_dim", "n_objectives") if k not in attrs]
+    if missing:
+        raise ArtifactError(f"{path}: attribute(s) {missing} missing")
     n = attrs["n_transitions"]
     data = {}
     for name in FIELDS:

@@ -63,12 +63,14 @@ class CriticEnsemble(nn.Module):
         """Q of every member at the same (obs (B, o), action (B, a)) -> (E, B)."""
         x = torch.cat([obs, action], dim=-1)
         # (B, d) @ (E, d, h) broadcasts to (E, B, h): one batched matmul for every member.
-        h = torch.relu(torch.matmul(x, self.weights[0]) + self.biases[0])
+        # ReLU in place saves an allocation per layer; the matmuls that produce h do not keep
+        # it for their backward, so autograd allows it.
+        h = torch.relu_(torch.matmul(x, self.weights[0]) + self.biases[0])
         n = len(self.weights)
         for i in range(1, n):
             h = torch.baddbmm(self.biases[i], h, self.weights[i])
             if i < n - 1:
-                h = torch.relu(h)
+                h = torch.relu_(h)
         return h.squeeze(-1)
 
     def member(self, obs: torch.Tensor, action: torch.Tensor, e: int) -> torch.Tensor:
@@ -78,7 +80,7 @@ class CriticEnsemble(nn.Module):
         for i in range(n):
             h = torch.addmm(self.biases[i][e], h, self.weights[i][e])
             if i < n - 1:
-                h = torch.relu(h)
+                h = torch.relu_(h)
         return h.squeeze(-1)
 
     def twin_min(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:

@@ -105,9 +105,15 @@ def td3_update(
     state.critic_opt.step()
     metrics = {"critic_loss": loss_q.detach()}
     if update_actor:
-        loss_pi = actor_loss(state.actor, state.critic, batch.obs, member=2 * state.primary)
-        state.actor_opt.zero_grad(set_to_none=True)
-        loss_pi.backward()
+        # The actor step needs dQ/da only: with the critic frozen, backward skips the critic
+        # weight gradients (which the actor optimizer would never use anyway).
+        state.critic.requires_grad_(False)
+        try:
+            loss_pi = actor_loss(state.actor, state.critic, batch.obs, member=2 * state.primary)
+            state.actor_opt.zero_grad(set_to_none=True)
+            loss_pi.backward()
+        finally:
+            state.critic.requires_grad_(True)
         state.actor_opt.step()
         polyak_update(state.critic, state.critic_target, tau)
         polyak_update(state.actor, state.actor_target, tau)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+
+import torch
 import typer
 
 from stages.extract import extract
@@ -26,7 +29,12 @@ def main() -> None:
     """MAPEX: extract Pareto fronts of continuous-control policies from single-objective specialists.
 
     Each subcommand is one DVC stage (see dvc.yaml); hyperparameters come from params.yaml.
+    Torch uses MAPEX_TORCH_THREADS CPU threads (default 1; see README, "Threads").
     """
+    # One thread by default: at the quickstart's 64-unit widths a second thread only adds
+    # synchronisation (measured 6x slower on a busy 2-core machine), and a fixed count keeps
+    # CPU results bitwise reproducible across machines with different core counts.
+    torch.set_num_threads(int(os.environ.get("MAPEX_TORCH_THREADS", "1")))
 app.command("train-specialist")(train_specialist)
 app.command("fit-critics")(fit_critics)
 app.command("critic-fidelity")(critic_fidelity)

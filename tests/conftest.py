@@ -1,0 +1,128 @@
+"""Fixtures shared by the whole test suite.
+
+- `write_params(directory, overrides)`: writes a params.yaml built from TINY_PARAMS (a preset
+  small enough that a specialist trains in a few seconds) with `overrides` merged in.
+- `tiny_params`: that file, unmodified, in the test's tmp_path.
+- `mapex(*args, cwd=...)`: runs the real `mapex` console command in a subprocess and returns
+  the CompletedProcess (returncode, stdout, stderr as text).
+- `cli(*args)`: invokes the same typer app in this process (no interpreter start-up, which
+  costs seconds here); returns a click Result (exit_code, stdout, stderr). Good for checks of
+  argument and params handling; use `mapex` where a separate process matters.
+- hypothesis runs without its per-example deadline (profile "mapex").
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import pytest
+import yaml
+from hypothesis import settings
+
+# No per-example deadline: this machine is shared, and a loaded moment would fail an example
+# that is merely slow, not wrong.
+settings.register_profile("mapex", deadline=None)
+settings.load_profile("mapex")
+
+REPO = Path(__file__).resolve().parents[1]
+
+# Tiny preset. HalfCheetah never terminates, so with a 100-step cap every episode is cut by
+# the cap: 350 steps = 3 truncated episodes + 1 still running. Updates start at step 260
+# (90 updates, 45 actor updates), so a run takes a few seconds.
+TINY_PARAMS: dict[str, Any] = {
+    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 100},
+    "seeds": [0],
+    "objectives": [0, 1],
+    "train_specialist": {
+        "total_steps": 350,
+        "learning_starts": 260,
+        "buffer_size": 1000,
+        "batch_size": 64,
+        "hidden_sizes": [32, 32],
+        "secondary_critics": True,
+        "device": "cpu",
+    },
+}
+
+DELETE = object()  # an override value that removes the key from the preset
+
+
+def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """A deep copy of `base` with `overrides` merged in, section by section (DELETE removes a key)."""
+    out = copy.deepcopy(base)
+    for key, value in (overrides or {}).items():
+        if value is DELETE:
+            out.pop(key, None)
+        elif isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _write_params(directory: Path, overrides: dict[str, Any] | None = None, name: str = "params.yaml") -> Path:
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / name
+    path.write_text(yaml.safe_dump(merge(TINY_PARAMS, overrides), sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="session")
+def write_params() -> Callable[..., Path]:
+    """Factory: write_params(directory, overrides=None, name="params.yaml") -> path of the file."""
+    return _write_params
+
+
+@pytest.fixture
+def tiny_params(tmp_path: Path) -> Path:
+    """A params.yaml holding the tiny preset, in this test's tmp_path."""
+    return _write_params(tmp_path)
+
+
+def _mapex_command() -> list[str]:
+    # The console script installed beside this interpreter; `python -m stages.cli` if absent.
+    script = Path(sys.executable).with_name("mapex")
+    return [str(script)] if script.is_file() else [sys.executable, "-m", "stages.cli"]
+
+
+def _run_mapex(*args: str | Path, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
+    env = os.environ.copy()
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    env.setdefault("MUJOCO_GL", "egl")
+    # One torch thread unless the caller chose otherwise: the test machine is small and
+    # shared, and runs compared for bitwise equality must use the same thread count.
+    env.setdefault("OMP_NUM_THREADS", "1")
+    return subprocess.run(
+        [*_mapex_command(), *map(str, args)],
+        cwd=cwd,  # MuJoCo writes MUJOCO_LOG.TXT into the working directory
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+def _invoke_cli(*args: str | Path):
+    from typer.testing import CliRunner
+
+    from stages.cli import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="session")
+def cli() -> Callable[..., Any]:
+    """In-process runner: cli("train-specialist", "--objective", 0, ...) -> click Result."""
+    return _invoke_cli
+
+
+@pytest.fixture(scope="session")
+def mapex() -> Callable[..., subprocess.CompletedProcess]:
+    """Runner: mapex("train-specialist", "--objective", 0, ..., cwd=dir) -> CompletedProcess."""
+    return _run_mapex

@@ -1,0 +1,89 @@
+"""Env building: the paper's five envs, the episode cap, and envs that MAPEX cannot use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.envs import EnvError, env_spec, make_env, objective_names
+
+# (id, obs_dim, act_dim): the paper's v5 MuJoCo envs, all with 2 objectives.
+PAPER_ENVS = [
+    ("mo-ant-2obj-v5", 105, 8),
+    ("mo-hopper-2obj-v5", 11, 3),
+    ("mo-swimmer-v5", 8, 2),
+    ("mo-walker2d-v5", 17, 6),
+    ("mo-halfcheetah-v5", 17, 6),
+]
+
+
+@pytest.mark.parametrize(("env_id", "obs_dim", "act_dim"), PAPER_ENVS)
+def test_paper_envs_build_with_their_dimensions(env_id, obs_dim, act_dim):
+    env = make_env(env_id, max_episode_steps=37)
+    try:
+        spec = env_spec(env, env_id, 37)
+        assert (spec.obs_dim, spec.act_dim, spec.n_objectives) == (obs_dim, act_dim, 2)
+        assert len(spec.action_low) == len(spec.action_high) == act_dim
+        assert all(lo < hi for lo, hi in zip(spec.action_low, spec.action_high))
+        assert spec.max_episode_steps == 37 and spec.env_id == env_id
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == (obs_dim,)
+        _, reward, *_ = env.step(env.action_space.sample())
+        assert np.asarray(reward).shape == (2,)
+        assert len(objective_names(env_id, 2)) == 2
+    finally:
+        env.close()
+
+
+def test_episode_cap_truncates_at_exactly_the_cap():
+    # Swimmer never terminates, so the only way an episode ends is the cap.
+    cap = 7
+    env = make_env("mo-swimmer-v5", max_episode_steps=cap)
+    try:
+        env.reset(seed=0)
+        flags = [env.step(np.zeros(2, np.float32))[2:4] for _ in range(cap)]
+        assert [tr for _, tr in flags] == [False] * (cap - 1) + [True]
+        assert not any(te for te, _ in flags)
+    finally:
+        env.close()
+
+
+def test_cap_replaces_the_registered_limit():
+    # The registered limit is 1000; a cap above it must not be cut short by it.
+    env = make_env("mo-swimmer-v5", max_episode_steps=1200)
+    try:
+        assert env.spec.max_episode_steps == 1200
+    finally:
+        env.close()
+
+
+def test_unknown_id_is_an_env_error():
+    with pytest.raises(EnvError, match=r"env.id = 'mo-nonexistent-v9': cannot build it"):
+        make_env("mo-nonexistent-v9", 10)
+
+
+def test_discrete_action_env_is_rejected():
+    with pytest.raises(EnvError) as info:
+        make_env("deep-sea-treasure-v0", 10)
+    msg = str(info.value)
+    assert "'deep-sea-treasure-v0'" in msg
+    assert "Discrete" in msg and "continuous Box" in msg
+
+
+def test_scalar_reward_env_is_rejected():
+    # A plain gymnasium id builds through mo_gymnasium.make but has no reward_space.
+    with pytest.raises(EnvError) as info:
+        make_env("Pendulum-v1", 10)
+    msg = str(info.value)
+    assert "'Pendulum-v1'" in msg
+    assert "multi-objective" in msg
+
+
+def test_objective_names_override_fallback_and_mismatch():
+    assert objective_names("mo-hopper-2obj-v5", 2) == ["x velocity", "jump height"]
+    assert objective_names("mo-hopper-2obj-v5", 2, ["a", "b"]) == ["a", "b"]
+    # Unknown env, or a known env with another objective count: generic names.
+    assert objective_names("mo-foo-v0", 3) == ["objective 0", "objective 1", "objective 2"]
+    assert objective_names("mo-hopper-2obj-v5", 3)[2] == "objective 2"
+    with pytest.raises(EnvError, match="3 names"):
+        objective_names("mo-hopper-2obj-v5", 2, ["a", "b", "c"])

@@ -1,0 +1,182 @@
+"""params.yaml validation: defaults, rejected keys and values, and the wording of the errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.train_specialist import TrainSpecialistParams
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def validate_ts(values: dict) -> TrainSpecialistParams:
+    return section({"train_specialist": values}, "train_specialist", TrainSpecialistParams)
+
+
+def test_defaults_are_the_papers_td3_table():
+    p = TrainSpecialistParams()
+    # Appendix table "PDERL and TD3 hyperparameters".
+    assert p.learning_starts == 25_000
+    assert p.gamma == 0.99
+    assert p.tau == 0.005
+    assert p.hidden_sizes == [256, 256]
+    assert p.actor_lr == 3e-4 and p.critic_lr == 3e-4
+    assert p.batch_size == 256
+    assert p.buffer_size == 1_000_000
+    assert p.exploration_noise == 0.1
+    assert p.policy_noise == 0.2
+    assert p.noise_clip == 0.5
+    assert p.policy_freq == 2
+    assert p.total_steps == 2_000_000
+    assert EnvParams().max_episode_steps == 750
+
+
+def test_missing_section_takes_the_defaults():
+    assert section({}, "train_specialist", TrainSpecialistParams) == TrainSpecialistParams()
+    assert section({"train_specialist": None}, "train_specialist", TrainSpecialistParams) == TrainSpecialistParams()
+
+
+def test_unknown_key_is_rejected_and_named():
+    with pytest.raises(ParamsError) as info:
+        validate_ts({"gama": 0.9})
+    msg = str(info.value)
+    assert "train_specialist.gama" in msg
+    assert "unknown key" in msg
+    assert "0.9" in msg
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "expected"),
+    [
+        ("gamma", 1.5, "less than 1"),
+        ("tau", 0.0, "greater than 0"),
+        ("batch_size", -3, "greater than 0"),
+        ("policy_freq", 0, "greater than or equal to 1"),
+        ("batch_size", "big", "valid integer"),
+        ("device", "tpu", "'auto', 'cpu' or 'cuda'"),
+    ],
+)
+def test_bad_value_message_names_key_value_and_expectation(key, value, expected):
+    with pytest.raises(ParamsError) as info:
+        validate_ts({key: value})
+    msg = str(info.value)
+    assert f"train_specialist.{key} = {value!r}" in msg
+    assert expected in msg
+    assert msg.startswith("params.yaml: invalid params")
+
+
+def test_every_failing_key_is_reported():
+    with pytest.raises(ParamsError) as info:
+        validate_ts({"gamma": 2.0, "tau": -1.0})
+    msg = str(info.value)
+    assert "train_specialist.gamma = 2.0" in msg
+    assert "train_specialist.tau = -1.0" in msg
+
+
+def test_learning_starts_below_batch_size_is_rejected():
+    with pytest.raises(ParamsError, match=r"learning_starts \(100\) must be >= batch_size \(256\)"):
+        validate_ts({"learning_starts": 100})
+    # Equal is fine.
+    assert validate_ts({"learning_starts": 256, "total_steps": 1000}).learning_starts == 256
+
+
+def test_learning_starts_must_leave_steps_to_train():
+    with pytest.raises(ParamsError, match=r"learning_starts \(500\) must be < total_steps \(500\)"):
+        validate_ts({"learning_starts": 500, "total_steps": 500})
+
+
+def test_non_positive_hidden_size_is_rejected():
+    with pytest.raises(ParamsError, match="hidden_sizes must be positive"):
+        validate_ts({"hidden_sizes": [64, 0]})
+
+
+def test_params_are_frozen():
+    p = TrainSpecialistParams()
+    with pytest.raises(Exception):
+        p.gamma = 0.5  # type: ignore[misc]
+
+
+@given(st.floats(allow_nan=False, allow_infinity=False, min_value=-5, max_value=5))
+def test_gamma_accepted_exactly_on_its_range(gamma):
+    inside = 0 <= gamma < 1
+    if inside:
+        assert validate_ts({"gamma": gamma}).gamma == gamma
+    else:
+        with pytest.raises(ParamsError, match="train_specialist.gamma"):
+            validate_ts({"gamma": gamma})
+
+
+@given(st.integers(1, 400), st.integers(1, 400))
+def test_cross_field_rule_is_exactly_learning_starts_ge_batch_size(learning_starts, batch_size):
+    values = {"learning_starts": learning_starts, "batch_size": batch_size, "total_steps": 1000}
+    if learning_starts >= batch_size:
+        assert validate_ts(values).batch_size == batch_size
+    else:
+        with pytest.raises(ParamsError, match="must be >= batch_size"):
+            validate_ts(values)
+
+
+# --- the file level: load_params ----------------------------------------------------------
+
+
+def test_unknown_top_level_section_is_rejected(tmp_path):
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump({"env": {"id": "mo-swimmer-v5"}, "trian_specialist": {"total_steps": 5}}))
+    with pytest.raises(ParamsError) as info:
+        load_params(path)
+    msg = str(info.value)
+    assert str(path) in msg
+    assert "trian_specialist" in msg
+    assert "train_specialist" in msg  # the list of what is expected
+
+
+def test_missing_file_invalid_yaml_and_non_mapping(tmp_path):
+    with pytest.raises(ParamsError, match="not found"):
+        load_params(tmp_path / "absent.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("env: [unclosed\n")
+    with pytest.raises(ParamsError, match="not valid YAML"):
+        load_params(bad)
+    bad.write_text("- 1\n- 2\n")
+    with pytest.raises(ParamsError, match="expected a mapping"):
+        load_params(bad)
+
+
+def test_section_error_names_the_params_file(tmp_path, write_params):
+    path = write_params(tmp_path, {"train_specialist": {"gamma": 1.5}})
+    raw = load_params(path)
+    with pytest.raises(ParamsError) as info:
+        section(raw, "train_specialist", TrainSpecialistParams, path)
+    assert str(info.value).startswith(f"{path}: invalid params")
+
+
+def test_run_params_reject_duplicates_and_negatives():
+    assert section({"seeds": [3, 1], "objectives": [1]}, "", RunParams) == RunParams(seeds=[3, 1], objectives=[1])
+    with pytest.raises(ParamsError, match=r"seeds = \[1, 1\].*unique"):
+        section({"seeds": [1, 1]}, "", RunParams)
+    with pytest.raises(ParamsError, match=r"objectives = \[-1\].*>= 0"):
+        section({"objectives": [-1]}, "", RunParams)
+    with pytest.raises(ParamsError, match="seeds"):
+        section({"seeds": []}, "", RunParams)
+
+
+def test_tiny_preset_validates(tiny_params):
+    raw = load_params(tiny_params)
+    cfg = section(raw, "train_specialist", TrainSpecialistParams, tiny_params)
+    assert cfg.total_steps == 350 and cfg.hidden_sizes == [32, 32]
+    assert section(raw, "env", EnvParams, tiny_params).max_episode_steps == 100
+
+
+def test_repository_params_file_validates():
+    path = REPO / "params.yaml"
+    raw = load_params(path)
+    section(raw, "env", EnvParams, path)
+    section(raw, "", RunParams, path)
+    cfg = section(raw, "train_specialist", TrainSpecialistParams, path)
+    assert cfg.learning_starts < cfg.total_steps
