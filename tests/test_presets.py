@@ -1,0 +1,50 @@
+"""The shipped params files (quickstart and the paper presets) validate and match the paper."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.params import EnvParams, RunParams, load_params, section
+from pipeline.params.critic_fidelity import CriticFidelityParams
+from pipeline.params.evaluate import EvaluateParams
+from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
+from pipeline.params.fit_critics import FitCriticsParams
+from pipeline.params.report import ReportParams
+from pipeline.params.train_specialist import TrainSpecialistParams
+
+ROOT = Path(__file__).resolve().parents[1]
+PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
+MODELS = {
+    "train_specialist": TrainSpecialistParams,
+    "fit_critics": FitCriticsParams,
+    "critic_fidelity": CriticFidelityParams,
+    "extract": ExtractParams,
+    "evaluate": EvaluateParams,
+    "report": ReportParams,
+}
+
+
+@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS], ids=lambda p: p.name)
+def test_params_file_validates(path):
+    raw = load_params(path)
+    env = section(raw, "env", EnvParams, path)
+    section(raw, "", RunParams, path)
+    for name, model in MODELS.items():
+        section(raw, name, model, path)
+    assert env.reference_point is not None and len(env.reference_point) == 2
+
+
+def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
+    assert {p.stem for p in PRESETS} == set(PAPER_ENV_SETTINGS)
+    for path in PRESETS:
+        raw = load_params(path)
+        env = section(raw, "env", EnvParams, path)
+        ex = section(raw, "extract", ExtractParams, path).resolved(env.id)
+        assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS[env.id]
+        assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
+        ts = section(raw, "train_specialist", TrainSpecialistParams, path)
+        assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
+        assert ts == TrainSpecialistParams(total_steps=ts.total_steps)  # everything else: the paper's TD3 table
+        assert env.max_episode_steps == 750
