@@ -12,6 +12,7 @@ import typer
 
 from pipeline.artifacts import ArtifactError, atomic_path
 from pipeline.envs import objective_names
+from pipeline.params import RunParams, section
 from pipeline.params.report import ReportParams
 from pipeline.report import Run, front_figure, history_figure, label, report_markdown, variants_in
 from stages.common import PARAMS_OPTION, read_params, reports_errors
@@ -34,8 +35,12 @@ def report(
     hypervolume history (hypervolume.png) and a Table-1-shaped metrics table (mean ± SEM across
     seeds). The folder is built beside OUT and renamed into place when complete.
     """
-    _, env_p, cfg = read_params(params, "report", ReportParams)
-    runs = load_runs(evaluated, extracted)
+    raw, env_p, cfg = read_params(params, "report", ReportParams)
+    seeds = section(raw, "", RunParams, params).seeds
+    # Only the seeds params.yaml names: folders of seeds dropped from the list may linger.
+    runs = [r for r in load_runs(evaluated, extracted) if r.seed in seeds]
+    if not runs:
+        raise ArtifactError(f"{evaluated}: no evaluated run for seeds {seeds}")
     if {r.metrics.get("env_id") for r in runs} != {env_p.id}:
         raise ArtifactError(f"{evaluated}: runs are for env(s) {sorted({str(r.metrics.get('env_id')) for r in runs})}, "
                             f"params env.id is {env_p.id!r}")
