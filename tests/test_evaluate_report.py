@@ -36,6 +36,7 @@ def write_params(directory: Path, env: dict | None = None, evaluate: dict | None
         "env": {"id": ENV_ID, "max_episode_steps": CAP, "reference_point": REF, **(env or {})},
         "evaluate": {"episodes": EPISODES, **(evaluate or {})},
         "report": {"dpi": 60},
+        "seeds": list(SEEDS),
     }
     data["env"] = {k: v for k, v in data["env"].items() if v is not None}
     path = directory / "params.yaml"
@@ -362,3 +363,13 @@ def test_report_with_one_variant_one_seed(runs, tmp_path):
     text = (tmp_path / "rep" / "report.md").read_text()
     assert "Cannot say whether" in text and "(one seed: no SEM)" in text
     assert sorted(p.name for p in (tmp_path / "rep").iterdir()) == ["front_seed1.png", "hypervolume.png", "report.md"]
+
+
+def test_report_ignores_seeds_params_does_not_list(runs, tmp_path):
+    params = yaml.safe_load((runs / "params.yaml").read_text())
+    params["seeds"] = [1]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    r = CliRunner().invoke(app, ["report", "--evaluated", str(runs / "evaluate"), "--extracted", str(runs / "extract"),
+                                 "--out", str(tmp_path / "rep"), "--params", str(tmp_path / "params.yaml")])
+    assert r.exit_code == 0, r.output
+    assert sorted(p.name for p in (tmp_path / "rep").glob("front_seed*.png")) == ["front_seed1.png"]
