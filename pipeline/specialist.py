@@ -40,7 +40,10 @@ class SpecialistResult:
 
 
 def covered_objectives(objective: int, n_objectives: int, secondary: bool) -> tuple[list[int], int]:
-    """Objectives the critic ensemble covers (primary first is not required) and the primary's index."""
+    """Objectives the critic ensemble covers, in member order, and the index of the primary in that list.
+
+    With secondary critics the ensemble covers every objective 0..n-1; without, only `objective`.
+    """
     if secondary:
         return list(range(n_objectives)), objective
     return [objective], 0
