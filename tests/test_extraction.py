@@ -233,3 +233,38 @@ def test_warm_up_regresses_onto_mean_parent_action():
     ex.warm_up(child, obs, target, 300, 3e-3, 64, np.random.default_rng(0))
     after = float(((child(obs) - target) ** 2).mean())
     assert after < 0.1 * before
+
+
+# ---------------------------------------------------------------- the non-dominated filter
+
+
+def test_pareto_mask_recovers_a_known_front():
+    """Points on the unit quarter circle are mutually non-dominated; each scaled by 0.3..0.95 is
+    dominated by its own original."""
+    from pipeline.pareto import pareto_mask
+
+    rng = np.random.default_rng(0)
+    angles = rng.uniform(0, np.pi / 2, 40)
+    front = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    dominated = front[:25] * rng.uniform(0.3, 0.95, (25, 1))
+    points = np.concatenate([dominated, front])
+    order = rng.permutation(len(points))
+    mask = pareto_mask(points[order])
+    assert mask.sum() == 40
+    np.testing.assert_array_equal(np.sort(order[mask]), np.arange(25, 65))
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.tuples(st.integers(-20, 20), st.integers(-20, 20)), min_size=1, max_size=30))
+def test_pareto_mask_properties(points):
+    from pipeline.pareto import pareto_mask
+
+    p = np.array(points, dtype=float)
+    mask = pareto_mask(p)
+    front = p[mask]
+    assert pareto_mask(front).all()  # idempotent
+    for col in range(2):  # the best point on each objective always survives (one of the ties)
+        best = p[:, col].max()
+        assert (front[:, col] == best).any()
+    for q in p[~mask]:  # every removed point is dominated by some survivor
+        assert any((f >= q).all() and (f > q).any() for f in front)
