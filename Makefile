@@ -22,7 +22,8 @@ install: $(BIN)/python
 	@# dependencies then come from the usual index together with the project's.
 	$(BIN)/pip install -q --no-index --no-deps "$(TORCH_SPEC)" 2>/dev/null \
 	  || $(BIN)/pip install -q --no-deps "$(TORCH_SPEC)" --index-url $(TORCH_INDEX)
-	$(BIN)/pip install -q "$(TORCH_SPEC)" -e ".[dev]" 2>&1 | grep -v "is ignored: it is neither" || true
+	$(BIN)/pip install -q "$(TORCH_SPEC)" -e ".[dev]" > $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install failed (log: $(VENV)/install.log)"; exit 1; }
 
 repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
@@ -32,6 +33,9 @@ test: install
 
 bench: install
 	$(BIN)/pip install -q -e ".[bench]"
+	$(BIN)/python benchmarks/bench_specialist.py
+	$(BIN)/python benchmarks/bench_fit_critics.py
+	$(BIN)/python benchmarks/bench_extract.py
 
 clean-venv:
 	rm -rf $(VENV)
