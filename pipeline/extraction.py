@@ -104,11 +104,20 @@ class Hybrid:
 
 
 def hybrid_counts(weight: np.ndarray, size: int, buffer_sizes: Sequence[int]) -> np.ndarray:
-    """Rows to draw from each buffer: size * w_k / sum(w), rounded, capped at the buffer's size."""
+    """Rows to draw from each buffer, in proportion w_k / sum(w) (paper Step 2).
+
+    If a buffer holds fewer rows than its share of `size`, the whole hybrid buffer shrinks so
+    the proportions still hold (capping one count alone would skew them towards the other
+    buffers). Counts are rounded independently, so the total can differ from the target by one.
+    """
     share = np.clip(weight, 0, None)
     share = share / share.sum() if share.sum() > 0 else np.full(len(weight), 1 / len(weight))
-    counts = np.floor(share * size + 0.5).astype(np.int64)
-    return np.minimum(counts, np.asarray(buffer_sizes, dtype=np.int64))
+    sizes = np.asarray(buffer_sizes, dtype=np.float64)
+    with np.errstate(divide="ignore", over="ignore"):
+        fits = np.where(share > 0, sizes / share, np.inf)
+    total = min(float(size), float(fits.min()))
+    counts = np.floor(share * total + 0.5).astype(np.int64)
+    return np.minimum(counts, sizes.astype(np.int64))
 
 
 def build_hybrid(
@@ -144,9 +153,13 @@ def mean_parent_action(parents: Sequence[Actor], obs: torch.Tensor, chunk: int =
     return torch.cat(out)
 
 
-def regression_step(actor: Actor, opt: torch.optim.Optimizer, obs, target, weight=None, max_grad_norm=None) -> torch.Tensor:
-    """One Adam step on mean_b weight_b * ||pi(s_b) - target_b||^2 (weight None = 1)."""
-    sq = ((actor(obs) - target) ** 2).sum(dim=-1)
+def regression_step(actor: Actor, opt: torch.optim.Optimizer, obs, target, weight=None, max_grad_norm=None, pred=None) -> torch.Tensor:
+    """One Adam step on mean_b weight_b * ||pi(s_b) - target_b||^2 (weight None = 1).
+
+    `pred` = actor(obs) if the caller already computed it (with grad), to avoid a second pass.
+    """
+    pred = actor(obs) if pred is None else pred
+    sq = ((pred - target) ** 2).sum(dim=-1)
     loss = (sq * weight).mean() if weight is not None else sq.mean()
     opt.zero_grad(set_to_none=True)
     loss.backward()
@@ -169,12 +182,22 @@ def warm_up(actor: Actor, obs: torch.Tensor, target: torch.Tensor, steps: int, l
 
 
 @torch.no_grad()
-def critic_values(critics: Sequence[CriticEnsemble], obs: torch.Tensor, action: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
+def critic_values(
+    critics: Sequence[CriticEnsemble], obs: torch.Tensor, action: torch.Tensor, origin: torch.Tensor, chunk: int = 65_536
+) -> torch.Tensor:
     """Q^(k)_m(s, a) for each row with k = the row's origin: (B, m), min over the twin heads.
 
     Each row is evaluated only by the critics trained on the buffer it came from
-    (paper, "Secondary Critics").
+    (paper, "Secondary Critics"). Rows are processed `chunk` at a time to bound memory.
     """
+    if len(obs) > chunk:
+        return torch.cat([critic_values(critics, obs[i : i + chunk], action[i : i + chunk], origin[i : i + chunk], chunk)
+                          for i in range(0, len(obs), chunk)])
+    if obs.is_cuda:
+        # On a GPU, evaluating every critic on every row and selecting costs little, while
+        # indexing by a boolean mask would make the host wait for the device at every step.
+        every = torch.stack([c.twin_min(obs, action).T for c in critics])  # (K, B, m)
+        return every.gather(0, origin.view(1, -1, 1).expand(1, -1, every.shape[2])).squeeze(0)
     m = critics[0].n_members // 2
     out = torch.empty(len(obs), m, device=obs.device)
     for k, critic in enumerate(critics):
@@ -188,7 +211,8 @@ def mixed_advantage(q_sa: torch.Tensor, q_pi: torch.Tensor, weight: torch.Tensor
     """A_mixed = w . (Q(s, a) - Q(s, pi_new(s))) per row (paper eqs. "mixed advantage").
 
     q_sa, q_pi: (B, m); weight: (m,); scale: (m,) objective ranges for norm="objective_range".
-    norm="zscore" standardises A_mixed over the rows given.
+    norm="zscore" standardises A_mixed over the rows given: the whole hybrid buffer when
+    Q(s, pi_new(s)) is computed once (the precursor code), each minibatch when recomputed.
     """
     adv = q_sa - q_pi
     if norm == "objective_range":
@@ -240,7 +264,8 @@ def advantage_weighted_regression(
     fixed = None
     if cfg.recompute == "once":
         with torch.no_grad():
-            q_pi_all = critic_values(critics, hybrid.obs, actor(hybrid.obs), hybrid.origin)
+            # pi_new(s) for every row, chunked and without grad (a "mean" over one policy)
+            q_pi_all = critic_values(critics, hybrid.obs, mean_parent_action([actor], hybrid.obs), hybrid.origin)
         fixed = awr_weight(mixed_advantage(q_sa_all, q_pi_all, weight, cfg.norm, scale), cfg.beta, cfg.omega_max)
     # Accumulated as tensors so a GPU run does not synchronise at every step.
     omega_sum = torch.zeros((), device=hybrid.obs.device)
@@ -251,13 +276,13 @@ def advantage_weighted_regression(
         for start in range(0, n, cfg.batch_size):
             idx = perm[start : start + cfg.batch_size]
             obs, act = hybrid.obs[idx], hybrid.action[idx]
+            pred = actor(obs)
             if fixed is not None:
                 omega = fixed[idx]
             else:
-                with torch.no_grad():
-                    q_pi = critic_values(critics, obs, actor(obs), hybrid.origin[idx])
+                q_pi = critic_values(critics, obs, pred.detach(), hybrid.origin[idx])
                 omega = awr_weight(mixed_advantage(q_sa_all[idx], q_pi, weight, cfg.norm, scale), cfg.beta, cfg.omega_max)
-            regression_step(actor, opt, obs, act, omega, cfg.max_grad_norm)
+            regression_step(actor, opt, obs, act, omega, cfg.max_grad_norm, pred=pred)
             omega_sum += omega.sum()
             clipped += (omega >= cfg.omega_max * (1 - 1e-6)).sum()
             count += len(idx)

@@ -1,25 +1,34 @@
 """Resumable runs: a fingerprint of everything a run depends on, and its saved progress.
 
-A stage that checkpoints after each unit of work stores the fingerprint with its state; a
-rerun resumes only if the fingerprint matches, so a changed param or input starts over
-instead of continuing stale state.
+A stage that checkpoints after each unit of work stores the fingerprint with its progress; a
+rerun resumes only if the fingerprint matches, so a changed param, input, code file, device
+or thread count starts over instead of continuing stale state.
+
+Layout of a progress directory: one file per finished item (`item_00000.pt`, ...), each
+written once, and `state.pt` (fingerprint, item count, small extra state) rewritten after
+each item. Writing items separately keeps the cost of a checkpoint constant: rewriting every
+policy at every iteration would grow quadratically (hundreds of GB over a paper-scale run).
+`state.pt` is replaced only after the item it counts is on disk, so it never names a
+missing item.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
 from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
 
 FORMAT = "mapex.resume"
-FORMAT_VERSION = 1
+ITEM_FORMAT = "mapex.resume_item"
+FORMAT_VERSION = 2
 
 
 def fingerprint(config: dict[str, Any], files: list[str | Path]) -> str:
-    """sha256 over a canonical JSON of `config` and the bytes of each input file, in order."""
+    """sha256 over a canonical JSON of `config` and the bytes of each file, in order."""
     h = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
     for f in files:
         h.update(str(Path(f).name).encode())
@@ -29,17 +38,41 @@ def fingerprint(config: dict[str, Any], files: list[str | Path]) -> str:
     return h.hexdigest()
 
 
-def load_resume(path: str | Path, expected: str) -> dict[str, Any] | None:
-    """The saved state at `path` if it exists, is readable and carries fingerprint `expected`."""
-    path = Path(path)
-    if not path.is_file():
-        return None
+def _item_path(directory: Path, i: int) -> Path:
+    return directory / f"item_{i:05d}.pt"
+
+
+def load_progress(directory: str | Path, expected: str) -> tuple[list[dict[str, Any]], dict[str, Any]] | None:
+    """(items, extra state) saved in `directory` under fingerprint `expected`, else None.
+
+    Unreadable or mismatched progress is discarded, never trusted.
+    """
+    directory = Path(directory)
     try:
-        obj = torch_load_checked(path, FORMAT, FORMAT_VERSION)
-    except ArtifactError:
-        return None  # unreadable progress is discarded, never trusted
-    return obj["state"] if obj.get("fingerprint") == expected else None
+        obj = torch_load_checked(directory / "state.pt", FORMAT, FORMAT_VERSION)
+        if obj.get("fingerprint") != expected:
+            return None
+        items = [torch_load_checked(_item_path(directory, i), ITEM_FORMAT, FORMAT_VERSION)["item"] for i in range(obj["n_items"])]
+    except (ArtifactError, KeyError):
+        return None
+    return items, obj["state"]
 
 
-def save_resume(path: str | Path, fp: str, state: dict[str, Any]) -> None:
-    torch_save_atomic({"format": FORMAT, "format_version": FORMAT_VERSION, "fingerprint": fp, "state": state}, path)
+def save_progress(directory: str | Path, fp: str, new_items: list[dict[str, Any]], start: int, state: dict[str, Any]) -> int:
+    """Write `new_items` as items start, start+1, ... (each once), then the state that counts
+    them; returns the new item count. start = 0 begins a fresh progress directory."""
+    directory = Path(directory)
+    if start == 0:
+        clear_progress(directory)  # stale items of another fingerprint must not linger
+    for i, item in enumerate(new_items, start=start):
+        torch_save_atomic({"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "item": item}, _item_path(directory, i))
+    n = start + len(new_items)
+    torch_save_atomic(
+        {"format": FORMAT, "format_version": FORMAT_VERSION, "fingerprint": fp, "n_items": n, "state": state},
+        directory / "state.pt",
+    )
+    return n
+
+
+def clear_progress(directory: str | Path) -> None:
+    shutil.rmtree(directory, ignore_errors=True)

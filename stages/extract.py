@@ -7,6 +7,7 @@ import io
 from dataclasses import asdict
 from pathlib import Path
 import numpy as np
+import torch
 import typer
 
 from pipeline.artifacts import ArtifactError, write_text_atomic
@@ -19,7 +20,11 @@ from pipeline.pareto import hypervolume, pareto_mask
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
 from pipeline.population import Member, actor_state, member_actor, save_population
-from pipeline.resume import fingerprint, load_resume, save_resume
+import pipeline.evaluation
+import pipeline.extraction
+import pipeline.nets
+import pipeline.pareto
+from pipeline.resume import clear_progress, fingerprint, load_progress, save_progress
 from pipeline.seeding import derive_seeds, select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -127,25 +132,31 @@ def extract(
     device = select_device(cfg.device)
     actors = [a.to(device) for a in actors]
     critics = [c.to(device) for c in critics]
+    # Everything that can change the artifacts: params, inputs, the code that computes them,
+    # and the device and thread count (which can change the last bits of CPU/GPU results).
     config = {"env": env_p.model_dump(exclude={"objective_names"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
-    fp = fingerprint(config, files)
-    resume_path = resume_dir / "extract" / variant / f"seed{seed}.pt"
-    state = load_resume(resume_path, fp)
+    code = [pipeline.extraction.__file__, pipeline.evaluation.__file__, pipeline.nets.__file__, pipeline.pareto.__file__, __file__]
+    fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + code)
+    progress_dir = resume_dir / "extract" / variant / f"seed{seed}"
+    saved = load_progress(progress_dir, fp)
 
     def evaluate(actor, policy_id: int, samples_before: int):
         res = evaluate_policy(actor, envs, eval_seeds(seed, EVAL_STREAM, policy_id, cfg.eval_episodes))
         return res, samples_before + res.env_samples
 
-    if state is None:
+    if saved is None:
         members, history, samples = [], [], 0
         for k, actor in enumerate(actors):
             res, samples = evaluate(actor, k, samples)
             members.append(Member("specialist", k, 0, [], None, res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, hidden[k], actor_state(actor)))
         history.append(history_row(0, members, ref))
+        written = save_progress(progress_dir, fp, [asdict(m) for m in members], 0, {"history": history})
     else:
-        members = [Member(**m) for m in state["members"]]
-        history = state["history"]
+        items, extra = saved
+        members = [Member(**m) for m in items]
+        history = extra["history"]
         samples = members[-1].env_samples
+        written = len(members)
     n_spec = spec.n_objectives
     done = len(members) - n_spec
     pop_actors = actors + [member_actor(m, {**spec_meta, "action_low": list(spec.action_low), "action_high": list(spec.action_high)}).to(device) for m in members[n_spec:]]
@@ -167,7 +178,7 @@ def extract(
             members.append(Member("child", None, it, list(rec.parents), rec.weight.tolist(), res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, list(cfg.hidden_sizes), actor_state(child)))
             pop_actors.append(child)
             history.append(history_row(it, members, ref))
-            save_resume(resume_path, fp, {"members": [asdict(m) for m in members], "history": history})
+            written = save_progress(progress_dir, fp, [asdict(members[-1])], written, {"history": history})
             bar.set_postfix_str(f"front {history[-1]['front_size']} HV {float(history[-1]['hypervolume']):.4g} child {fmt_vec(res.mean)}", refresh=False)
             bar.update(1)
 
@@ -182,4 +193,4 @@ def extract(
     }
     save_population(out / "population.pt", members, meta)
     write_text_atomic(out / "history.csv", history_csv(history))
-    resume_path.unlink(missing_ok=True)
+    clear_progress(progress_dir)

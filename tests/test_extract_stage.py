@@ -16,6 +16,7 @@ import yaml
 
 from pipeline.population import load_population
 from pipeline.resume import FORMAT as RESUME_FORMAT
+from pipeline.resume import load_progress, save_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,7 +82,7 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     lines = (tmp_path / "out" / "history.csv").read_text().splitlines()
     assert lines[0] == "iteration,population,front_size,hypervolume,env_samples"
     assert len(lines) == 1 + 4
-    assert not (tmp_path / "resume" / "extract" / "mapex" / "seed0.pt").exists()  # cleaned up when done
+    assert not (tmp_path / "resume" / "extract" / "mapex" / "seed0").exists()  # cleaned up when done
 
 
 def _population_equal(a: Path, b: Path) -> None:
@@ -102,18 +103,28 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
     assert r.returncode == 0, r.stderr
     # run again, SIGKILL it as soon as its first iteration is checkpointed
     resume = tmp_path / "resume"
-    state_file = resume / "extract" / "mapex" / "seed0.pt"
+    state_file = resume / "extract" / "mapex" / "seed0" / "state.pt"
     cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, resume)]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
-    while not state_file.exists() and proc.poll() is None and time.time() < deadline:
+
+    def children_saved() -> int:
+        try:
+            return torch.load(state_file, weights_only=True)["n_items"] - 2
+        except (FileNotFoundError, RuntimeError, EOFError):
+            return 0
+
+    # kill as soon as the first child is checkpointed (the specialists are saved before it)
+    while children_saved() < 1 and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert state_file.exists(), "the run ended before it could be killed mid-way"
     saved = torch.load(state_file, weights_only=True)
     assert saved["format"] == RESUME_FORMAT
-    done = len(saved["state"]["members"]) - 2
+    done = saved["n_items"] - 2
+    # each finished policy is its own file, written once
+    assert len(list(state_file.parent.glob("item_*.pt"))) >= saved["n_items"]
     assert 1 <= done < 8
     assert not (tmp_path / "out" / "population.pt").exists()  # nothing final written by the killed run
     # rerun: resumes from the checkpoint and ends with the same artifacts
@@ -126,19 +137,21 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
 def test_changed_params_start_over_instead_of_resuming(specialists, tmp_path):
     from dataclasses import asdict
 
-    from pipeline.resume import load_resume, save_resume
-
-    state = tmp_path / "s.pt"
-    save_resume(state, "fingerprint-a", {"members": [], "history": []})
-    assert load_resume(state, "fingerprint-a") == {"members": [], "history": []}
-    assert load_resume(state, "fingerprint-b") is None
+    progress = tmp_path / "progress"
+    n = save_progress(progress, "fingerprint-a", [{"x": 1}, {"x": 2}], 0, {"history": []})
+    n = save_progress(progress, "fingerprint-a", [{"x": 3}], n, {"history": [1]})
+    assert n == 3
+    assert load_progress(progress, "fingerprint-a") == ([{"x": 1}, {"x": 2}, {"x": 3}], {"history": [1]})
+    assert load_progress(progress, "fingerprint-b") is None
+    (progress / "item_00001.pt").unlink()  # a lost item invalidates the progress
+    assert load_progress(progress, "fingerprint-a") is None
     # end to end: a finished run's state planted as the checkpoint of a run with another beta
     params_a = write_params(tmp_path / "a.yaml", beta=1.0)
     r = mapex(*extract_cmd(specialists, tmp_path / "a", params_a, tmp_path / "resume_a"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     members_a, _ = load_population(tmp_path / "a" / "population.pt")
-    planted = tmp_path / "resume_b" / "extract" / "mapex" / "seed0.pt"
-    save_resume(planted, "stale", {"members": [asdict(m) for m in members_a], "history": []})
+    planted = tmp_path / "resume_b" / "extract" / "mapex" / "seed0"
+    save_progress(planted, "stale", [asdict(m) for m in members_a], 0, {"history": []})
     params_b = write_params(tmp_path / "b.yaml", beta=0.3)
     r = mapex(*extract_cmd(specialists, tmp_path / "b", params_b, tmp_path / "resume_b"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr

@@ -102,6 +102,19 @@ def _buffers(sizes, obs_dim=3, act_dim=2):
 def test_hybrid_counts_proportional_and_capped():
     assert ex.hybrid_counts(np.array([0.6, 0.8]), 1000, [10_000, 10_000]).tolist() == [429, 571]
     assert ex.hybrid_counts(np.array([1.0, 0.0]), 1000, [300, 10_000]).tolist() == [300, 0]
+    # buffer 0 cannot supply its 571 rows: the hybrid shrinks and keeps the 3 : 4 proportion
+    assert ex.hybrid_counts(np.array([0.8, 0.6]), 1000, [400, 10_000]).tolist() == [400, 300]
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.floats(0.0, 1.0), st.integers(10, 5000), st.integers(1, 3000), st.integers(1, 3000))
+def test_hybrid_counts_keep_proportions_and_never_overdraw(a, size, n0, n1):
+    w = np.array([a, np.sqrt(max(0.0, 1 - a * a))])
+    counts = ex.hybrid_counts(w, size, [n0, n1])
+    assert counts[0] <= n0 and counts[1] <= n1 and counts.sum() <= size + 1
+    share = w / w.sum()
+    total = counts.sum()
+    assert np.all(np.abs(counts - share * total) <= 1.0 + 1e-9)
 
 
 def test_build_hybrid_rows_remember_their_origin_without_repeats():
@@ -168,7 +181,8 @@ def test_each_advantage_weights_exactly_its_own_row(monkeypatch):
     w = torch.tensor([0.6, 0.8])
     seen = []
 
-    def spy(actor_, opt, obs, target, weight=None, max_grad_norm=None):
+    def spy(actor_, opt, obs, target, weight=None, max_grad_norm=None, pred=None):
+        assert pred is None or torch.equal(pred.detach(), actor_(obs).detach())
         seen.append((obs.clone(), target.clone(), weight.clone(), actor_(obs).detach().clone()))
         return torch.zeros(())
 
