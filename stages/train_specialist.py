@@ -81,12 +81,16 @@ def train_specialist(
         st.critic_target,
         meta | {"buffer_objective": objective, "objectives": st.objectives, "source": "joint"},
     )
-    write_text_atomic(out / "returns.csv", returns_csv(result.episodes, names))
+    write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
 
 
-def returns_csv(episodes, names: list[str]) -> str:
-    """Per-episode training returns as CSV: episode, step, length, terminated, one column per objective."""
-    cols = [n.replace(" ", "_") for n in names]
+def returns_csv(episodes, n_objectives: int) -> str:
+    """Per-episode training returns as CSV: episode, step, length, terminated, obj0, obj1, ...
+
+    Objective columns are named by index (as in evaluate's CSVs) so dvc.yaml's plot axes fit
+    every env; the report and README map them to objective names.
+    """
+    cols = [f"obj{m}" for m in range(n_objectives)]
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(["episode", "step", "length", "terminated", *cols])

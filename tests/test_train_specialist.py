@@ -134,7 +134,7 @@ def test_returns_csv_matches_the_buffer_episodes(run_name, request):
     rows = read_returns(run.out)
     assert len(rows) == len(episodes) > 0
     names = list(rows[0])[4:]
-    assert list(rows[0])[:4] == ["episode", "step", "length", "terminated"] and len(names) == 2
+    assert list(rows[0])[:4] == ["episode", "step", "length", "terminated"] and names == ["obj0", "obj1"]
     for row, idx in zip(rows, episodes):
         assert int(row["episode"]) == data["episode"][idx[0]]
         assert int(row["length"]) == len(idx)
