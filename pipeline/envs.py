@@ -2,17 +2,18 @@
 
 MAPEX needs a continuous Box action space and a vector reward. Termination and truncation
 stay separate everywhere: a time-limit cut is not a terminal state.
+
+Nothing here renders, so nothing here chooses an OpenGL backend (MUJOCO_GL): a headless GPU
+box without libEGL must be able to train and evaluate. Code that draws frames chooses the
+backend where it draws them.
 """
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 class EnvError(ValueError):

@@ -94,7 +94,6 @@ def _mapex_command() -> list[str]:
 def _run_mapex(*args: str | Path, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
     env = os.environ.copy()
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
-    env.setdefault("MUJOCO_GL", "egl")
     # One torch thread unless the caller chose otherwise: the test machine is small and
     # shared, and runs compared for bitwise equality must use the same thread count.
     env.setdefault("OMP_NUM_THREADS", "1")

@@ -87,3 +87,21 @@ def test_objective_names_override_fallback_and_mismatch():
     assert objective_names("mo-hopper-2obj-v5", 3)[2] == "objective 2"
     with pytest.raises(EnvError, match="3 names"):
         objective_names("mo-hopper-2obj-v5", 2, ["a", "b", "c"])
+
+
+def test_no_gl_backend_is_chosen_at_import(tmp_path):
+    """Importing the stages and stepping an env must not select an OpenGL backend: on a
+    headless GPU box without libEGL, MUJOCO_GL=egl made every stage die at import."""
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import os, numpy as np, stages.cli, pipeline.envs as e\n"
+        "env = e.make_env('mo-halfcheetah-v5', 5); env.reset(seed=0); env.step(np.zeros(6, np.float32))\n"
+        "print(repr(os.environ.get('MUJOCO_GL')))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "None"
