@@ -168,3 +168,75 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
         if data[name].ndim != 2 or data[name].shape[1] != dim:
             raise ArtifactError(f"{path}: array {name!r} has shape {data[name].shape}, expected (T, {dim})")
     return data, attrs
+
+
+class StackedReplay:
+    """The replay buffers of S specialists trained in lockstep, resident on the training device.
+
+    Every specialist adds one row per env step, so all S rings share one write pointer and
+    one size. The fields an update reads (obs, action, reward, next_obs, terminated) are
+    packed into one tensor `rows` (S, capacity, F) on the device: a row is written once (one
+    host-to-device copy per step for all S specialists) and a minibatch is one gather, with
+    no host-to-device copy per update. Bookkeeping fields an update never reads (truncated,
+    episode, episode_step) stay in host arrays. `chronological(s)` gives specialist s's rows in
+    the Zarr artifact's layout, so nothing downstream changes.
+    """
+
+    def __init__(self, n: int, capacity: int, obs_dim: int, act_dim: int, n_objectives: int, device: torch.device):
+        self.n, self.capacity, self.device = n, capacity, torch.device(device)
+        o, a, m = obs_dim, act_dim, n_objectives
+        # column slices of the packed row: obs | action | reward | next_obs | terminated
+        self.cols = {"obs": slice(0, o), "action": slice(o, o + a), "reward": slice(o + a, o + a + m),
+                     "next_obs": slice(o + a + m, 2 * o + a + m), "terminated": slice(2 * o + a + m, 2 * o + a + m + 1)}
+        width = 2 * o + a + m + 1
+        self.rows = torch.zeros(n, capacity, width, device=self.device)
+        on_cuda = self.device.type == "cuda"
+        # Staging row for all S specialists; pinned on CUDA so its copy does not block the host.
+        self._stage = torch.zeros(n, width, pin_memory=on_cuda) if on_cuda else None
+        self.host = {
+            "truncated": np.zeros((n, capacity), bool),
+            "episode": np.zeros((n, capacity), np.int64),
+            "episode_step": np.zeros((n, capacity), np.int32),
+        }
+        self.ptr = 0
+        self.size = 0
+
+    def add(self, obs, action, reward, next_obs, terminated, truncated, episode, step) -> None:
+        """Append one row per specialist: arrays with a leading S (obs (S, o), terminated (S,), ...)."""
+        i = self.ptr
+        stage = self._stage.numpy() if self._stage is not None else self.rows[:, i].numpy()
+        c = self.cols
+        stage[:, c["obs"]] = obs
+        stage[:, c["action"]] = action
+        stage[:, c["reward"]] = reward
+        stage[:, c["next_obs"]] = next_obs
+        stage[:, c["terminated"]] = np.asarray(terminated, np.float32)[:, None]
+        if self._stage is not None:
+            # Safe to reuse the staging row next step: the action read that starts the next
+            # step synchronises with the stream this copy is queued on.
+            self.rows[:, i].copy_(self._stage, non_blocking=True)
+        self.host["truncated"][:, i] = truncated
+        self.host["episode"][:, i] = episode
+        self.host["episode_step"][:, i] = step
+        self.ptr = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def gather(self, idx: torch.Tensor) -> Batch:
+        """Rows idx (S, B) long, on the device, of each specialist's ring -> Batch with a leading S."""
+        got = torch.gather(self.rows, 1, idx.unsqueeze(-1).expand(-1, -1, self.rows.shape[2]))  # (S, B, F)
+        c = self.cols
+        return Batch(got[..., c["obs"]], got[..., c["action"]], got[..., c["reward"]], got[..., c["next_obs"]], got[..., c["terminated"]].squeeze(-1))
+
+    def chronological(self, s: int) -> dict[str, np.ndarray]:
+        """Specialist s's stored rows, oldest first, as the numpy fields of the Zarr format."""
+        if self.size < self.capacity:
+            order = np.arange(self.size)
+        else:
+            order = np.concatenate([np.arange(self.ptr, self.capacity), np.arange(0, self.ptr)])
+        rows = self.rows[s].cpu().numpy()[order]
+        c = self.cols
+        out = {k: np.ascontiguousarray(rows[:, c[k]]) for k in ("obs", "action", "reward", "next_obs")}
+        out["terminated"] = rows[:, c["terminated"]][:, 0] > 0.5
+        for k, v in self.host.items():
+            out[k] = v[s][order]
+        return out

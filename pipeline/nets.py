@@ -87,3 +87,98 @@ class CriticEnsemble(nn.Module):
         """Clipped double-Q estimate per covered objective: min over the two heads -> (n_obj, B)."""
         q = self.forward(obs, action)
         return q.view(self.n_members // 2, 2, -1).min(dim=1).values
+
+    # -- several specialists' ensembles as one -------------------------------------------------
+
+    @classmethod
+    def stack(cls, ensembles: Sequence["CriticEnsemble"]) -> "CriticEnsemble":
+        """One ensemble holding every member of `ensembles`, in order (group g = ensemble g)."""
+        first = ensembles[0]
+        out = cls.__new__(cls)
+        nn.Module.__init__(out)
+        out.n_members = sum(e.n_members for e in ensembles)
+        out.weights = nn.ParameterList(
+            [nn.Parameter(torch.cat([e.weights[i].detach() for e in ensembles]).clone()) for i in range(len(first.weights))]
+        )
+        out.biases = nn.ParameterList(
+            [nn.Parameter(torch.cat([e.biases[i].detach() for e in ensembles]).clone()) for i in range(len(first.biases))]
+        )
+        return out
+
+    def subset(self, start: int, stop: int) -> "CriticEnsemble":
+        """A new ensemble with copies of members start..stop-1 (e.g. one specialist's group)."""
+        out = CriticEnsemble.__new__(CriticEnsemble)
+        nn.Module.__init__(out)
+        out.n_members = stop - start
+        out.weights = nn.ParameterList([nn.Parameter(w.detach()[start:stop].clone()) for w in self.weights])
+        out.biases = nn.ParameterList([nn.Parameter(b.detach()[start:stop].clone()) for b in self.biases])
+        return out
+
+    def grouped(self, obs: torch.Tensor, action: torch.Tensor, members: torch.Tensor | None = None) -> torch.Tensor:
+        """Q where group g of members sees its own batch: obs (G, B, o), action (G, B, a) -> (E', B).
+
+        Without `members`, the E members split into G equal groups in order (group g = members
+        g*E/G .. (g+1)*E/G - 1, one specialist's critics each). With `members` (G,) long, member
+        members[g] alone sees batch g (e.g. each specialist's primary critic): -> (G, B).
+        """
+        x = torch.cat([obs, action], dim=-1)  # (G, B, d)
+        if members is None:
+            ws, bs = list(self.weights), list(self.biases)
+            per = self.n_members // x.shape[0]
+            if per > 1:
+                x = x.unsqueeze(1).expand(-1, per, -1, -1).reshape(self.n_members, *x.shape[1:])
+        else:
+            ws = [w.index_select(0, members) for w in self.weights]
+            bs = [b.index_select(0, members) for b in self.biases]
+        h = x
+        n = len(ws)
+        for i in range(n):
+            h = torch.baddbmm(bs[i], h, ws[i])
+            if i < n - 1:
+                h = torch.relu_(h)
+        return h.squeeze(-1)
+
+
+class StackedActor(nn.Module):
+    """S deterministic actors of one architecture as stacked weights: obs (S, B, o) -> (S, B, a).
+
+    Built from S `Actor`s (so each keeps the initialisation it would have alone) and turned
+    back into one with `unstack`, which is what the artifacts store. Layer l holds weight
+    (S, d_in, d_out) and bias (S, 1, d_out); one batched matmul per layer serves every actor.
+    """
+
+    def __init__(self, actors: Sequence[Actor]):
+        super().__init__()
+        linears = [[m for m in a.net if isinstance(m, nn.Linear)] for a in actors]
+        self.hidden_sizes = [lin.out_features for lin in linears[0][:-1]]
+        self.weights = nn.ParameterList(
+            [nn.Parameter(torch.stack([ls[i].weight.detach().T for ls in linears]).contiguous()) for i in range(len(linears[0]))]
+        )
+        self.biases = nn.ParameterList(
+            [nn.Parameter(torch.stack([ls[i].bias.detach()[None] for ls in linears]).clone()) for i in range(len(linears[0]))]
+        )
+        self.register_buffer("scale", torch.stack([a.scale[None] for a in actors]).clone())  # (S, 1, a)
+        self.register_buffer("centre", torch.stack([a.centre[None] for a in actors]).clone())
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        h = obs
+        n = len(self.weights)
+        for i in range(n):
+            h = torch.baddbmm(self.biases[i], h, self.weights[i])
+            if i < n - 1:
+                h = torch.relu_(h)
+        return self.centre + self.scale * torch.tanh(h)
+
+    def unstack(self, s: int) -> Actor:
+        """Actor s as a plain `Actor` on the CPU (the artifact format)."""
+        obs_dim, act_dim = self.weights[0].shape[1], self.weights[-1].shape[2]
+        centre, scale = self.centre[s, 0].cpu(), self.scale[s, 0].cpu()
+        actor = Actor(obs_dim, act_dim, self.hidden_sizes, centre - scale, centre + scale)
+        linears = [m for m in actor.net if isinstance(m, nn.Linear)]
+        with torch.no_grad():
+            for lin, w, b in zip(linears, self.weights, self.biases):
+                lin.weight.copy_(w[s].T)
+                lin.bias.copy_(b[s, 0])
+            actor.scale.copy_(scale)
+            actor.centre.copy_(centre)
+        return actor

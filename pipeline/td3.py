@@ -1,5 +1,13 @@
 """TD3 updates for a specialist and its secondary critics, as small composable pieces.
 
+Two forms of the same update live here. `td3_update` trains one specialist (the plain,
+readable reference; post-hoc critic fitting reuses its pieces). `stacked_update` trains S
+specialists at once, their actors and critic ensembles stacked along a leading dimension,
+each on its own minibatch and noise: per specialist it is exactly `td3_update` (the losses
+are sums of per-specialist losses over disjoint parameters, and Adam is elementwise), only
+with S times fewer kernel launches. On CUDA, `GraphedUpdate` replays `stacked_update` as two
+captured CUDA graphs, so an update costs a few launches instead of hundreds.
+
 Specialist k's actor ascends only its primary critic Q^(k)_k (head 0, as in TD3). Every
 critic in the ensemble (primary and secondary) regresses onto the same TD3 target rule:
 y_m = r_m + gamma * (1 - terminated) * min_h Q'_{m,h}(s', clip(pi'(s') + clip(noise))),
@@ -15,7 +23,7 @@ import torch
 from torch import nn
 
 from pipeline.buffer import Batch
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.nets import Actor, CriticEnsemble, StackedActor
 
 
 @dataclass
@@ -119,3 +127,150 @@ def td3_update(
         polyak_update(state.actor, state.actor_target, tau)
         metrics["actor_loss"] = loss_pi.detach()
     return metrics
+
+
+# ---------------------------------------------------------------- S specialists at once
+
+
+@dataclass
+class StackedTD3:
+    """Networks and optimizers of S specialists trained in lockstep (one stacked set)."""
+
+    actor: StackedActor
+    actor_target: StackedActor
+    critic: CriticEnsemble  # S groups of 2 * n_cov members, group s = specialist s
+    critic_target: CriticEnsemble
+    actor_opt: torch.optim.Optimizer
+    critic_opt: torch.optim.Optimizer
+    reward_index: torch.Tensor  # (S, n_cov) long: objective behind each covered slot
+    primary_members: torch.Tensor  # (S,) long: member index of each specialist's primary head 0
+
+    @property
+    def n(self) -> int:
+        return self.reward_index.shape[0]
+
+
+def stacked_targets(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float) -> torch.Tensor:
+    """TD3 targets of every covered objective of every specialist -> (S, n_cov, B).
+
+    batch fields carry a leading S; noise (S, B, act) is standard normal, drawn by the caller
+    from each specialist's own generator (so the draws do not depend on how many are stacked).
+    """
+    with torch.no_grad():
+        a = state.actor_target(batch.next_obs)
+        scale, centre = state.actor_target.scale, state.actor_target.centre
+        eps = (noise * policy_noise).clamp(-noise_clip, noise_clip) * scale
+        next_a = torch.max(torch.min(a + eps, centre + scale), centre - scale)
+        s, n_cov = state.reward_index.shape
+        q_next = state.critic_target.grouped(batch.next_obs, next_a)  # (S * 2 * n_cov, B)
+        q_next = q_next.view(s, n_cov, 2, -1).amin(dim=2)
+        reward = batch.reward.gather(2, state.reward_index.unsqueeze(1).expand(-1, batch.reward.shape[1], -1))
+        return reward.transpose(1, 2) + gamma * (1.0 - batch.terminated).unsqueeze(1) * q_next
+
+
+def stacked_critic_step(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float) -> torch.Tensor:
+    """One Adam step of every critic of every specialist; returns the summed loss (a tensor)."""
+    y = stacked_targets(state, batch, noise, gamma, policy_noise, noise_clip)  # (S, n_cov, B)
+    q = state.critic.grouped(batch.obs, batch.action)  # (S * 2 * n_cov, B)
+    y = y.repeat_interleave(2, dim=1).reshape(q.shape)  # both heads of an objective share its target
+    loss = ((q - y) ** 2).mean(dim=1).sum()
+    state.critic_opt.zero_grad(set_to_none=True)
+    loss.backward()
+    state.critic_opt.step()
+    return loss.detach()
+
+
+def stacked_actor_step(state: StackedTD3, obs: torch.Tensor, tau: float) -> torch.Tensor:
+    """Each actor ascends its own primary critic on its own states (S, B, o); then Polyak."""
+    state.critic.requires_grad_(False)  # dQ/da only (see td3_update)
+    try:
+        q = state.critic.grouped(obs, state.actor(obs), members=state.primary_members)  # (S, B)
+        loss = -q.mean(dim=1).sum()
+        state.actor_opt.zero_grad(set_to_none=True)
+        loss.backward()
+    finally:
+        state.critic.requires_grad_(True)
+    state.actor_opt.step()
+    polyak_update(state.critic, state.critic_target, tau)
+    polyak_update(state.actor, state.actor_target, tau)
+    return loss.detach()
+
+
+def stacked_update(
+    state: StackedTD3,
+    batch: Batch,
+    noise: torch.Tensor,
+    update_actor: bool,
+    gamma: float,
+    tau: float,
+    policy_noise: float,
+    noise_clip: float,
+) -> dict[str, torch.Tensor]:
+    """One TD3 step of S specialists: `td3_update` for each, batched (see the module docstring)."""
+    metrics = {"critic_loss": stacked_critic_step(state, batch, noise, gamma, policy_noise, noise_clip)}
+    if update_actor:
+        metrics["actor_loss"] = stacked_actor_step(state, batch.obs, tau)
+    return metrics
+
+
+class GraphedUpdate:
+    """`stacked_update` on CUDA as two captured graphs: the critic step, and the actor step
+    with the Polyak updates. Replaying a graph launches the whole step at once, which is what
+    makes small (batch 256) updates fast on a GPU: eager PyTorch spends its time launching
+    hundreds of tiny kernels, not computing.
+
+    Static inputs: `idx` (S, B) minibatch rows and `noise` (S, B, act) target-smoothing noise,
+    filled in place by the caller before each replay (drawn on the device from each
+    specialist's generator: no host sync). The minibatch is gathered inside the graph from the
+    device-resident buffer `rows` (S, capacity, F) via `gather(idx) -> Batch`. The optimizers
+    must be built with capturable=True.
+    """
+
+    def __init__(self, state: StackedTD3, gather, idx: torch.Tensor, noise: torch.Tensor, gamma: float, tau: float, policy_noise: float, noise_clip: float, warmup: int = 3):
+        self.state, self.gather, self.idx, self.noise = state, gather, idx, noise
+        self.args = (gamma, policy_noise, noise_clip)
+        self.tau = tau
+        self.obs = torch.zeros(idx.shape[0], idx.shape[1], state.actor.weights[0].shape[1], device=idx.device)
+        if state.actor_opt.state or state.critic_opt.state:
+            raise RuntimeError("GraphedUpdate must be built before the first update (fresh optimizers)")
+        params = [p.data for m in (state.actor, state.actor_target, state.critic, state.critic_target) for p in m.parameters()]
+        saved = [p.clone() for p in params]
+        # Capture needs a few eager runs on a side stream first (allocator and library warm-up).
+        # They are real updates, so the parameters are restored afterwards and the optimizer
+        # state they created is zeroed, which is exactly Adam's fresh state (step 0, zero moments).
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            for _ in range(warmup):
+                self._critic()
+                self._actor()
+        torch.cuda.current_stream().wait_stream(side)
+        with torch.no_grad():
+            for p, v in zip(params, saved):
+                p.copy_(v)
+            for opt in (state.actor_opt, state.critic_opt):
+                for per_param in opt.state.values():
+                    for v in per_param.values():
+                        if torch.is_tensor(v):
+                            v.zero_()
+        state.critic_opt.zero_grad(set_to_none=True)
+        state.actor_opt.zero_grad(set_to_none=True)
+        self.critic_graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.critic_graph):
+            self._critic()
+        self.actor_graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.actor_graph):
+            self._actor()
+
+    def _critic(self) -> None:
+        batch = self.gather(self.idx)
+        self.obs.copy_(batch.obs)
+        stacked_critic_step(self.state, batch, self.noise, *self.args)
+
+    def _actor(self) -> None:
+        stacked_actor_step(self.state, self.obs, self.tau)
+
+    def __call__(self, update_actor: bool) -> None:
+        self.critic_graph.replay()
+        if update_actor:
+            self.actor_graph.replay()

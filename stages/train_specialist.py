@@ -1,10 +1,11 @@
-"""Stage train_specialist: one TD3 specialist per (objective, seed), with secondary critics."""
+"""Stage train_specialist: the TD3 specialists of one seed, one per objective, with secondary critics."""
 
 from __future__ import annotations
 
 import csv
 import io
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -12,49 +13,71 @@ from pipeline.artifacts import write_text_atomic
 from pipeline.buffer import save_buffer
 from pipeline.checkpoint import save_critics, save_policy
 from pipeline.envs import env_spec, make_env, objective_names
-from pipeline.params import ParamsError
+from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.provenance import provenance
 from pipeline.seeding import select_device
-from pipeline.specialist import train_specialist as train
+from pipeline.specialist import SpecialistResult, train_specialists
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 
 @reports_errors
 def train_specialist(
-    objective: int = typer.Option(..., help="index of the objective this specialist maximises"),
     seed: int = typer.Option(0, help="run seed; with the params it fixes every random draw"),
-    out: Path = typer.Option(..., help="output directory (buffer.zarr, policy.pt, critics.pt, returns.csv)"),
+    out: Path = typer.Option(..., help="output directory of the seed: one obj{K}/ folder per specialist"),
+    objective: Optional[list[int]] = typer.Option(
+        None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
+    ),
     params: Path = PARAMS_OPTION,
 ) -> None:
-    """Train a TD3 specialist that maximises one objective of a multi-objective env.
+    """Train the TD3 specialists of one seed, one per objective of a multi-objective env.
 
-    Params: sections `env` and `train_specialist` of the params file. While the specialist's
-    primary critic drives its actor, secondary critics for every other objective learn from
-    the same batches (turn off with train_specialist.secondary_critics: false).
+    Params: sections `env`, `objectives` and `train_specialist`. Each specialist's primary
+    critic drives its actor while secondary critics for every other objective learn from the
+    same batches (train_specialist.secondary_critics). With train_specialist.batched (the
+    default) all specialists train in lockstep in this one process, their networks stacked so
+    one batched update serves all; each still has its own env, buffer, seeds and minibatches,
+    exactly as if trained alone. batched: false trains them one after another.
 
-    Writes to OUT: buffer.zarr (Zarr replay buffer with full reward vectors), policy.pt (actor
-    and target actor), critics.pt (all critics, online and target) and returns.csv (the
-    undiscounted return vector of every training episode, a learning curve for `dvc plots`).
+    Writes OUT/obj{K}/ for each objective K: buffer.zarr (Zarr replay buffer with full reward
+    vectors), policy.pt (actor and target actor), critics.pt (all critics, online and target)
+    and returns.csv (the undiscounted return vector of every training episode, a learning
+    curve for `dvc plots`).
     """
-    _, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
-    env = make_env(env_p.id, env_p.max_episode_steps)
-    spec = env_spec(env, env_p.id, env_p.max_episode_steps)
-    if not 0 <= objective < spec.n_objectives:
-        raise ParamsError(f"--objective {objective}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
+    raw, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
+    objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
+    probe = make_env(env_p.id, env_p.max_episode_steps)
+    spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
+    probe.close()
+    bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
+    if bad:
+        where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"
+        raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
     names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
     device = select_device(cfg.device)
+    groups = [objectives] if cfg.batched else [[k] for k in objectives]
+    for group in groups:
+        jobs = [(seed, k) for k in group]
+        envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs]
+        what = ", ".join(f"obj {k} ({names[k]})" for k in group)
+        bar = progress(cfg.total_steps * len(jobs), f"specialists seed {seed}: {what}")
 
-    bar = progress(cfg.total_steps, f"specialist obj {objective} ({names[objective]}) seed {seed}")
+        def on_step(t: int, records) -> None:
+            bar.update(len(records))
+            ended = [f"obj {k} {fmt_vec(r.returns)}" for k, r in zip(group, records) if r is not None]
+            if ended:
+                bar.set_postfix_str("return " + "; ".join(ended), refresh=False)
 
-    def on_step(t: int, record) -> None:
-        bar.update(1)
-        if record is not None:
-            bar.set_postfix_str(f"ep {record.episode} return {fmt_vec(record.returns)}", refresh=False)
+        with bar:
+            results = train_specialists(envs, spec, cfg, jobs, device, on_step=on_step)
+        for env in envs:
+            env.close()
+        for result in results:
+            save_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
 
-    with bar:
-        result = train(env, spec, cfg, objective, seed, device, on_step=on_step)
-    env.close()
 
+def save_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
+    """Write one specialist's four artifacts (each atomically) into `out`."""
     meta = {
         "env_id": spec.env_id,
         "obs_dim": spec.obs_dim,
@@ -64,22 +87,23 @@ def train_specialist(
         "action_low": list(spec.action_low),
         "action_high": list(spec.action_high),
         "hidden_sizes": list(cfg.hidden_sizes),
-        "seed": seed,
+        "seed": result.seed,
         "params": {"env": env_p.model_dump(), "train_specialist": cfg.model_dump()},
+        "provenance": provenance(device),
     }
-    st = result.state
+    k = result.objective
     save_buffer(
         out / "buffer.zarr",
-        result.buffer.chronological(),
-        {k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed")}
-        | {"objective": objective},
+        result.buffer,
+        {key: meta[key] for key in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
+        | {"objective": k},
     )
-    save_policy(out / "policy.pt", st.actor, meta | {"objective": objective}, st.actor_target)
+    save_policy(out / "policy.pt", result.actor, meta | {"objective": k}, result.actor_target)
     save_critics(
         out / "critics.pt",
-        st.critic,
-        st.critic_target,
-        meta | {"buffer_objective": objective, "objectives": st.objectives, "source": "joint"},
+        result.critic,
+        result.critic_target,
+        meta | {"buffer_objective": k, "objectives": result.objectives, "source": "joint"},
     )
     write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
 

@@ -40,10 +40,10 @@ class Run:
 def train(tmp_path_factory, write_params, mapex, name: str, objective: int, seed: int, overrides=None) -> Run:
     d = tmp_path_factory.mktemp(name)
     params = write_params(d, overrides)
-    out = d / "out"
-    proc = mapex("train-specialist", "--objective", objective, "--seed", seed, "--out", out, "--params", params, cwd=d)
+    proc = mapex("train-specialist", "--objective", objective, "--seed", seed, "--out", d / "out", "--params", params, cwd=d)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return Run(out, objective, seed, proc.stderr)
+    assert sorted(p.name for p in (d / "out").iterdir()) == [f"obj{objective}"]
+    return Run(d / "out" / f"obj{objective}", objective, seed, proc.stderr)
 
 
 @pytest.fixture(scope="module")
@@ -287,14 +287,14 @@ def test_update_schedule_and_episode_records(monkeypatch):
     import pipeline.specialist as specialist_mod
 
     calls: list[bool] = []
-    real_update = specialist_mod.td3_update
+    real_update = specialist_mod.stacked_update
 
-    def counting_update(state, batch, update_actor, **kw):
+    def counting_update(state, batch, noise, update_actor, **kw):
         calls.append(update_actor)
-        assert batch.obs.shape == (8, 8)
-        return real_update(state, batch, update_actor, **kw)
+        assert batch.obs.shape == (1, 8, 8) and noise.shape == (1, 8, 2)
+        return real_update(state, batch, noise, update_actor, **kw)
 
-    monkeypatch.setattr(specialist_mod, "td3_update", counting_update)
+    monkeypatch.setattr(specialist_mod, "stacked_update", counting_update)
     cfg = TrainSpecialistParams(total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3)
     env = make_env("mo-swimmer-v5", 15)
     spec = env_spec(env, "mo-swimmer-v5", 15)
@@ -305,7 +305,7 @@ def test_update_schedule_and_episode_records(monkeypatch):
     assert [t for t, _ in seen] == list(range(1, 41))
     assert [(t, e) for t, e in seen if e is not None] == [(15, 0), (30, 1)]
     assert [(r.end_step, r.length, r.terminated) for r in result.episodes] == [(15, 15, False), (30, 15, False)]
-    assert result.buffer.size == 40
+    assert len(result.buffer["obs"]) == 40
 
 
 def test_out_of_range_objective_in_the_core():

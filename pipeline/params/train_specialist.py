@@ -30,6 +30,12 @@ class TrainSpecialistParams(Strict):
     policy_freq: int = Field(2, ge=1, description="critic updates per actor/target update")
     secondary_critics: bool = Field(True, description="also train critics for every other objective (joint MAPEX)")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+    batched: bool = Field(
+        True,
+        description="train all specialists of a stage in one stacked process (each exactly as alone); "
+        "false: one after another",
+    )
+    cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
 
     @model_validator(mode="after")
     def _consistent(self) -> "TrainSpecialistParams":
