@@ -1,19 +1,24 @@
-"""Speed of our specialist training against stable-baselines3's TD3, on the same machine.
+"""Speed of specialist training: one specialist, K stacked in one process, and stable-baselines3.
 
-Trains (a) our TD3 specialist with secondary critics (on a 2-objective env: 2 objectives x 2
-heads = 4 Q-networks) and (b) stable-baselines3's TD3 (2 Q-networks) on the same env reduced
-to one objective, with the same network widths, batch size, warm-up and thread count, and
-reports env steps per second after the warm-up (each such step does one gradient update)
-and the ratio ours / SB3. The goal: ours >= 0.8x SB3 while training twice the critics.
+Measures env steps per second after the warm-up (each such step does one gradient update per
+specialist), on --device cpu or cuda, in one run:
+
+  (a) our TD3 specialist with secondary critics alone (2 objectives x 2 heads = 4 Q-networks);
+  (b) K of them stacked in one process (`train_specialists`): aggregate and per-specialist;
+  (c) stable-baselines3's TD3 (2 Q-networks) on the same env reduced to one objective, with the
+      same widths, batch, warm-up, thread count and device;
+
+and prints the ratios (b)/(a) aggregate and (a)/(c), then the projected hours of the
+specialists of one paper-scale env x seed (2 objectives x 2M steps) at rates (a) and (b).
 
     pip install -e ".[bench]"          # stable-baselines3
-    python benchmarks/bench_specialist.py                    # defaults: 2000 warm-up + 3000 timed steps
-    python benchmarks/bench_specialist.py --steps 10000 --threads 2 --hidden 256 256
+    python benchmarks/bench_specialist.py --device cpu --hidden 64 64 --stack 2       # the quickstart's networks
+    python benchmarks/bench_specialist.py --device cuda --stack 2 10 --steps 5000     # paper widths on a GPU
 
-Warm-up steps (uniform random actions, no updates) are not timed. Both runs use CPU. Each
-side reports steps per wall-second and per CPU-second of its process; on a shared machine the
-second is the steadier figure. --repeats N alternates the order of the sides and reports the
-median ratio.
+Warm-up steps (uniform random actions, no updates) are not timed; on CUDA the graph capture
+happens at the first update, inside the timed part (it costs well under a second). Each side
+reports steps per wall-second and per CPU-second of its process; on a shared machine the
+second is the steadier figure on a CPU.
 """
 
 from __future__ import annotations
@@ -32,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.envs import env_spec, make_env  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
-from pipeline.specialist import train_specialist  # noqa: E402
+from pipeline.specialist import train_specialists  # noqa: E402
 
 
 def load() -> str:
@@ -44,8 +49,9 @@ def clocks() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
-def bench_ours(args: argparse.Namespace) -> tuple[tuple[float, float], int]:
-    """Our specialist; returns ((wall s, CPU s) of the timed steps, number of Q-networks trained)."""
+def bench_ours(args: argparse.Namespace, stack: int) -> tuple[tuple[float, float], int]:
+    """`stack` specialists (objectives alternating, seeds counting up) trained together; returns
+    ((wall s, CPU s) of the timed steps, Q-networks trained per specialist)."""
     cfg = TrainSpecialistParams(
         total_steps=args.warmup + args.steps,
         learning_starts=args.warmup,
@@ -53,20 +59,24 @@ def bench_ours(args: argparse.Namespace) -> tuple[tuple[float, float], int]:
         batch_size=args.batch,
         hidden_sizes=args.hidden,
         secondary_critics=not args.no_secondary,
-        device="cpu",
+        device=args.device,
     )
-    env = make_env(args.env, args.cap)
-    spec = env_spec(env, args.env, args.cap)
+    envs = [make_env(args.env, args.cap) for _ in range(stack)]
+    spec = env_spec(envs[0], args.env, args.cap)
+    jobs = [(args.seed + s // spec.n_objectives, s % spec.n_objectives) for s in range(stack)]
     start: list[tuple[float, float]] = []
 
-    def on_step(t: int, _record) -> None:
+    def on_step(t: int, _records) -> None:
         if t == args.warmup:  # the last warm-up step is done; updates start with the next one
             start.append(clocks())
 
-    result = train_specialist(env, spec, cfg, args.objective, args.seed, torch.device("cpu"), on_step=on_step)
+    results = train_specialists(envs, spec, cfg, jobs, torch.device(args.device), on_step=on_step)
+    if args.device == "cuda":
+        torch.cuda.synchronize()
     end = clocks()
-    env.close()
-    return (end[0] - start[0][0], end[1] - start[0][1]), result.state.critic.n_members
+    for env in envs:
+        env.close()
+    return (end[0] - start[0][0], end[1] - start[0][1]), results[0].critic.n_members
 
 
 def bench_sb3(args: argparse.Namespace) -> tuple[float, float]:
@@ -107,7 +117,7 @@ def bench_sb3(args: argparse.Namespace) -> tuple[float, float]:
         target_noise_clip=0.5,
         policy_kwargs={"net_arch": {"pi": list(args.hidden), "qf": list(args.hidden)}},
         seed=args.seed,
-        device="cpu",
+        device=args.device,
         verbose=0,
     )
     model.learn(total_timesteps=args.warmup + args.steps, callback=StartTimer())
@@ -120,48 +130,57 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="mo-halfcheetah-v5", help="MO-Gymnasium env id")
     parser.add_argument("--cap", type=int, default=750, help="episode cap (max_episode_steps)")
-    parser.add_argument("--objective", type=int, default=0, help="our specialist's objective; SB3 gets this objective alone")
+    parser.add_argument("--objective", type=int, default=0, help="SB3 trains this objective alone")
+    parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="device of every side")
+    parser.add_argument("--stack", type=int, nargs="+", default=[2], help="K: specialists stacked in one process (one run per K)")
     parser.add_argument("--warmup", type=int, default=2000, help="random-action steps before updates (not timed)")
     parser.add_argument("--steps", type=int, default=3000, help="timed steps after the warm-up, one update each")
     parser.add_argument("--batch", type=int, default=256, help="minibatch size")
     parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden widths of actor and critics")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads, the same for both")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads, the same for every side")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-secondary", action="store_true", help="ours without secondary critics (2 Q-networks)")
-    parser.add_argument("--only", choices=["ours", "sb3"], help="run one side only")
-    parser.add_argument("--repeats", type=int, default=1, help="passes over both sides, in alternating order")
+    parser.add_argument("--no-sb3", action="store_true", help="skip stable-baselines3")
+    parser.add_argument("--paper-steps", type=float, default=2e6, help="specialist steps per objective in the projection")
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
     sb3_version = "not used"
-    if args.only != "ours":
+    if not args.no_sb3:
         import stable_baselines3  # fail early, before our run, if the bench extra is missing
 
         sb3_version = stable_baselines3.__version__
-
-    print(f"env {args.env} (cap {args.cap}), objective {args.objective}, hidden {args.hidden}, batch {args.batch}")
+    device = (torch.cuda.get_device_name(0) if args.device == "cuda" else platform.processor() or platform.machine())
+    print(f"env {args.env} (cap {args.cap}), hidden {args.hidden}, batch {args.batch}, device {args.device}: {device}")
     print(f"warm-up {args.warmup} steps (untimed), timed {args.steps} steps, torch {torch.__version__} "
-          f"with {torch.get_num_threads()} thread(s), stable-baselines3 {sb3_version}, "
-          f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores")
-    sides = [args.only] if args.only else ["ours", "sb3"]
-    rates: dict[str, list[tuple[float, float]]] = {side: [] for side in sides}
-    for rep in range(args.repeats):
-        # Alternate the order so that a drift in the machine's load favours neither side.
-        for side in sides if rep % 2 == 0 else sides[::-1]:
-            print(f"{side}: start ({load()})", flush=True)
-            if side == "ours":
-                (wall, cpu), n_q = bench_ours(args)
-            else:
-                (wall, cpu), n_q = bench_sb3(args), 2
-            rates[side].append((args.steps / wall, args.steps / cpu))
-            print(f"{side}: {n_q} Q-networks, {wall:.1f} s wall, {cpu:.1f} s CPU: {args.steps / wall:.1f} steps/s "
-                  f"({args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
-    if len(sides) == 2:
-        wall_ratio = float(np.median([o[0] / b[0] for o, b in zip(rates["ours"], rates["sb3"])]))
-        cpu_ratio = float(np.median([o[1] / b[1] for o, b in zip(rates["ours"], rates["sb3"])]))
-        what = "" if args.repeats == 1 else f"median over {args.repeats} passes, "
-        print(f"ratio ours / sb3 ({what}goal >= 0.80): {wall_ratio:.2f} in steps/s, {cpu_ratio:.2f} per CPU-second")
+          f"with {torch.get_num_threads()} thread(s), stable-baselines3 {sb3_version}, {os.cpu_count()} cores")
+    rows: list[tuple[str, int, float, float]] = []  # (side, specialists, aggregate steps/s, per CPU-second)
+    for k in sorted({1, *args.stack}):
+        print(f"ours x{k}: start ({load()})", flush=True)
+        (wall, cpu), n_q = bench_ours(args, k)
+        rows.append((f"ours x{k}", k, k * args.steps / wall, k * args.steps / cpu))
+        print(f"ours x{k}: {n_q} Q-networks each, {wall:.1f} s wall: {k * args.steps / wall:.1f} steps/s aggregate, "
+              f"{args.steps / wall:.1f} per specialist ({k * args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
+    if not args.no_sb3:
+        print(f"sb3: start ({load()})", flush=True)
+        wall, cpu = bench_sb3(args)
+        rows.append(("sb3", 1, args.steps / wall, args.steps / cpu))
+        print(f"sb3: 2 Q-networks, {wall:.1f} s wall: {args.steps / wall:.1f} steps/s ({args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
 
+    one = rows[0][2]
+    print("\n| run | specialists | aggregate steps/s | per specialist | vs one alone (aggregate) |")
+    print("|---|---|---|---|---|")
+    for side, k, rate, _ in rows:
+        print(f"| {side} | {k} | {rate:.1f} | {rate / k:.1f} | {rate / one:.2f}x |")
+    if not args.no_sb3:
+        print(f"\nratio one of ours (4 Q-networks) / sb3 (2): {one / rows[-1][2]:.2f}")
+    # An env x seed needs 2 specialists of paper_steps each; stacking k of them shares the
+    # process among k / 2 such runs, so each costs 2 * paper_steps / (aggregate rate) of wall time.
+    steps = 2 * args.paper_steps
+    print(f"\nprojected hours for the specialists of one paper-scale env x seed ({steps / 1e6:g}M steps), amortised:")
+    for side, k, rate, _ in rows:
+        if side.startswith("ours"):
+            print(f"  {side}: {steps / rate / 3600:.2f} h")
 
 if __name__ == "__main__":
     main()
