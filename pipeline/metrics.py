@@ -11,9 +11,12 @@ Definitions (and where they come from):
   point per env (params `env.reference_point`).
 - hv_fraction: hypervolume / volume of the box [ref, ideal]; with the ideal point of the front
   itself it measures how much of its own bounding box a front fills (1 for a single point).
-- sparsity: the paper's Table 1 uses PGMORL's definition (Xu et al. 2020): sort the front along
-  each objective separately, sum the squared gaps between neighbours over all objectives,
-  divide by n - 1. Raw return units, so only comparable within one env. Lower is denser.
+- sparsity: the paper's Table 1 caption: "the average Euclidean distance between neighbouring
+  points", neighbours along the front sorted by objective 0. Raw return units, so only
+  comparable within one env. Lower is denser.
+- sparsity_pgmorl: PGMORL's indicator (Xu et al. 2020), used by the precursor and MOPDERL code:
+  sort the front along each objective separately, sum the squared gaps between neighbours over
+  all objectives, divide by n - 1. Squared units: not comparable with the paper's Table 1.
 - expected_utility: mean over evenly spread weight vectors w on the simplex of max_p w . J_p,
   on raw (unnormalised) returns, as morl-baselines computes it. On raw returns the objective
   with the larger scale (e.g. HalfCheetah's energy, thousands) weighs more; compare EU only
@@ -86,6 +89,18 @@ def hv_fraction(points: np.ndarray, ref: np.ndarray | list[float], ideal: np.nda
 
 
 def sparsity(points: np.ndarray) -> float:
+    """The paper's sparsity (Table 1 caption): mean Euclidean distance between neighbouring
+    points of `points` (n, m), neighbours along the order of objective 0 (ties broken by the
+    others). 0 for n < 2. For n evenly spaced points on a segment from a to b: |b - a| / (n - 1).
+    """
+    p = _as_points(points)
+    if len(p) < 2:
+        return 0.0
+    order = np.lexsort(p.T[::-1])  # by objective 0, then 1, ...
+    return float(np.linalg.norm(np.diff(p[order], axis=0), axis=1).mean())
+
+
+def sparsity_pgmorl(points: np.ndarray) -> float:
     """PGMORL sparsity of a front `points` (n, m): (1 / (n - 1)) sum_j sum_i (P_j[i+1] - P_j[i])^2,
 
     where P_j is objective j of the points sorted along objective j alone. 0 for n < 2.
@@ -187,6 +202,7 @@ def front_metrics(
         "hypervolume": hypervolume(front, ref),
         "hv_fraction": hv_fraction(front, ref, ideal) if len(front) else 0.0,
         "sparsity": sparsity(front),
+        "sparsity_pgmorl": sparsity_pgmorl(front),
         "expected_utility": expected_utility(front, n_weights=n_weights) if len(front) else float("nan"),
         "cardinality": int(len(front)),
         "distinct_count": distinct_count(front, ref, ideal, tol),

@@ -230,38 +230,50 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
 
 @dataclass(frozen=True)
 class Verdict:
-    mapex_wins: bool | None  # None: no seed has both variants
+    outcome: str  # "beat", "lost", "tied" or "unknown" (no seed has both variants)
     sentence: str
 
 
-def hv_verdict(runs: list[Run]) -> Verdict:
+NOISE_SEMS = 2.0  # with >= 2 seeds, "beat" needs a paired mean difference beyond this many SEMs
+
+
+def hv_verdict(runs: list[Run], min_difference: float = 0.05) -> Verdict:
     """Did the advantage-weighted phase (mapex) beat warm-up only on re-evaluated hypervolume?
 
-    Compares seed by seed over the seeds that have both variants; "beat" means a higher mean
-    hypervolume. With several seeds the paired difference's SEM tells whether it exceeds noise.
+    Paired over the seeds that have both variants. With >= 2 seeds: "beat" (or "lost") only
+    when the mean paired difference exceeds NOISE_SEMS standard errors of the paired
+    differences, otherwise "tied": inside the seed noise. With one seed there is no noise
+    estimate, so the rule is a stated minimum relative difference (`min_difference` of warm-up
+    only's hypervolume, report.min_difference) and the sentence says it is one seed.
     """
     hv = {(r.variant, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
     seeds = sorted(s for (v, s) in hv if v == "mapex" and ("warmup_only", s) in hv)
     if not seeds:
-        return Verdict(None, "Cannot say whether the advantage-weighted phase (MAPEX) beat warm-up only on "
-                             "hypervolume: no seed has evaluated results for both variants.")
+        return Verdict("unknown", "Cannot say whether the advantage-weighted phase (MAPEX) beat warm-up only on "
+                                  "hypervolume: no seed has evaluated results for both variants.")
     a = np.array([hv[("mapex", s)] for s in seeds])
     b = np.array([hv[("warmup_only", s)] for s in seeds])
-    wins = bool(a.mean() > b.mean())
-    rel = (a.mean() - b.mean()) / abs(b.mean()) * 100 if b.mean() != 0 else float("nan")
+    d = a - b
     iters = max(int(r.metrics["iterations"]) for r in runs)
-    text = (f"At this scale ({len(seeds)} seed{'s' if len(seeds) > 1 else ''}, up to {iters} extraction iterations), "
-            f"the advantage-weighted phase (MAPEX) {'beat' if wins else 'did not beat'} warm-up only on hypervolume: "
-            f"mean {fmt_num(float(a.mean()))} vs {fmt_num(float(b.mean()))}"
-            f"{'' if math.isnan(rel) else f' ({rel:+.1f}%)'}, higher in {int((a > b).sum())} of {len(seeds)} seed(s).")
-    if len(seeds) > 1:
-        d_mean, d_sem = mean_sem(a - b)
-        within = abs(d_mean) <= d_sem
-        text += (f" Paired difference {fmt_num(d_mean)} ± {fmt_num(d_sem)} (SEM): "
-                 f"{'within one SEM, not distinguishable from seed noise' if within else 'larger than one SEM'}.")
+    n = len(seeds)
+    if n > 1:
+        (am, asem), (bm, bsem), (dm, dsem) = mean_sem(a), mean_sem(b), mean_sem(d)
+        margin = NOISE_SEMS * dsem
+        outcome = "beat" if dm > margin else "lost" if dm < -margin else "tied"
+        rule = f"paired difference {fmt_num(dm)} ± {fmt_num(dsem)} (SEM)"
+        rule += (f", beyond {NOISE_SEMS:g} SEM" if outcome != "tied" else f", within {NOISE_SEMS:g} SEM: inside the seed noise")
+        means = f"mean ± SEM {fmt_num(am)} ± {fmt_num(asem)} vs {fmt_num(bm)} ± {fmt_num(bsem)}"
     else:
-        text += " One seed only: no estimate of seed noise."
-    return Verdict(wins, text)
+        rel = float(d[0] / abs(b[0])) if b[0] != 0 else float("inf") * np.sign(d[0])
+        outcome = "beat" if rel > min_difference else "lost" if rel < -min_difference else "tied"
+        rule = (f"{rel * 100:+.1f}%; one seed only, so no estimate of seed noise: a difference within "
+                f"±{min_difference * 100:g}% (report.min_difference) counts as a tie")
+        means = f"{fmt_num(float(a[0]))} vs {fmt_num(float(b[0]))}"
+    verb = {"beat": "beat", "lost": "lost to", "tied": "tied with"}[outcome]
+    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} extraction iterations), "
+            f"the advantage-weighted phase (MAPEX) {verb} warm-up only on re-evaluated hypervolume: {means}; "
+            f"{rule}. MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}.")
+    return Verdict(outcome, text)
 
 
 def report_markdown(
@@ -270,6 +282,7 @@ def report_markdown(
     names: list[str],
     figures: dict[str, str],
     context: dict[str, str],
+    min_difference: float = 0.05,
 ) -> str:
     """The whole report.md: verdict, tables, figures (name -> caption, files beside report.md), definitions."""
     seeds = sorted({r.seed for r in runs})
@@ -285,7 +298,7 @@ def report_markdown(
         "",
         "## Verdict",
         "",
-        hv_verdict(runs).sentence,
+        hv_verdict(runs, min_difference).sentence,
         "",
         "## Metrics of the re-evaluated final fronts",
         "",
@@ -307,8 +320,9 @@ def report_markdown(
         "- Hypervolume: exact (pymoo) above the fixed reference point. HV fraction: hypervolume over "
         "the volume of the box between the reference point and the ideal point (per-objective maximum "
         "of the re-evaluated population), the same box for the front and for the specialists.",
-        "- Sparsity (PGMORL, as in the paper): sort the front along each objective separately, sum the "
-        "squared gaps between neighbours over all objectives, divide by n - 1. Raw return units.",
+        "- Sparsity (the paper's Table 1): mean Euclidean distance between neighbouring points of the "
+        "front sorted along objective 0. Raw return units. PGMORL's sparsity (sort along each objective "
+        "separately, sum the squared gaps, divide by n - 1) is in metrics.json as sparsity_pgmorl.",
         "- Expected utility: mean over evenly spread weight vectors w of max over the front of w · J, on "
         "raw (unnormalised) returns as morl-baselines does; the larger-scale objective weighs more.",
         "- Distinct points: non-dominated points left after merging points closer than the tolerance "

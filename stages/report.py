@@ -56,7 +56,7 @@ def report(
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
     captions["hypervolume.png"] = "Extraction-time hypervolume vs iteration and vs cumulative env samples."
     context = {"evaluation episodes per member": str(runs[0].metrics.get("episodes"))}
-    text = report_markdown(runs, env_p.id, names, captions, context)
+    text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference)
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
         raise ArtifactError(f"{out}: exists and is not a report folder; refusing to replace it")

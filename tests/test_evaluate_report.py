@@ -264,11 +264,12 @@ def test_report_table_rows(report_dir):
 def test_report_verdict_matches_numbers(runs, report_dir):
     hv = {v: [json.loads((runs / "evaluate" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
               for s in SEEDS] for v in VARIANTS}
-    wins = np.mean(hv["mapex"]) > np.mean(hv["warmup_only"])
+    d = np.array(hv["mapex"]) - np.array(hv["warmup_only"])
+    margin = 2 * d.std(ddof=1) / np.sqrt(len(d))
+    verb = "beat" if d.mean() > margin else "lost to" if d.mean() < -margin else "tied with"
     text = (report_dir / "report.md").read_text()
-    expected = "(MAPEX) beat warm-up only" if wins else "(MAPEX) did not beat warm-up only"
-    assert expected in text
-    assert f"higher in {sum(a > b for a, b in zip(hv['mapex'], hv['warmup_only']))} of 2" in text
+    assert f"(MAPEX) {verb} warm-up only" in text
+    assert f"higher in {int((d > 0).sum())} of 2" in text
 
 
 def _run(variant: str, seed: int, hv: float) -> Run:
@@ -277,19 +278,43 @@ def _run(variant: str, seed: int, hv: float) -> Run:
     return Run(variant, seed, metrics, np.zeros((0, 2)), empty, empty, empty, {})
 
 
-@pytest.mark.parametrize("mapex_hv, warm_hv, wins", [([3.0, 5.0], [2.0, 4.0], True), ([2.0, 4.0], [3.0, 4.0], False),
-                                                     ([2.0], [2.0], False)])
-def test_hv_verdict_both_ways(mapex_hv, warm_hv, wins):
+@pytest.mark.parametrize(
+    "mapex_hv, warm_hv, outcome",
+    [
+        # 3 seeds, paired differences 1.0, 1.1, 0.9: mean 1.0, SEM 0.058 -> beyond 2 SEM: beat
+        ([3.0, 5.1, 7.9], [2.0, 4.0, 7.0], "beat"),
+        ([2.0, 4.0, 7.0], [3.0, 5.1, 7.9], "lost"),
+        # differences +1, -1.2, +0.5: mean 0.1, SEM 0.65 -> inside the noise: tied, though 2 of 3 are higher
+        ([3.0, 2.8, 5.5], [2.0, 4.0, 5.0], "tied"),
+        # one seed: +0.0% (the old report called this a win), +3% (inside 5%), +10% and -10%
+        ([1.03e6], [1.03e6], "tied"),
+        ([1.03], [1.0], "tied"),
+        ([1.1], [1.0], "beat"),
+        ([0.9], [1.0], "lost"),
+    ],
+)
+def test_hv_verdict_with_a_tolerance(mapex_hv, warm_hv, outcome):
     runs = [_run("mapex", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only", s, h) for s, h in enumerate(warm_hv)]
     verdict = hv_verdict(runs)
-    assert verdict.mapex_wins is wins
-    assert ("(MAPEX) beat" in verdict.sentence) is wins and ("did not beat" in verdict.sentence) is (not wins)
+    assert verdict.outcome == outcome
+    verb = {"beat": "(MAPEX) beat", "lost": "(MAPEX) lost to", "tied": "(MAPEX) tied with"}[outcome]
+    assert verb in verdict.sentence
     assert f"{len(mapex_hv)} seed" in verdict.sentence
+    if len(mapex_hv) > 1:
+        assert "± " in verdict.sentence and "paired difference" in verdict.sentence
+    else:
+        assert "one seed only" in verdict.sentence
+
+
+def test_hv_verdict_min_difference_is_a_param():
+    runs = [_run("mapex", 0, 1.03), _run("warmup_only", 0, 1.0)]
+    assert hv_verdict(runs, min_difference=0.01).outcome == "beat"
+    assert hv_verdict(runs, min_difference=0.05).outcome == "tied"
 
 
 def test_hv_verdict_without_pairs():
     verdict = hv_verdict([_run("mapex", 0, 1.0), _run("warmup_only", 1, 2.0)])
-    assert verdict.mapex_wins is None and "Cannot say" in verdict.sentence
+    assert verdict.outcome == "unknown" and "Cannot say" in verdict.sentence
 
 
 def test_report_replaces_old_report_and_refuses_foreign_folder(runs, tmp_path):

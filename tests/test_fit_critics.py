@@ -242,7 +242,8 @@ def run_dir(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("fit_critics")
     params = root / "params.yaml"
     params.write_text(TINY_PARAMS)
-    res = mapex("train-specialist", "--objective", 0, "--out", root / "spec", "--params", params)
+    res = mapex("train-specialist", "--objective", 0, "--out", root, "--params", params)
+    (root / "obj0").rename(root / "spec")
     assert res.exit_code == 0, res.output
     res = mapex("fit-critics", "--objective", 0, "--specialist", root / "spec", "--out", root / "posthoc", "--params", params)
     assert res.exit_code == 0, res.output

@@ -15,20 +15,37 @@ from pipeline import metrics as M
 # ---------------------------------------------------------------- known answers
 
 
-def test_sparsity_hand_computed():
+def test_sparsity_pgmorl_hand_computed():
     # obj0 sorted 0,1,3 -> gaps 1,2; obj1 sorted 0,1,3 -> gaps 1,2; (1+4+1+4) / (3-1) = 5
-    assert M.sparsity(np.array([[0, 3], [1, 1], [3, 0]])) == pytest.approx(5.0)
+    assert M.sparsity_pgmorl(np.array([[0, 3], [1, 1], [3, 0]])) == pytest.approx(5.0)
 
 
-def test_sparsity_sorts_each_objective_separately():
+def test_sparsity_pgmorl_sorts_each_objective_separately():
     # Not a front: sorted by obj0 the obj1 values would be 5,0,4; sorted on their own: 0,4,5.
     p = np.array([[0.0, 5.0], [1.0, 0.0], [2.0, 4.0]])
-    assert M.sparsity(p) == pytest.approx(((1 + 1) + (16 + 1)) / 2)
+    assert M.sparsity_pgmorl(p) == pytest.approx(((1 + 1) + (16 + 1)) / 2)
 
 
+def test_sparsity_paper_hand_computed():
+    # The paper's Table 1: mean Euclidean distance between neighbours along objective 0.
+    # (0,3)-(1,1): sqrt(1+4) = 2.2361; (1,1)-(4,-3): sqrt(9+16) = 5; mean = 3.6180.
+    # Given in shuffled order: the function sorts along objective 0 itself.
+    p = np.array([[4.0, -3.0], [0.0, 3.0], [1.0, 1.0]])
+    assert M.sparsity(p) == pytest.approx((math.sqrt(5) + 5) / 2)
+    # PGMORL's on the same front: obj0 gaps 1,3; obj1 gaps (sorted -3,1,3) 4,2 -> (1+9+16+4)/2 = 15
+    assert M.sparsity_pgmorl(p) == pytest.approx(15.0)
+
+
+@pytest.mark.parametrize("fn", [M.sparsity, M.sparsity_pgmorl])
 @pytest.mark.parametrize("pts", [np.zeros((0, 2)), np.array([[3.0, 4.0]])])
-def test_sparsity_of_fewer_than_two_points_is_zero(pts):
-    assert M.sparsity(pts) == 0.0
+def test_sparsity_of_fewer_than_two_points_is_zero(pts, fn):
+    assert fn(pts) == 0.0
+
+
+def test_sparsity_of_duplicates_is_zero_and_counts_them():
+    # Two identical points add a zero gap: (0 + 5) / 2 = 2.5 with the paper's definition.
+    assert M.sparsity(np.array([[0.0, 0.0], [0.0, 0.0]])) == 0.0
+    assert M.sparsity(np.array([[0.0, 4.0], [0.0, 4.0], [3.0, 0.0]])) == pytest.approx(2.5)
 
 
 def test_hypervolume_hand_computed():
@@ -155,7 +172,8 @@ def test_hv_fraction_in_unit_interval(pts):
 def test_sparsity_of_evenly_spaced_segment(n, a, b):
     pts = a + np.linspace(0, 1, n)[:, None] * (b - a)
     expected = float(np.sum((b - a) ** 2)) / (n - 1) ** 2
-    assert M.sparsity(pts) == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert M.sparsity_pgmorl(pts) == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert M.sparsity(pts) == pytest.approx(math.sqrt(np.sum((b - a) ** 2)) / (n - 1), rel=1e-6, abs=1e-6)
 
 
 @settings(max_examples=40, deadline=None)

@@ -15,6 +15,10 @@ class ReportParams(Strict):
         ["png"], min_length=1, description="figure file formats; png is required (report.md embeds it)"
     )
     figure_width: float = Field(11.0, gt=2, le=40, description="width of a figure in inches")
+    min_difference: float = Field(
+        0.05, ge=0, lt=1,
+        description="with one seed, the relative hypervolume difference below which the verdict is a tie",
+    )
 
     @field_validator("formats")
     @classmethod
