@@ -1,0 +1,58 @@
+"""dvc.yaml's code deps cannot drift: each stage lists exactly the project files its module runs.
+
+A stage's code deps must equal the transitive in-project import closure of its module
+(stages/<stage>.py, computed by pipeline.codedeps, the same function extract's resume
+fingerprint uses) plus stages/cli.py (the `mapex` entry point, which sets the torch thread
+count and so the results' last bits). An import added without its dep (an edit that would
+change results without a rerun) or a stale dep (a rerun for nothing) fails here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline.codedeps import ROOT, module_closure
+
+STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+
+
+def code_deps(stage: dict) -> set[str]:
+    return {d for d in stage.get("deps", []) if d.startswith(("pipeline/", "stages/"))}
+
+
+@pytest.mark.parametrize("name", sorted(STAGES))
+def test_stage_code_deps_are_its_import_closure(name):
+    expected = set(module_closure(f"stages.{name}")) | {"stages/cli.py"}
+    got = code_deps(STAGES[name])
+    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)}"
+    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)}"
+
+
+def test_every_stage_has_its_module():
+    for name in STAGES:
+        assert (ROOT / "stages" / f"{name}.py").is_file(), name
+
+
+def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
+    """codedeps on a toy project: `from a import b` pulls module a.b and a's __init__, relative
+    imports resolve against the package, and imports of other projects are ignored."""
+    import pipeline.codedeps as cd
+
+    pkg = tmp_path / "pipeline"
+    (pkg / "sub").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "sub" / "__init__.py").write_text("from . import leaf\n")
+    (pkg / "sub" / "leaf.py").write_text("import numpy\n")
+    (pkg / "top.py").write_text("from pipeline.sub import thing\nimport os\n")
+    (pkg / "unused.py").write_text("")
+    monkeypatch.setattr(cd, "ROOT", Path(tmp_path))
+    cd.module_closure.cache_clear()
+    try:
+        assert cd.module_closure("pipeline.top") == (
+            "pipeline/__init__.py", "pipeline/sub/__init__.py", "pipeline/sub/leaf.py", "pipeline/top.py",
+        )
+    finally:
+        cd.module_closure.cache_clear()
