@@ -18,6 +18,7 @@ from pipeline.params import ParamsError, section
 from pipeline.params.critic_fidelity import CriticFidelityParams
 from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.posthoc import fit_posthoc_critics
+from pipeline.provenance import provenance
 from pipeline.seeding import derive_seeds, select_device, torch_generator
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
 
@@ -125,6 +126,7 @@ def fit_critics(
         "buffer_objective": objective,
         "objectives": objectives,
         "source": "posthoc",
+        "provenance": provenance(device),
     }
     save_critics(out / "critics.pt", online, fitted.target, meta)
     write_text_atomic(out / "fidelity.json", fidelity_json(report, objective))
