@@ -1,18 +1,22 @@
 """Evaluating deterministic policies: undiscounted vector returns over several episodes.
 
-All episodes of one policy run together: the active envs are stepped in a Python loop but
-the actor is called once per step on the stacked observations of every active env.
+All episodes run together: the active envs are stepped in a Python loop, but the actors are
+called once per step. One policy is called on the stacked observations of its active envs;
+several policies of one architecture (the children of one iteration) are called as one
+`StackedActor` on the observations of all their envs, so K children x E episodes cost one
+batched forward per step instead of K.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.nets import Actor
+from pipeline.nets import Actor, StackedActor
 from pipeline.seeding import derive_seeds
 
 EVAL_TAG = 0x5EED_E7A1  # separates evaluation seeds from every other stream derived from a run seed
@@ -38,31 +42,58 @@ def eval_seeds(run_seed: int, stream: int, policy_index: int, episodes: int) -> 
     return derive_seeds(run_seed, EVAL_TAG, stream, policy_index, n=episodes)
 
 
-@torch.no_grad()
 def evaluate_policy(actor: Actor, envs: list[gym.Env], seeds: list[int]) -> EvalResult:
     """Run one episode per env (env i reset with seeds[i]) with deterministic actions.
 
     Episodes end at termination or at the envs' own step cap (truncation).
     """
-    if len(seeds) > len(envs):
-        raise ValueError(f"{len(seeds)} episodes asked for but only {len(envs)} envs given")
-    n = len(seeds)
-    device = next(actor.parameters()).device
-    obs = [envs[i].reset(seed=int(seeds[i]))[0] for i in range(n)]
+    return evaluate_policies([actor], envs, [seeds])[0]
+
+
+@torch.no_grad()
+def evaluate_policies(actors: Sequence[Actor], envs: Sequence[gym.Env], seeds: Sequence[Sequence[int]]) -> list[EvalResult]:
+    """Run policy i for one episode per seed in seeds[i], every episode of every policy at once.
+
+    Episodes take the envs in order (policy 0's on the first len(seeds[0]) envs, ...), each
+    reset with its own seed, so a policy's returns depend on its seeds alone, not on the other
+    policies evaluated beside it (up to the float rounding of the batched forward, which
+    differs from a lone actor's in the last bits). Several actors must share one architecture.
+    Returns one EvalResult per policy.
+    """
+    slots = [(i, s) for i, policy_seeds in enumerate(seeds) for s in policy_seeds]
+    if len(slots) > len(envs):
+        raise ValueError(f"{len(slots)} episodes asked for but only {len(envs)} envs given")
+    device = next(actors[0].parameters()).device
+    # One policy: called on its active envs' observations only (the unbatched code path, so a
+    # lone policy's returns are bit for bit what they were before batching existed).
+    stacked = StackedActor(actors).to(device) if len(actors) > 1 else None
+    width = max(len(s) for s in seeds)
+    column = [e for policy_seeds in seeds for e in range(len(policy_seeds))]  # episode index within its policy
+    obs = [envs[n].reset(seed=int(s))[0] for n, (_, s) in enumerate(slots)]
     n_obj = envs[0].unwrapped.reward_space.shape[0]
-    returns = np.zeros((n, n_obj))
-    active = list(range(n))
-    samples = 0
+    returns = [np.zeros((len(s), n_obj)) for s in seeds]
+    samples = [0] * len(actors)
+    active = list(range(len(slots)))
     while active:
-        batch = torch.as_tensor(np.stack([obs[i] for i in active]), dtype=torch.float32, device=device)
-        actions = actor(batch).cpu().numpy()
+        if stacked is None:
+            batch = torch.as_tensor(np.stack([obs[n] for n in active]), dtype=torch.float32, device=device)
+            actions = actors[0](batch).cpu().numpy()
+        else:
+            # Every env's latest observation (finished ones too: their actions are discarded),
+            # so the batch keeps one (K, width) shape.
+            grid = np.zeros((len(actors), width, obs[0].shape[0]), np.float32)
+            for n, (i, _) in enumerate(slots):
+                grid[i, column[n]] = obs[n]
+            out = stacked(torch.as_tensor(grid, device=device)).cpu().numpy()
+            actions = [out[slots[n][0], column[n]] for n in active]
         still = []
-        for a, i in zip(actions, active):
-            o, r, terminated, truncated, _ = envs[i].step(a)
-            returns[i] += r
-            samples += 1
-            obs[i] = o
+        for a, n in zip(actions, active):
+            o, r, terminated, truncated, _ = envs[n].step(a)
+            i = slots[n][0]
+            returns[i][column[n]] += r
+            samples[i] += 1
+            obs[n] = o
             if not (terminated or truncated):
-                still.append(i)
+                still.append(n)
         active = still
-    return EvalResult(returns=returns, env_samples=samples)
+    return [EvalResult(returns=r, env_samples=s) for r, s in zip(returns, samples)]

@@ -9,25 +9,51 @@ Deviations from the paper, each a param unless it is a necessary reading:
 - Edge lengths and the centroid are measured in objective space normalised by the population's
   per-objective range (necessary: raw returns differ in scale by orders of magnitude and can be
   negative, so a raw centroid can point anywhere, even away from both parents).
-- `advantage_norm`: the paper mixes raw advantages; `zscore` (the precursor code) and
-  `objective_range` (each A_m divided by objective m's population range, the same units as w)
-  are options.
+- `advantage_norm`: `none` mixes the raw advantages A_m with a weight w computed from
+  range-normalised returns: a mix of units that neither the paper (raw returns and raw
+  advantages throughout) nor a consistent reading uses. It is a deviation, kept as the default
+  only because every measurement so far was taken with it (there is no measured evidence for
+  another choice yet). `objective_range` (each A_m divided by objective m's population range,
+  the units of w) is the consistent reading; `zscore` is the precursor code's.
 - `advantage_recompute: once` computes Q(s, pi_new(s)) once after warm-up (precursor code)
   instead of at every step (Algorithm 1).
+- `children_per_iteration` K > 1 (default 1 = Algorithm 1): K children per iteration, each
+  with parents drawn by the same roulette from the same front (the population at the start of
+  the iteration: a child never sees its siblings), its own hybrid buffer and its own RNG
+  streams, trained together as one stacked ensemble (`make_children`), then all added.
 An advantage always weights exactly the row it was computed for (the precursor code paired
 them with resampled rows, a bug not reproduced here).
+
+Two implementations of a child's training, checked against each other by the tests:
+- `make_child`: one child with plain modules, the reference. On a CPU with K = 1 it is what
+  the stage runs: bit for bit the code from before children were batched.
+- `make_children`: K children as one `StackedActor` (stacked weights, one batched matmul per
+  layer for all K) and one Adam over the stacked parameters. Adam is elementwise and each
+  child's loss touches only its own slice, so no child's update depends on another's;
+  gradient-norm clipping, the one step that is not elementwise, is done per child.
+  Hybrid buffers of different lengths: each child keeps its own schedule of minibatches (its
+  own permutation per epoch, its own number of steps per epoch, its own short last batch),
+  padded to a common (K, batch) shape with masked rows that weigh nothing and do not count in
+  its mean. A child whose schedule ends before the others' keeps the weights of its own last
+  step; the trailing padded steps (where Adam's momentum would still move it) never reach it.
+  On a CPU each child's minibatches come from its numpy generator exactly as `make_child`
+  draws them, so a child trained among K equals the same child trained alone up to the float
+  rounding of the batched matmuls. On CUDA they are drawn on the device from a per-child
+  torch generator (no host sync in the step loop), so CPU and CUDA draw different (each
+  reproducible) minibatches.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
 
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.pareto import pareto_mask
+from pipeline.seeding import torch_generator
 
 
 # ---------------------------------------------------------------- step 1: gaps and weights
@@ -183,17 +209,22 @@ def warm_up(actor: Actor, obs: torch.Tensor, target: torch.Tensor, steps: int, l
 
 @torch.no_grad()
 def critic_values(
-    critics: Sequence[CriticEnsemble], obs: torch.Tensor, action: torch.Tensor, origin: torch.Tensor, chunk: int = 65_536
+    critics: Sequence[CriticEnsemble], obs: torch.Tensor, action: torch.Tensor, origin: torch.Tensor,
+    chunk: int = 65_536, gather: bool | None = None,
 ) -> torch.Tensor:
     """Q^(k)_m(s, a) for each row with k = the row's origin: (B, m), min over the twin heads.
 
     Each row is evaluated only by the critics trained on the buffer it came from
     (paper, "Secondary Critics"). Rows are processed `chunk` at a time to bound memory.
+    gather: evaluate every critic on every row and pick each row's by its origin, the CUDA
+    path (no boolean indexing, hence no host sync); None = on CUDA only. The CPU path runs
+    each critic on its own rows alone, which is less compute.
     """
+    gather = obs.is_cuda if gather is None else gather
     if len(obs) > chunk:
-        return torch.cat([critic_values(critics, obs[i : i + chunk], action[i : i + chunk], origin[i : i + chunk], chunk)
+        return torch.cat([critic_values(critics, obs[i : i + chunk], action[i : i + chunk], origin[i : i + chunk], chunk, gather)
                           for i in range(0, len(obs), chunk)])
-    if obs.is_cuda:
+    if gather:
         # On a GPU, evaluating every critic on every row and selecting costs little, while
         # indexing by a boolean mask would make the host wait for the device at every step.
         every = torch.stack([c.twin_min(obs, action).T for c in critics])  # (K, B, m)
@@ -207,19 +238,30 @@ def critic_values(
     return out
 
 
-def mixed_advantage(q_sa: torch.Tensor, q_pi: torch.Tensor, weight: torch.Tensor, norm: str, scale: torch.Tensor | None = None) -> torch.Tensor:
+def mixed_advantage(
+    q_sa: torch.Tensor, q_pi: torch.Tensor, weight: torch.Tensor, norm: str,
+    scale: torch.Tensor | None = None, mask: torch.Tensor | None = None,
+) -> torch.Tensor:
     """A_mixed = w . (Q(s, a) - Q(s, pi_new(s))) per row (paper eqs. "mixed advantage").
 
-    q_sa, q_pi: (B, m); weight: (m,); scale: (m,) objective ranges for norm="objective_range".
+    q_sa, q_pi: (B, m) with weight (m,) -> (B,); or (K, B, m) with weight (K, m), one target
+    weight per child -> (K, B). scale: (m,) objective ranges for norm="objective_range".
     norm="zscore" standardises A_mixed over the rows given: the whole hybrid buffer when
-    Q(s, pi_new(s)) is computed once (the precursor code), each minibatch when recomputed.
+    Q(s, pi_new(s)) is computed once (the precursor code), each minibatch when recomputed;
+    with `mask` ((K, B), 1 = a real row, 0 = padding) over each child's real rows only.
     """
     adv = q_sa - q_pi
     if norm == "objective_range":
         adv = adv / scale
-    mixed = adv @ weight
+    mixed = adv @ weight if weight.dim() == 1 else (adv @ weight.unsqueeze(-1)).squeeze(-1)
     if norm == "zscore":
-        mixed = (mixed - mixed.mean()) / (mixed.std(unbiased=False) + 1e-8)
+        if mask is None:
+            mixed = (mixed - mixed.mean()) / (mixed.std(unbiased=False) + 1e-8)
+        else:
+            n = mask.sum(dim=-1, keepdim=True).clamp(min=1)
+            mean = (mixed * mask).sum(dim=-1, keepdim=True) / n
+            std = ((((mixed - mean) ** 2) * mask).sum(dim=-1, keepdim=True) / n).sqrt()
+            mixed = (mixed - mean) / (std + 1e-8)
     return mixed
 
 
@@ -291,7 +333,28 @@ def advantage_weighted_regression(
     return {"omega_mean": float(omega_sum) / count, "omega_clipped": float(clipped) / count}
 
 
-# ---------------------------------------------------------------- one iteration
+# ---------------------------------------------------------------- one child: the reference
+
+
+@dataclass(frozen=True)
+class ChildConfig:
+    """How a child is made: the `extract` params that shape one child's training."""
+
+    hidden_sizes: tuple[int, ...]
+    child_buffer_size: int  # target rows of the hybrid buffer
+    weight_norm: str  # "l2" (paper) | "l1" (precursor)
+    warmup_steps: int
+    warmup_lr: float
+    warmup_batch_size: int
+    adv: AdvantageConfig
+
+
+class ChildSeeds(NamedTuple):
+    """A child's independent random streams."""
+
+    numpy: int  # parents, hybrid rows and, with host-drawn rows (CPU), every minibatch
+    torch: int  # the child's initial weights
+    rows: int  # minibatch rows drawn on the device (CUDA): a torch generator there
 
 
 @dataclass
@@ -302,47 +365,355 @@ class ChildRecord:
     stats: dict[str, float]
 
 
+@dataclass
+class ChildStart:
+    """A child before its training: parents, target weight, hybrid buffer, warm-up targets."""
+
+    parents: tuple[int, int]
+    weight: np.ndarray  # (m,) unit target weight
+    hybrid: Hybrid
+    a_bar: torch.Tensor  # (N, act_dim) mean parent action at each hybrid state
+    actor: Actor  # freshly initialised, on the device
+
+    def record(self, n_buffers: int, stats: dict[str, float]) -> ChildRecord:
+        counts = np.bincount(self.hybrid.origin.cpu().numpy(), minlength=n_buffers)
+        return ChildRecord(parents=self.parents, weight=self.weight, counts=counts, stats=stats)
+
+
+def start_child(
+    returns: np.ndarray, actors: Sequence[Actor], buffers: Sequence[dict[str, np.ndarray]], cfg: ChildConfig,
+    rng: np.random.Generator, torch_seed: int, device,
+) -> ChildStart:
+    """Steps 1-2 for one child: parents by roulette, target weight, hybrid buffer, the mean parent
+    action a_bar(s) at its states, and a fresh actor initialised from `torch_seed`.
+
+    returns: (n, m) mean returns of the population; actors: its n policies. Draws from `rng`
+    in a fixed order (parents, then hybrid rows); torch's global generator is left untouched.
+    """
+    parents = select_parents(returns, rng)
+    w = target_weight(returns, parents, cfg.weight_norm)
+    hybrid = build_hybrid(buffers, w, cfg.child_buffer_size, rng, device)
+    a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs)
+    ref = actors[parents[0]]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(torch_seed)
+        actor = Actor(hybrid.obs.shape[1], hybrid.action.shape[1], cfg.hidden_sizes, (ref.centre - ref.scale).cpu(), (ref.centre + ref.scale).cpu())
+    return ChildStart(parents, w, hybrid, a_bar, actor.to(device))
+
+
 def make_child(
     returns: np.ndarray,
     actors: Sequence[Actor],
     buffers: Sequence[dict[str, np.ndarray]],
     critics: Sequence[CriticEnsemble],
-    *,
-    hidden_sizes: Sequence[int],
-    child_buffer_size: int,
-    weight_norm: str,
-    warmup_steps: int,
-    warmup_lr: float,
-    warmup_batch_size: int,
-    adv: AdvantageConfig,
-    rng: np.random.Generator,
-    torch_seed: int,
+    cfg: ChildConfig,
+    seeds: ChildSeeds,
     device,
     on_step: Callable[[], None] | None = None,
 ) -> tuple[Actor, ChildRecord]:
-    """One MAPEX iteration's training: parents, target weight, hybrid buffer, warm-up, AWR.
-
-    returns: (n, m) mean returns of the population so far; actors: its n policies.
+    """One MAPEX iteration's training (Algorithm 1): parents, target weight, hybrid buffer,
+    warm-up, AWR, with plain modules. Every random draw comes from `seeds` (seeds.rows unused:
+    minibatch rows come from the numpy stream, also on CUDA, at one host-to-device copy each).
     """
-    parents = select_parents(returns, rng)
-    w = target_weight(returns, parents, weight_norm)
-    hybrid = build_hybrid(buffers, w, child_buffer_size, rng, device)
-    parent_actors = [actors[p] for p in parents]
-    a_bar = mean_parent_action(parent_actors, hybrid.obs)
-    torch.manual_seed(torch_seed)
-    ref = actors[parents[0]]
-    child = Actor(hybrid.obs.shape[1], hybrid.action.shape[1], hidden_sizes, (ref.centre - ref.scale).cpu(), (ref.centre + ref.scale).cpu()).to(device)
-    warm_up(child, hybrid.obs, a_bar, warmup_steps, warmup_lr, warmup_batch_size, rng)
+    rng = np.random.default_rng(seeds.numpy)
+    child = start_child(returns, actors, buffers, cfg, rng, seeds.torch, device)
+    warm_up(child.actor, child.hybrid.obs, child.a_bar, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size, rng)
     _, span = population_scale(returns)
     stats = advantage_weighted_regression(
-        child,
-        hybrid,
+        child.actor,
+        child.hybrid,
         critics,
-        torch.as_tensor(w, dtype=torch.float32, device=device),
+        torch.as_tensor(child.weight, dtype=torch.float32, device=device),
         torch.as_tensor(span, dtype=torch.float32, device=device),
-        adv,
+        cfg.adv,
         rng,
         on_step,
     )
-    counts = np.bincount(hybrid.origin.cpu().numpy(), minlength=len(buffers))
-    return child.eval(), ChildRecord(parents=parents, weight=w, counts=counts, stats=stats)
+    return child.actor.eval(), child.record(len(buffers), stats)
+
+
+# ---------------------------------------------------------------- K children as one stacked ensemble
+
+
+@dataclass
+class StackedHybrid:
+    """K children's hybrid buffers zero-padded to the longest: row i of child j is real iff
+    i < lengths[j]."""
+
+    obs: torch.Tensor  # (K, N, obs_dim)
+    action: torch.Tensor  # (K, N, act_dim)
+    origin: torch.Tensor  # (K, N) int64
+    lengths: list[int]  # (K,) rows of each child's own hybrid buffer
+
+
+def pad_stack(rows: Sequence[torch.Tensor], length: int | None = None) -> torch.Tensor:
+    """Tensors (n_j, ...) -> (K, length, ...), zero past each one's rows (length: max n_j)."""
+    n = max(len(r) for r in rows) if length is None else length
+    out = rows[0].new_zeros((len(rows), n, *rows[0].shape[1:]))
+    for j, r in enumerate(rows):
+        out[j, : len(r)] = r
+    return out
+
+
+def stack_hybrids(hybrids: Sequence[Hybrid]) -> StackedHybrid:
+    return StackedHybrid(
+        obs=pad_stack([h.obs for h in hybrids]),
+        action=pad_stack([h.action for h in hybrids]),
+        origin=pad_stack([h.origin for h in hybrids]),
+        lengths=[len(h.obs) for h in hybrids],
+    )
+
+
+def warmup_schedule(n: int, steps: int, batch_size: int, rng: np.random.Generator, gen: torch.Generator | None = None, device="cpu") -> torch.Tensor:
+    """One child's warm-up minibatch rows: (steps, min(batch_size, n)) int64, drawn with
+    replacement from `rng` exactly as `warm_up` draws them, or on the device from `gen`."""
+    b = min(batch_size, n)
+    if gen is not None:
+        return torch.randint(0, n, (steps, b), generator=gen, device=gen.device)
+    rows = [rng.integers(0, n, size=b) for _ in range(steps)]
+    return torch.from_numpy(np.stack(rows) if rows else np.zeros((0, b), np.int64)).to(device)
+
+
+def epoch_schedule(
+    n: int, epochs: int, batch_size: int, rng: np.random.Generator, gen: torch.Generator | None = None, device="cpu"
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One child's minibatch rows for `epochs` shuffled passes over its n rows.
+
+    Returns idx (epochs * S, batch_size) int64, S = ceil(n / batch_size) steps per epoch, and
+    mask (same shape, 1.0 = a real row, 0.0 = padding of each epoch's short last batch). One
+    permutation per epoch, from `rng` exactly as `advantage_weighted_regression` draws them,
+    or on the device from `gen`.
+    """
+    steps = -(-n // batch_size)
+    width = steps * batch_size
+    dev = gen.device if gen is not None else torch.device(device)
+    idx = torch.zeros(epochs, width, dtype=torch.int64, device=dev)
+    for e in range(epochs):
+        idx[e, :n] = torch.randperm(n, generator=gen, device=dev) if gen is not None else torch.from_numpy(rng.permutation(n)).to(dev)
+    mask = (torch.arange(width, device=dev) < n).float().expand(epochs, width)
+    return idx.view(epochs * steps, batch_size), mask.reshape(epochs * steps, batch_size)
+
+
+def stack_schedules(rows: Sequence[torch.Tensor], masks: Sequence[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """K per-child schedules (T_j, b_j) -> one time-major schedule: idx (T, K, b) int32 and
+    mask (T, K, b) float, T = max T_j, b = max b_j, everything past a child's own rows and
+    steps masked out (masks: per child, default all real).
+
+    int32 halves the memory of the whole run's schedule (epochs x rows x K entries: 256 MB at
+    the paper's 20 epochs of 200k rows with K = 16); each step converts its (K, b) slice.
+    """
+    t, b = max(len(r) for r in rows), max(r.shape[1] for r in rows)
+    idx = torch.zeros(t, len(rows), b, dtype=torch.int32, device=rows[0].device)
+    mask = torch.zeros(t, len(rows), b, device=rows[0].device)
+    for j, r in enumerate(rows):
+        idx[: len(r), j, : r.shape[1]] = r.to(torch.int32)
+        mask[: len(r), j, : r.shape[1]] = 1.0 if masks is None else masks[j]
+    return idx, mask
+
+
+def gather_rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """x (K, N) or (K, N, d) at rows idx (K, B) of each child -> (K, B) or (K, B, d)."""
+    if x.dim() == 2:
+        return torch.gather(x, 1, idx)
+    return torch.gather(x, 1, idx.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+
+
+def clip_grad_norm_per_child_(params: Sequence[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """`torch.nn.utils.clip_grad_norm_` for each child on its own: child j's gradient (slice j
+    along dim 0 of every stacked parameter) is scaled by min(1, max_norm / (||g_j|| + 1e-6)),
+    ||g_j|| the L2 norm over all of child j's parameters. Returns ||g_j|| (K,)."""
+    grads = [p.grad for p in params if p.grad is not None]
+    norms = torch.stack([torch.linalg.vector_norm(g.flatten(1), dim=1) for g in grads])  # (P, K)
+    total = torch.linalg.vector_norm(norms, dim=0)
+    coef = torch.clamp(max_norm / (total + 1e-6), max=1.0)
+    for g in grads:
+        g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
+    return total
+
+
+def stacked_regression_step(
+    actor: StackedActor, opt: torch.optim.Optimizer, obs, target, mask, weight=None, max_grad_norm=None, pred=None
+) -> torch.Tensor:
+    """One Adam step of every child j on its own loss: the mean over its real rows b of
+    weight_jb * ||pi_j(s_jb) - target_jb||^2 (weight None = 1); `regression_step` for K at once.
+
+    obs (K, B, obs_dim), target (K, B, act_dim), mask and weight (K, B). The summed loss gives
+    child j's slice exactly the gradient of its own loss. Returns the K losses (detached).
+    """
+    pred = actor(obs) if pred is None else pred
+    sq = ((pred - target) ** 2).sum(dim=-1)
+    w = mask if weight is None else weight * mask
+    loss = (sq * w).sum(dim=1) / mask.sum(dim=1).clamp(min=1)
+    opt.zero_grad(set_to_none=True)
+    loss.sum().backward()
+    if max_grad_norm is not None:
+        clip_grad_norm_per_child_(list(actor.parameters()), max_grad_norm)
+    opt.step()
+    return loss.detach()
+
+
+def _adam(actor: StackedActor, lr: float) -> torch.optim.Optimizer:
+    # Fused on CUDA: one kernel per parameter tensor instead of a dozen elementwise launches.
+    if actor.scale.is_cuda:
+        return torch.optim.Adam(actor.parameters(), lr=lr, fused=True)
+    return torch.optim.Adam(actor.parameters(), lr=lr)
+
+
+def stacked_warm_up(actor: StackedActor, obs: torch.Tensor, target: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor, lr: float) -> None:
+    """`warm_up` for K children at once (paper eq. L_init): obs (K, N, o), target (K, N, a)
+    = each child's mean parent action; rows, mask (T, K, b) from `stack_schedules`."""
+    opt = _adam(actor, lr)
+    for t in range(len(rows)):
+        idx = rows[t].long()
+        stacked_regression_step(actor, opt, gather_rows(obs, idx), gather_rows(target, idx), mask[t])
+
+
+@torch.no_grad()
+def fixed_weights(
+    actor: StackedActor, data: StackedHybrid, critics: Sequence[CriticEnsemble], q_sa: torch.Tensor,
+    weight: torch.Tensor, scale: torch.Tensor, cfg: AdvantageConfig, gather: bool | None = None,
+) -> torch.Tensor:
+    """omega of every hybrid row with Q(s, pi_new(s)) computed once, after warm-up
+    (advantage_recompute = once): (K, N), each child over its own rows as
+    `advantage_weighted_regression` computes it (zscore over its whole hybrid buffer)."""
+    out = torch.zeros(q_sa.shape[:2], device=q_sa.device)
+    for j, n in enumerate(data.lengths):
+        obs = data.obs[j, :n]
+        with torch.random.fork_rng(devices=[]):  # building an Actor draws from the global generator
+            child = actor.unstack(j).to(obs.device)
+        q_pi = critic_values(critics, obs, mean_parent_action([child], obs), data.origin[j, :n], gather=gather)
+        out[j, :n] = awr_weight(mixed_advantage(q_sa[j, :n], q_pi, weight[j], cfg.norm, scale), cfg.beta, cfg.omega_max)
+    return out
+
+
+def stacked_awr(
+    actor: StackedActor,
+    data: StackedHybrid,
+    critics: Sequence[CriticEnsemble],
+    weight: torch.Tensor,
+    scale: torch.Tensor,
+    cfg: AdvantageConfig,
+    rows: torch.Tensor,
+    mask: torch.Tensor,
+    ends: Sequence[int],
+    on_step: Callable[[], None] | None = None,
+    gather: bool | None = None,
+) -> list[dict[str, float]]:
+    """`advantage_weighted_regression` for K children at once (paper Step 3).
+
+    weight (K, m): each child's target weight; scale (m,) objective ranges; rows, mask
+    (T, K, B) from `stack_schedules` of each child's `epoch_schedule`; ends (K,): the steps
+    T_j of child j's own schedule. One index tensor per step gathers the rows' obs, action,
+    origin, Q(s, a) and loss terms, so row b of child j is weighted by the omega of that same
+    row. No host sync inside the loop on CUDA (no .item(), boolean indexing or numpy).
+    Child j's weights are kept as they are after its step T_j. Returns per-child statistics
+    of the weights (mean, fraction clipped at omega_max).
+    """
+    k, m = len(data.lengths), critics[0].n_members // 2
+    q_sa = pad_stack([critic_values(critics, data.obs[j, :n], data.action[j, :n], data.origin[j, :n], gather=gather)
+                      for j, n in enumerate(data.lengths)], data.obs.shape[1])
+    fixed = fixed_weights(actor, data, critics, q_sa, weight, scale, cfg, gather) if cfg.recompute == "once" else None
+    opt = _adam(actor, cfg.lr)
+    params = list(actor.parameters())
+    finishing: dict[int, list[int]] = {}
+    for j, t in enumerate(ends):
+        finishing.setdefault(t, []).append(j)
+    final: dict[int, list[torch.Tensor]] = {}
+    omega_sum = torch.zeros(k, device=q_sa.device)
+    clipped = torch.zeros(k, device=q_sa.device)
+    for t in range(len(rows)):
+        idx, real = rows[t].long(), mask[t]
+        obs, act = gather_rows(data.obs, idx), gather_rows(data.action, idx)
+        pred = actor(obs)
+        if fixed is not None:
+            omega = gather_rows(fixed, idx)
+        else:
+            origin = gather_rows(data.origin, idx)
+            q_pi = critic_values(critics, obs.flatten(0, 1), pred.detach().flatten(0, 1), origin.flatten(), gather=gather).view(k, -1, m)
+            mixed = mixed_advantage(gather_rows(q_sa, idx), q_pi, weight, cfg.norm, scale, real)
+            omega = awr_weight(mixed, cfg.beta, cfg.omega_max)
+        stacked_regression_step(actor, opt, obs, act, real, omega, cfg.max_grad_norm, pred=pred)
+        omega_sum += (omega * real).sum(dim=1)
+        clipped += ((omega >= cfg.omega_max * (1 - 1e-6)) * real).sum(dim=1)
+        if t + 1 < len(rows):
+            for j in finishing.get(t + 1, []):
+                final[j] = [p.detach()[j].clone() for p in params]
+        if on_step is not None:
+            on_step()
+    with torch.no_grad():
+        for j, snapshot in final.items():
+            for p, v in zip(params, snapshot):
+                p[j].copy_(v)
+    total = [cfg.epochs * n for n in data.lengths]
+    sums, clips = omega_sum.tolist(), clipped.tolist()
+    return [{"omega_mean": sums[j] / total[j], "omega_clipped": clips[j] / total[j]} for j in range(k)]
+
+
+def train_stacked(
+    children: Sequence[ChildStart],
+    critics: Sequence[CriticEnsemble],
+    cfg: ChildConfig,
+    span: np.ndarray,
+    rngs: Sequence[np.random.Generator],
+    gens: Sequence[torch.Generator | None],
+    on_step: Callable[[], None] | None = None,
+    gather: bool | None = None,
+) -> tuple[StackedActor, list[dict[str, float]]]:
+    """Warm-up and AWR of K started children as one stacked ensemble; child j draws its
+    minibatch rows from rngs[j] (host) or gens[j] (device), warm-up rows first, as `make_child`.
+
+    span: (m,) the population's objective ranges. Returns the trained stack and per-child stats.
+    """
+    data = stack_hybrids([c.hybrid for c in children])
+    if min(data.lengths) == 0:
+        raise ValueError(f"a child's hybrid buffer is empty (lengths {data.lengths})")
+    device = data.obs.device
+    actor = StackedActor([c.actor for c in children])
+    rows, mask = stack_schedules([warmup_schedule(n, cfg.warmup_steps, cfg.warmup_batch_size, rng, gen, device)
+                                  for n, rng, gen in zip(data.lengths, rngs, gens)])
+    stacked_warm_up(actor, data.obs, pad_stack([c.a_bar for c in children], data.obs.shape[1]), rows, mask, cfg.warmup_lr)
+    if cfg.adv.epochs == 0:
+        return actor, [{"omega_mean": float("nan"), "omega_clipped": float("nan")} for _ in children]
+    sched = [epoch_schedule(n, cfg.adv.epochs, cfg.adv.batch_size, rng, gen, device) for n, rng, gen in zip(data.lengths, rngs, gens)]
+    rows, mask = stack_schedules([i for i, _ in sched], [m for _, m in sched])
+    weight = torch.as_tensor(np.stack([c.weight for c in children]), dtype=torch.float32, device=device)
+    scale = torch.as_tensor(span, dtype=torch.float32, device=device)
+    stats = stacked_awr(actor, data, critics, weight, scale, cfg.adv, rows, mask, [len(i) for i, _ in sched], on_step, gather)
+    return actor, stats
+
+
+def make_children(
+    returns: np.ndarray,
+    actors: Sequence[Actor],
+    buffers: Sequence[dict[str, np.ndarray]],
+    critics: Sequence[CriticEnsemble],
+    cfg: ChildConfig,
+    seeds: Sequence[ChildSeeds],
+    device,
+    *,
+    stacked: bool | None = None,
+    device_rows: bool | None = None,
+    gather: bool | None = None,
+    on_step: Callable[[], None] | None = None,
+) -> list[tuple[Actor, ChildRecord]]:
+    """One iteration's K = len(seeds) children, each made from the same population (returns
+    (n, m), actors) with its own seeds; K = 1 is Algorithm 1's iteration.
+
+    stacked: train them as one `StackedActor` (None: unless K = 1 on a CPU, which runs the
+    reference `make_child`). device_rows: draw minibatch rows on the device from each
+    child's seeds.rows generator (None: on CUDA). gather: the critic lookup path (see
+    `critic_values`). Returns (actor on `device`, record) per child, in the order of `seeds`.
+    """
+    device = torch.device(device)
+    if stacked is None:
+        stacked = len(seeds) > 1 or device.type == "cuda"
+    if not stacked:
+        return [make_child(returns, actors, buffers, critics, cfg, s, device, on_step) for s in seeds]
+    device_rows = device.type == "cuda" if device_rows is None else device_rows
+    rngs = [np.random.default_rng(s.numpy) for s in seeds]
+    gens = [torch_generator(s.rows, device) if device_rows else None for s in seeds]
+    children = [start_child(returns, actors, buffers, cfg, rng, s.torch, device) for rng, s in zip(rngs, seeds)]
+    stack, stats = train_stacked(children, critics, cfg, population_scale(returns)[1], rngs, gens, on_step, gather)
+    with torch.random.fork_rng(devices=[]):  # building an Actor draws from the global generator
+        trained = [stack.unstack(j).to(device).eval() for j in range(len(children))]
+    return [(a, c.record(len(buffers), s)) for a, c, s in zip(trained, children, stats)]

@@ -39,12 +39,12 @@ def fixture_inputs():
     return buffers, critics, actors
 
 
-def child_kwargs(config: str) -> dict:
+def child_config(config: str, epochs: int = 2) -> ex.ChildConfig:
     c = CONFIGS[config]
-    adv = ex.AdvantageConfig(epochs=2, beta=1.0, omega_max=20.0, lr=1e-3, batch_size=64,
+    adv = ex.AdvantageConfig(epochs=epochs, beta=1.0, omega_max=20.0, lr=1e-3, batch_size=64,
                              max_grad_norm=c["max_grad_norm"], recompute=c["recompute"], norm=c["norm"])
-    return dict(hidden_sizes=[32, 32], child_buffer_size=600, weight_norm=c["weight_norm"], warmup_steps=25,
-                warmup_lr=1e-3, warmup_batch_size=64, adv=adv, device="cpu")
+    return ex.ChildConfig(hidden_sizes=(32, 32), child_buffer_size=600, weight_norm=c["weight_norm"], warmup_steps=25,
+                          warmup_lr=1e-3, warmup_batch_size=64, adv=adv)
 
 
 def digest(actor: Actor, rec: ex.ChildRecord, returns: np.ndarray) -> str:
@@ -91,5 +91,6 @@ def one_thread():
 @pytest.mark.parametrize("config", sorted(PINNED))
 def test_one_child_is_bitwise_what_it_was_before_batching(config, one_thread):
     buffers, critics, actors = fixture_inputs()
-    child, rec = ex.make_child(RETURNS, actors, buffers, critics, rng=np.random.default_rng(111), torch_seed=222, **child_kwargs(config))
+    # what the stage runs for K = 1 on a CPU
+    [(child, rec)] = ex.make_children(RETURNS, actors, buffers, critics, child_config(config), [ex.ChildSeeds(111, 222, 333)], "cpu")
     assert digest(child, rec, evaluate_short(child)) == PINNED[config]
