@@ -3,11 +3,14 @@
 `epochs`, `beta` and `omega_max` left at null take the paper's per-environment values
 (appendix table "Environment-specific MAPEX hyperparameters"); the other defaults are the
 paper's shared MAPEX table, or the precursor code's value where the paper gives none.
+Two settings deviate from the paper and say so in their descriptions: `advantage_norm: none`,
+the default (a mix of units, see pipeline/extraction.py), and `children_per_iteration` above 1
+(K children per iteration from the same front, trained together).
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -24,7 +27,16 @@ PAPER_ENV_SETTINGS: dict[str, tuple[int, float, float]] = {
 
 
 class ExtractParams(Strict):
-    iterations: int = Field(1200, ge=0, description="children to extract, one per iteration (paper: 1,200)")
+    iterations: int = Field(
+        1200, ge=0, description="iterations of Algorithm 1, each adding children_per_iteration children (paper: 1,200 of 1)"
+    )
+    children_per_iteration: int = Field(
+        1,
+        ge=1,
+        description="K children per iteration, trained together as one stacked ensemble; 1 = Algorithm 1. K > 1 is a "
+        "deviation: all K draw their parents by the same roulette from the front at the start of the iteration (siblings "
+        "never see each other), each with its own hybrid buffer and RNG streams; the run makes iterations x K children",
+    )
     child_buffer_size: int = Field(200_000, gt=0, description="rows of each child's hybrid buffer (paper: 200,000)")
     eval_episodes: int = Field(5, gt=0, description="evaluation episodes per policy (paper: 5)")
     warmup_steps: int = Field(1000, ge=0, description="gradient steps regressing onto the mean parent action (paper: 1,000)")
@@ -36,14 +48,16 @@ class ExtractParams(Strict):
     lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the weighted regression (precursor: 3e-4)")
     batch_size: int = Field(256, gt=0, description="minibatch of the weighted regression (precursor: 256)")
     max_grad_norm: float | None = Field(None, gt=0, description="clip the child's gradient norm (precursor: 1.0); null = off")
-    hidden_sizes: list[int] = Field([256, 256], min_length=1, description="hidden widths of each child policy")
+    hidden_sizes: list[Annotated[int, Field(gt=0)]] = Field([256, 256], min_length=1, description="hidden widths of each child policy (positive)")
     weight_norm: Literal["l2", "l1"] = Field("l2", description="target weight = centroid / its L2 norm (paper) or L1 sum (precursor)")
     advantage_recompute: Literal["every_step", "once"] = Field(
         "every_step", description="Q(s, pi_new(s)) at every step (Algorithm 1) or once after warm-up (precursor)"
     )
     advantage_norm: Literal["none", "zscore", "objective_range"] = Field(
         "none",
-        description="none (paper); zscore of A_mixed (precursor); objective_range: each A_m divided by objective m's population range",
+        description="none: raw advantages mixed with a weight from range-normalised returns (a deviation: neither the "
+        "paper, whose returns are raw too, nor consistent units; the default only because every measurement so far used "
+        "it); objective_range: each A_m divided by objective m's population range (the units of w); zscore of A_mixed (precursor)",
     )
     critics: Literal["joint", "posthoc"] = Field("joint", description="critics trained with the specialists, or fitted offline")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
