@@ -6,77 +6,123 @@ import csv
 import io
 from dataclasses import asdict
 from pathlib import Path
+from typing import Any
+
 import numpy as np
 import torch
 import typer
 
 from pipeline.artifacts import ArtifactError, write_text_atomic
 from pipeline.buffer import load_buffer
-from pipeline.checkpoint import check_matches, load_critics, load_policy
+from pipeline.checkpoint import load_critics, load_policy
+from pipeline.codedeps import closure_files
 from pipeline.envs import EnvError, env_spec, make_env
-from pipeline.evaluation import eval_seeds, evaluate_policy
-from pipeline.extraction import AdvantageConfig, make_child
+from pipeline.evaluation import eval_seeds, evaluate_policies, evaluate_policy
+from pipeline.extraction import AdvantageConfig, ChildConfig, ChildSeeds, make_children, population_scale
 from pipeline.pareto import hypervolume, pareto_mask
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
 from pipeline.population import Member, actor_state, member_actor, save_population
-import pipeline.evaluation
-import pipeline.extraction
-import pipeline.nets
-import pipeline.pareto
+from pipeline.provenance import provenance
 from pipeline.resume import clear_progress, fingerprint, load_progress, save_progress
 from pipeline.seeding import derive_seeds, select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 EXTRACT_TAG = 0xE87AC7
 EVAL_STREAM = 0  # evaluation seeds of extraction; the evaluate stage uses fresh streams
+SPEC_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives")
+
+Claim = tuple[Path, dict[str, Any], str]  # (file, its metadata, the key naming its objective)
 
 
-def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int], spec_meta: dict):
-    """Policies, buffers and critics of specialists 0..m-1, checked against the env and each other."""
+def check_slot(k: int, seed: int, spec_meta: dict, policy: Claim, buffer: Claim, critics: Claim) -> None:
+    """Policy, buffer and critics of slot obj{k} must describe one specialist: objective k, run
+    seed `seed`, the params' env and dims. Raises ArtifactError naming both files of the first
+    disagreement (or the file lacking a key and the one it is checked against)."""
+    files = [policy, buffer, critics]
+    expected = {"objective": (k, f"directory obj{k}"), "seed": (seed, f"--seed {seed}")}
+    expected |= {key: (spec_meta[key], "params env") for key in SPEC_KEYS}
+    for key, (want, source) in expected.items():
+        values = []
+        for i, (path, meta, objective_key) in enumerate(files):
+            name = objective_key if key == "objective" else key
+            if name not in meta:
+                other = files[1 if i != 1 else 0][0]
+                raise ArtifactError(f"{path}: metadata has no {name!r}, so it cannot be checked against {other}")
+            values.append((path, name, meta[name]))
+        for (pa, na, va), (pb, nb, vb) in zip(values, values[1:]):
+            if va != vb:
+                raise ArtifactError(f"{pa} ({na} = {va!r}) and {pb} ({nb} = {vb!r}) are not of the same specialist")
+        if values[0][2] != want:
+            paths = ", ".join(str(p) for p, _, _ in values)
+            raise ArtifactError(f"{paths} all have {key} = {values[0][2]!r}, but {source} expects {want!r}")
+
+
+def check_critics(crit_path: Path, cmeta: dict, buf_path: Path, attrs: dict, mode: str, n_objectives: int) -> None:
+    """The critics are of the kind extract.critics asks for, cover every objective and, if
+    fitted post hoc, were fitted on exactly this buffer (their recorded buffer checksums)."""
+    if cmeta.get("source") != mode:
+        raise ArtifactError(f"{crit_path}: critics of source {cmeta.get('source')!r} beside {buf_path}, but extract.critics = {mode!r}")
+    if cmeta["objectives"] != list(range(n_objectives)):
+        raise ArtifactError(
+            f"{crit_path}: critics covering objectives {cmeta['objectives']}; expected all of {list(range(n_objectives))} "
+            f"for {buf_path} (train with train_specialist.secondary_critics: true, or use extract.critics: posthoc)"
+        )
+    if mode != "posthoc":
+        return
+    if "buffer_checksums" not in cmeta:
+        raise ArtifactError(f"{crit_path}: the post-hoc critics do not record which buffer they were fitted on "
+                            f"(no 'buffer_checksums'), so they cannot be checked against {buf_path}; refit them with fit-critics")
+    theirs, ours = cmeta["buffer_checksums"], attrs.get("checksums", {})
+    if theirs != ours:
+        differ = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+        raise ArtifactError(f"{crit_path} was fitted on another buffer than {buf_path}: the checksums of {differ} differ")
+
+
+def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int], spec_meta: dict, seed: int, critics_mode: str):
+    """Policies, buffers and critics of specialists 0..m-1, each slot cross-checked (see check_slot)."""
     actors, hidden, buffers, critics, files = [], [], [], [], []
     for k in objectives:
         pol_path, buf_path = spec_root / f"obj{k}" / "policy.pt", spec_root / f"obj{k}" / "buffer.zarr"
         crit_path = critics_root / f"obj{k}" / "critics.pt"
-        actor, meta = load_policy(pol_path)
-        check_matches(pol_path, meta, spec_meta, "params env")
+        actor, pmeta = load_policy(pol_path)
         data, attrs = load_buffer(buf_path)
-        check_matches(buf_path, attrs, spec_meta, "params env")
-        if attrs["objective"] != k:
-            raise ArtifactError(f"{buf_path}: buffer of objective {attrs['objective']}, expected {k}")
         online, _, cmeta = load_critics(crit_path)
-        check_matches(crit_path, cmeta, spec_meta, "params env")
-        if cmeta["buffer_objective"] != k or cmeta["objectives"] != list(range(spec_meta["n_objectives"])):
-            raise ArtifactError(
-                f"{crit_path}: critics of buffer {cmeta['buffer_objective']} covering objectives {cmeta['objectives']}; "
-                f"expected buffer {k} covering all of {list(range(spec_meta['n_objectives']))} "
-                "(train with train_specialist.secondary_critics: true, or use extract.critics: posthoc)"
-            )
+        check_slot(k, seed, spec_meta, (pol_path, pmeta, "objective"), (buf_path, attrs, "objective"), (crit_path, cmeta, "buffer_objective"))
+        check_critics(crit_path, cmeta, buf_path, attrs, critics_mode, spec_meta["n_objectives"])
         actors.append(actor)
-        hidden.append(list(meta["hidden_sizes"]))
+        hidden.append(list(pmeta["hidden_sizes"]))
         buffers.append(data)
         critics.append(online)
         files += [pol_path, buf_path / "zarr.json", crit_path]
     return actors, hidden, buffers, critics, files
 
 
+def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
+    """Streams of the run's children first .. first + k - 1 (counted from 1): child c's depend on
+    (seed, c) alone, so with K = 1 child c has the streams iteration c always had."""
+    return [ChildSeeds(*derive_seeds(seed, EXTRACT_TAG, c, n=3)) for c in range(first, first + k)]
+
+
 def history_csv(rows: list[dict]) -> str:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=["iteration", "population", "front_size", "hypervolume", "env_samples"], lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=["iteration", "population", "front_size", "env_samples"], lineterminator="\n")
     w.writeheader()
     w.writerows(rows)
     return buf.getvalue()
 
 
-def history_row(iteration: int, members: list[Member], ref: list[float]) -> dict:
+def history_row(iteration: int, members: list[Member]) -> dict:
     returns = np.array([m.returns for m in members])
-    return {
-        "iteration": iteration,
-        "population": len(members),
-        "front_size": int(pareto_mask(returns).sum()),
-        "hypervolume": f"{hypervolume(returns, ref):.6g}",
-        "env_samples": members[-1].env_samples,
-    }
+    return {"iteration": iteration, "population": len(members), "front_size": int(pareto_mask(returns).sum()),
+            "env_samples": members[-1].env_samples}
+
+
+def normalised_hypervolume(returns: np.ndarray) -> float:
+    """Hypervolume of the returns scaled to [0, 1] by the population's own per-objective range,
+    reference at 0: needs no reference point (shown while running; moves when the range does)."""
+    lo, span = population_scale(returns)
+    return hypervolume((returns - lo) / span, np.zeros(returns.shape[1]))
 
 
 @reports_errors
@@ -91,15 +137,18 @@ def extract(
 ) -> None:
     """Extract a Pareto front from single-objective specialists (MAPEX, Algorithm 1).
 
-    Params: sections `env` (reference_point needed for the hypervolume history) and `extract`.
-    The population starts as the specialists; each iteration adds one child trained on a
-    hybrid buffer by mixed-advantage-weighted regression. Progress is checkpointed after each
-    iteration: killed and rerun with the same params and inputs, the stage resumes and ends
-    with the same artifacts as an uninterrupted run; changed params or inputs start over.
+    Params: sections `env` (id, max_episode_steps) and `extract`. The population starts as the
+    specialists; each iteration adds extract.children_per_iteration children (1 = Algorithm 1),
+    each trained on its own hybrid buffer by mixed-advantage-weighted regression. The policy,
+    buffer and critics of each objective must agree on objective, seed and env. Progress is
+    checkpointed after each iteration: killed and rerun with the same params and inputs, the
+    stage resumes and ends with the same artifacts as an uninterrupted run; changed params,
+    inputs or code start over.
 
     Writes OUT/population.pt (every policy with its returns, parents, target weight, iteration
-    and cumulative env samples) and OUT/history.csv (front size, hypervolume and env samples
-    per iteration).
+    and cumulative env samples) and OUT/history.csv (population, front size and env samples per
+    iteration). Hypervolumes are computed downstream from population.pt, so env.reference_point
+    is not an input here.
     """
     raw, env_p, cfg = read_params(params, "extract", ExtractParams)
     run = section(raw, "", RunParams, params)
@@ -111,45 +160,46 @@ def extract(
         raise ParamsError(f"{params}: {exc}") from None
     if variant == "warmup_only":
         cfg = cfg.model_copy(update={"epochs": 0})
-    envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes)]
+    k_children = cfg.children_per_iteration
+    envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * k_children)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     if spec.n_objectives != 2:
         raise EnvError(
             f"env.id = {env_p.id!r} has {spec.n_objectives} objectives; MAPEX gap identification is "
             "defined for 2 (the paper leaves N >= 3 to future work)"
         )
-    ref = env_p.reference_point
-    if ref is None or len(ref) != spec.n_objectives:
-        raise ParamsError(f"{params}: env.reference_point = {ref!r}: expected a list of {spec.n_objectives} numbers")
     if sorted(run.objectives) != list(range(spec.n_objectives)):
         raise ParamsError(f"{params}: objectives = {run.objectives}: extraction needs one specialist per objective 0..{spec.n_objectives - 1}")
     if cfg.critics == "posthoc" and posthoc is None:
         raise ParamsError("extract.critics = 'posthoc' but no --posthoc directory was given")
     spec_meta = {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives}
+    bounds = {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
     critics_root = posthoc if cfg.critics == "posthoc" else specialists
-    actors, hidden, buffers, critics, files = load_specialists(specialists, critics_root, list(range(spec.n_objectives)), spec_meta)
+    actors, hidden, buffers, critics, files = load_specialists(
+        specialists, critics_root, list(range(spec.n_objectives)), spec_meta, seed, cfg.critics
+    )
 
     device = select_device(cfg.device)
     actors = [a.to(device) for a in actors]
     critics = [c.to(device) for c in critics]
-    # Everything that can change the artifacts: params, inputs, the code that computes them,
-    # and the device and thread count (which can change the last bits of CPU/GPU results).
-    config = {"env": env_p.model_dump(exclude={"objective_names"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
-    code = [pipeline.extraction.__file__, pipeline.evaluation.__file__, pipeline.nets.__file__, pipeline.pareto.__file__, __file__]
-    fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + code)
+    # Everything that can change the artifacts: params, inputs, every code file the stage
+    # runs, and the device and thread count (which can change the last bits of results).
+    # env.reference_point is not among them: it does not change what extraction computes.
+    config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
+    fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + closure_files("stages.extract"))
     progress_dir = resume_dir / "extract" / variant / f"seed{seed}"
+    n_spec = spec.n_objectives
     saved = load_progress(progress_dir, fp)
-
-    def evaluate(actor, policy_id: int, samples_before: int):
-        res = evaluate_policy(actor, envs, eval_seeds(seed, EVAL_STREAM, policy_id, cfg.eval_episodes))
-        return res, samples_before + res.env_samples
+    if saved is not None and (len(saved[0]) - n_spec) % k_children:
+        saved = None  # not a whole number of iterations: not progress this code wrote
 
     if saved is None:
         members, history, samples = [], [], 0
         for k, actor in enumerate(actors):
-            res, samples = evaluate(actor, k, samples)
+            res = evaluate_policy(actor, envs, eval_seeds(seed, EVAL_STREAM, k, cfg.eval_episodes))
+            samples += res.env_samples
             members.append(Member("specialist", k, 0, [], None, res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, hidden[k], actor_state(actor)))
-        history.append(history_row(0, members, ref))
+        history.append(history_row(0, members))
         written = save_progress(progress_dir, fp, [asdict(m) for m in members], 0, {"history": history})
     else:
         items, extra = saved
@@ -157,40 +207,32 @@ def extract(
         history = extra["history"]
         samples = members[-1].env_samples
         written = len(members)
-    n_spec = spec.n_objectives
-    done = len(members) - n_spec
-    pop_actors = actors + [member_actor(m, {**spec_meta, "action_low": list(spec.action_low), "action_high": list(spec.action_high)}).to(device) for m in members[n_spec:]]
-    adv = AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute, cfg.advantage_norm)
+    done = (len(members) - n_spec) // k_children
+    pop_actors = actors + [member_actor(m, {**spec_meta, **bounds}).to(device) for m in members[n_spec:]]
+    child_cfg = ChildConfig(
+        tuple(cfg.hidden_sizes), cfg.child_buffer_size, cfg.weight_norm, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size,
+        AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute, cfg.advantage_norm),
+    )
 
-    bar = progress(cfg.iterations, f"extract {variant} seed {seed}", unit="child")
-    bar.update(done)
+    bar = progress(cfg.iterations * k_children, f"extract {variant} seed {seed}", unit="child")
+    bar.update(done * k_children)
     with bar:
         for it in range(done + 1, cfg.iterations + 1):
-            s_np, s_torch = derive_seeds(seed, EXTRACT_TAG, it, n=2)
             returns = np.array([m.returns for m in members])
-            child, rec = make_child(
-                returns, pop_actors, buffers, critics,
-                hidden_sizes=cfg.hidden_sizes, child_buffer_size=cfg.child_buffer_size, weight_norm=cfg.weight_norm,
-                warmup_steps=cfg.warmup_steps, warmup_lr=cfg.warmup_lr, warmup_batch_size=cfg.warmup_batch_size,
-                adv=adv, rng=np.random.default_rng(s_np), torch_seed=s_torch, device=device,
-            )
-            res, samples = evaluate(child, len(members), samples)
-            members.append(Member("child", None, it, list(rec.parents), rec.weight.tolist(), res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, list(cfg.hidden_sizes), actor_state(child)))
-            pop_actors.append(child)
-            history.append(history_row(it, members, ref))
-            written = save_progress(progress_dir, fp, [asdict(members[-1])], written, {"history": history})
-            bar.set_postfix_str(f"front {history[-1]['front_size']} HV {float(history[-1]['hypervolume']):.4g} child {fmt_vec(res.mean)}", refresh=False)
-            bar.update(1)
+            children = make_children(returns, pop_actors, buffers, critics, child_cfg, child_seeds(seed, len(members) - n_spec + 1, k_children), device)
+            ids = range(len(members), len(members) + k_children)
+            results = evaluate_policies([a for a, _ in children], envs, [eval_seeds(seed, EVAL_STREAM, i, cfg.eval_episodes) for i in ids])
+            for (child, rec), res in zip(children, results):
+                samples += res.env_samples
+                members.append(Member("child", None, it, list(rec.parents), rec.weight.tolist(), res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, list(cfg.hidden_sizes), actor_state(child)))
+                pop_actors.append(child)
+            history.append(history_row(it, members))
+            written = save_progress(progress_dir, fp, [asdict(m) for m in members[-k_children:]], written, {"history": history})
+            returns = np.array([m.returns for m in members])
+            bar.set_postfix_str(f"front {history[-1]['front_size']} HV(norm) {normalised_hypervolume(returns):.3f} child {fmt_vec(results[-1].mean)}", refresh=False)
+            bar.update(k_children)
 
-    meta = {
-        **spec_meta,
-        "action_low": list(spec.action_low),
-        "action_high": list(spec.action_high),
-        "seed": seed,
-        "variant": variant,
-        "reference_point": list(ref),
-        "params": config,
-    }
+    meta = {**spec_meta, **bounds, "seed": seed, "variant": variant, "params": config, "provenance": provenance(device)}
     save_population(out / "population.pt", members, meta)
     write_text_atomic(out / "history.csv", history_csv(history))
     clear_progress(progress_dir)
