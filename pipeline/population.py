@@ -3,11 +3,13 @@
 population.pt (format "mapex.population", version 1), loadable with torch.load(weights_only=True):
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
-              reference_point, params, variant
+              variant, params (the env and extract params, seed and variant the run used),
+              provenance (pipeline.provenance: git commit, library versions, device, threads)
     members:  list, in the order policies joined the population (index = policy id):
         origin         "specialist" or "child"
         objective      the specialist's objective (None for a child)
-        iteration      0 for specialists, i >= 1 for the child made in iteration i
+        iteration      0 for specialists, i >= 1 for the children made in iteration i
+                       (extract.children_per_iteration of them, consecutive ids)
         parents        policy ids of the parents ([] for specialists)
         target_weight  the unit target weight vector the child was trained for (None for specialists)
         returns        mean undiscounted return vector over the evaluation episodes
@@ -18,7 +20,8 @@ population.pt (format "mapex.population", version 1), loadable with torch.load(w
         actor          state dict of pipeline.nets.Actor
 
 history.csv, one row per iteration (iteration 0 = specialists alone): iteration, population,
-front_size, hypervolume, env_samples.
+front_size, env_samples. No hypervolume: it needs env.reference_point, which is not an input of
+extraction; it is computed downstream from the members' iteration and returns.
 """
 
 from __future__ import annotations
