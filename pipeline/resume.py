@@ -2,7 +2,9 @@
 
 A stage that checkpoints after each unit of work stores the fingerprint with its progress; a
 rerun resumes only if the fingerprint matches, so a changed param, input, code file, device
-or thread count starts over instead of continuing stale state.
+or thread count starts over instead of continuing stale state. The code files are every
+in-project file the stage imports (`pipeline.codedeps.closure_files`), the same list DVC's
+deps hold, so no hand-kept list can miss one.
 
 Layout of a progress directory: one file per finished item (`item_00000.pt`, ...), each
 written once, and `state.pt` (fingerprint, item count, small extra state) rewritten after
