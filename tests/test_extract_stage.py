@@ -80,15 +80,40 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
         assert np.linalg.norm(m.target_weight) == pytest.approx(1.0)
         assert len(m.returns) == 2 and m.eval_episodes == 2
     lines = (tmp_path / "out" / "history.csv").read_text().splitlines()
-    assert lines[0] == "iteration,population,front_size,hypervolume,env_samples"
+    assert lines[0] == "iteration,population,front_size,env_samples"  # no hypervolume: no reference point here
     assert len(lines) == 1 + 4
+    assert [int(line.split(",")[1]) for line in lines[1:]] == [2, 3, 4, 5]
     assert not (tmp_path / "resume" / "extract" / "mapex" / "seed0").exists()  # cleaned up when done
+    prov = meta["provenance"]
+    assert prov["device"].startswith("cpu") and prov["versions"]["torch"] == torch.__version__
+    assert "reference_point" not in meta and "reference_point" not in meta["params"]["env"]
+
+
+def test_children_per_iteration_end_to_end(specialists, tmp_path):
+    """K = 2: each iteration adds two children whose parents were on the population before it."""
+    params = write_params(tmp_path / "params.yaml", children_per_iteration=2)
+    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, tmp_path / "resume"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members, meta = load_population(tmp_path / "out" / "population.pt")
+    assert meta["params"]["extract"]["children_per_iteration"] == 2
+    assert [m.iteration for m in members] == [0, 0, 1, 1, 2, 2, 3, 3]
+    for i, m in enumerate(members[2:], start=2):
+        first_of_iteration = 2 + 2 * (m.iteration - 1)
+        assert all(0 <= p < first_of_iteration for p in m.parents), (i, m.parents)  # siblings never parents
+        assert np.linalg.norm(m.target_weight) == pytest.approx(1.0) and len(m.returns) == 2
+    samples = [m.env_samples for m in members]
+    assert samples == [80 * (i + 1) for i in range(8)]  # 2 episodes x 40 steps each, cumulative
+    # siblings are different policies (own hybrid buffer, own seeds)
+    assert not torch.equal(members[2].actor["net.0.weight"], members[3].actor["net.0.weight"])
+    lines = (tmp_path / "out" / "history.csv").read_text().splitlines()
+    assert [line.split(",")[:2] for line in lines[1:]] == [["0", "2"], ["1", "4"], ["2", "6"], ["3", "8"]]
 
 
 def _population_equal(a: Path, b: Path) -> None:
     ma, meta_a = load_population(a)
     mb, meta_b = load_population(b)
-    assert meta_a == meta_b
+    # provenance holds the git state, which other work in the same checkout may change mid-test
+    assert {k: v for k, v in meta_a.items() if k != "provenance"} == {k: v for k, v in meta_b.items() if k != "provenance"}
     assert len(ma) == len(mb)
     for x, y in zip(ma, mb):
         assert (x.returns, x.parents, x.target_weight, x.env_samples) == (y.returns, y.parents, y.target_weight, y.env_samples)
@@ -96,8 +121,9 @@ def _population_equal(a: Path, b: Path) -> None:
             assert torch.equal(x.actor[k], y.actor[k]), k
 
 
-def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
-    params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200)
+@pytest.mark.parametrize("k", [1, 2])
+def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k):
+    params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200, children_per_iteration=k)
     # uninterrupted reference run
     r = mapex(*extract_cmd(specialists, tmp_path / "ref", params, tmp_path / "resume_ref"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -114,7 +140,7 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
         except (FileNotFoundError, RuntimeError, EOFError):
             return 0
 
-    # kill as soon as the first child is checkpointed (the specialists are saved before it)
+    # kill as soon as the first iteration is checkpointed (the specialists are saved before it)
     while children_saved() < 1 and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
     proc.send_signal(signal.SIGKILL)
@@ -125,7 +151,7 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path):
     done = saved["n_items"] - 2
     # each finished policy is its own file, written once
     assert len(list(state_file.parent.glob("item_*.pt"))) >= saved["n_items"]
-    assert 1 <= done < 8
+    assert 1 <= done < 8 * k and done % k == 0  # whole iterations only
     assert not (tmp_path / "out" / "population.pt").exists()  # nothing final written by the killed run
     # rerun: resumes from the checkpoint and ends with the same artifacts
     r = mapex(*extract_cmd(specialists, tmp_path / "out", params, resume), cwd=tmp_path)
@@ -178,3 +204,27 @@ def test_warmup_only_variant_and_bad_inputs(specialists, tmp_path):
     r = mapex(*extract_cmd(specialists, tmp_path / "y", bad, tmp_path / "r"), cwd=tmp_path)
     assert r.returncode == 2 and "extract.beta = -1" in r.stderr and "greater than 0" in r.stderr
     assert not (tmp_path / "y").exists()
+
+
+def test_reference_point_is_not_an_input_of_extraction(specialists, tmp_path):
+    """Progress made under one env.reference_point is resumed under another (here: none)."""
+    resume = tmp_path / "resume"
+    params_a = write_params(tmp_path / "a.yaml")
+    # OUT is a plain file, so this run fails writing its outputs, after its last checkpoint
+    blocked = tmp_path / "blocked"
+    blocked.write_text("")
+    r = mapex(*extract_cmd(specialists, blocked, params_a, resume), cwd=tmp_path)
+    assert r.returncode != 0
+    progress = resume / "extract" / "mapex" / "seed0"
+    assert torch.load(progress / "state.pt", weights_only=True)["n_items"] == 2 + 3
+    # mark the first child's saved record (returns_std steers nothing) to tell a resumed run from a fresh one
+    item = torch.load(progress / "item_00002.pt", weights_only=True)
+    item["item"]["returns_std"] = [-1.0, -1.0]
+    torch.save(item, progress / "item_00002.pt")
+    params_b = tmp_path / "b.yaml"
+    params_b.write_text(yaml.safe_dump({**TINY, "env": {k: v for k, v in TINY["env"].items() if k != "reference_point"}}))
+    r = mapex(*extract_cmd(specialists, tmp_path / "out", params_b, resume), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members, _ = load_population(tmp_path / "out" / "population.pt")
+    assert members[2].returns_std == [-1.0, -1.0]  # resumed, not recomputed
+    assert len(members) == 5
