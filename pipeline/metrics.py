@@ -24,6 +24,8 @@ Definitions (and where they come from):
 - cardinality: the number of distinct non-dominated return vectors.
 - distinct_count: non-dominated points that stay distinct when points closer than `tol` of the
   normalised objective range are merged (resolution-limited cardinality).
+- hypervolume_history: the hypervolume of the population as it grew, one value per extraction
+  iteration, against iteration and cumulative env samples (the paper's learning curves).
 """
 
 from __future__ import annotations
@@ -250,3 +252,38 @@ def population_summary(
         "ideal_point": ideal.tolist(),
         "outside_reference": int((~(r > ref).all(axis=1)).sum()),
     }
+
+
+def hypervolume_history(
+    iteration: np.ndarray,
+    env_samples: np.ndarray,
+    returns: dict[str, np.ndarray],
+    ref: np.ndarray | list[float],
+) -> dict[str, np.ndarray]:
+    """Hypervolume of the population after each iteration, for one or more sets of returns.
+
+    iteration (n,): the iteration that made each member (0 for specialists); env_samples (n,):
+    cumulative env samples once the member was evaluated; returns: column name -> (n, m)
+    return vectors of the same members (e.g. extraction-time and re-evaluated). For each
+    iteration t present, the population is every member with iteration <= t. Returns columns
+    of length T (the distinct iterations, ascending): `iteration`, `population` (members),
+    `env_samples` (the most any of them had used) and one hypervolume column per entry of
+    `returns`, each above `ref`.
+    """
+    it = np.asarray(iteration)
+    samples = np.asarray(env_samples)
+    ref = np.asarray(ref, dtype=float)
+    points = {name: _as_points(r, len(ref)) for name, r in returns.items()}
+    if it.ndim != 1 or samples.shape != it.shape or any(len(p) != len(it) for p in points.values()):
+        raise ValueError(f"iteration {it.shape}, env_samples {samples.shape} and returns "
+                         f"{ {k: p.shape for k, p in points.items()} } must describe the same members")
+    steps = np.unique(it)
+    upto = [it <= t for t in steps]
+    out = {
+        "iteration": steps,
+        "population": np.array([m.sum() for m in upto]),
+        "env_samples": np.array([samples[m].max() for m in upto]),
+    }
+    for name, p in points.items():
+        out[name] = np.array([hypervolume(p[m], ref) for m in upto])
+    return out

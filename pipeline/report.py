@@ -1,9 +1,9 @@
 """The experiment report: figures and markdown tables from evaluated runs. No file paths here.
 
-A `Run` is one (variant, seed): the evaluate stage's metrics and re-evaluated returns plus the
-extract stage's hypervolume history. Figures are matplotlib `Figure`s rendered with Agg (no
-pyplot, no global backend state); tables and the verdict are markdown strings computed from
-the numbers. Mean +- SEM across seeds as in the paper's Table 1.
+A `Run` is one (variant, seed): the evaluate stage's re-evaluated returns plus the score
+stage's metrics, front, hypervolume history and provenance. Figures are matplotlib `Figure`s
+rendered with Agg (no pyplot, no global backend state); tables and the verdict are markdown
+strings computed from the numbers. Mean +- SEM across seeds as in the paper's Table 1.
 """
 
 from __future__ import annotations
@@ -31,12 +31,14 @@ class Run:
 
     variant: str
     seed: int
-    metrics: dict  # the evaluate stage's metrics.json
+    metrics: dict  # the score stage's metrics.json
     returns: np.ndarray  # (n, m) re-evaluated mean return of each member
     origin: np.ndarray  # (n,) "specialist" or "child"
     iteration: np.ndarray  # (n,) iteration that made the member (0 for specialists)
     on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
-    history: dict[str, np.ndarray]  # extraction history: iteration, env_samples, hypervolume (each (T,))
+    # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))
+    history: dict[str, np.ndarray]
+    provenance: dict | None = None  # stage -> pipeline.provenance record or None (score's provenance.json)
 
 
 def label(variant: str) -> str:
@@ -114,7 +116,7 @@ def step_values(x: np.ndarray, y: np.ndarray, grid: np.ndarray) -> np.ndarray:
     return out
 
 
-def _band(ax, x: np.ndarray, curves: np.ndarray, colour: str, name: str, n: int) -> None:
+def _band(ax, x: np.ndarray, curves: np.ndarray, colour: str, name: str, n: int, ls: str = "-") -> None:
     """Mean line (+- SEM band when several curves) of curves (n_seeds, len(x)), ignoring NaNs."""
     counts = np.sum(~np.isnan(curves), axis=0)
     with warnings.catch_warnings():  # columns with < 2 finite values warn; they are masked below
@@ -123,16 +125,23 @@ def _band(ax, x: np.ndarray, curves: np.ndarray, colour: str, name: str, n: int)
         sd = np.nanstd(curves, axis=0, ddof=1)
     sem = np.where(counts > 1, sd / np.sqrt(np.maximum(counts, 1)), 0.0)
     ok = counts > 0
-    ax.plot(x[ok], mean[ok], color=colour, lw=1.6, drawstyle="steps-post", label=f"{name} (mean of {n} seed{'s' if n > 1 else ''})")
+    ax.plot(x[ok], mean[ok], color=colour, lw=1.6, ls=ls, drawstyle="steps-post",
+            label=f"{name} (mean of {n} seed{'s' if n > 1 else ''})")
     if n > 1:
-        ax.fill_between(x[ok], (mean - sem)[ok], (mean + sem)[ok], step="post", color=colour, alpha=0.25, lw=0)
+        ax.fill_between(x[ok], (mean - sem)[ok], (mean + sem)[ok], step="post", color=colour,
+                        alpha=0.25 if ls == "-" else 0.12, lw=0)
+
+
+HISTORY_CURVES = (("hypervolume_extract", "-", "extraction-time"), ("hypervolume", "--", "re-evaluated"))
 
 
 def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
-    """Extraction-time hypervolume vs iteration and vs cumulative env samples, per variant.
+    """Hypervolume of the population after each iteration vs iteration and vs cumulative
+    extraction env samples, per variant: of the extraction-time returns (solid, the paper's
+    curve) and of the same members' re-evaluated returns (dashed; its last point is the final
+    front's hypervolume in the tables).
 
     Several seeds: mean +- SEM (samples: each seed's step curve on the union of sample counts).
-    The final front's re-evaluated hypervolume is marked at the last iteration (x).
     """
     fig = _figure(width, width * 0.4)
     ax_it, ax_s = fig.subplots(1, 2, sharey=True)
@@ -140,15 +149,13 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
         rs = [r for r in runs if r.variant == v]
         colour = COLOURS.get(v, "grey")
         its = np.unique(np.concatenate([r.history["iteration"] for r in rs]))
-        _band(ax_it, its, np.stack([step_values(r.history["iteration"], r.history["hypervolume"], its) for r in rs]),
-              colour, label(v), len(rs))
         grid = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
-        _band(ax_s, grid, np.stack([step_values(r.history["env_samples"], r.history["hypervolume"], grid) for r in rs]),
-              colour, label(v), len(rs))
-        final_it = [int(r.history["iteration"].max()) for r in rs]
-        final_hv = [r.metrics["front"]["hypervolume"] for r in rs]
-        ax_it.scatter(final_it, final_hv, marker="x", s=60, color=colour, zorder=5,
-                      label=f"{label(v)} final front, re-evaluated")
+        for key, ls, kind in HISTORY_CURVES:
+            name = f"{label(v)}, {kind}"
+            _band(ax_it, its, np.stack([step_values(r.history["iteration"], r.history[key], its) for r in rs]),
+                  colour, name, len(rs), ls)
+            _band(ax_s, grid, np.stack([step_values(r.history["env_samples"], r.history[key], grid) for r in rs]),
+                  colour, name, len(rs), ls)
     ax_it.set_xlabel("iteration")
     ax_it.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax_s.set_xlabel("cumulative env samples (extraction evaluations)")
@@ -156,7 +163,7 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
     for ax in (ax_it, ax_s):
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small", loc="best")
-    fig.suptitle(f"Hypervolume during extraction: {env_id}")
+    fig.suptitle(f"Hypervolume of the population during extraction: {env_id}")
     return fig
 
 
@@ -168,13 +175,18 @@ def fmt_num(x: float | None) -> str:
     return f"{x:.4g}"
 
 
-def fmt_mean_sem(values: list[float]) -> str:
-    """'mean ± SEM' over seeds; just the mean for one seed; n/a when no finite value."""
+def fmt_mean_sem(values: list[float | None]) -> str:
+    """'mean ± SEM' over seeds; just the mean for one value; n/a when no finite value.
+
+    A missing value (None or NaN, e.g. an undefined ratio) is left out and the cell says over
+    how many of the seeds the mean is: '2.1 ± 0.3 (2 of 3 seeds)'.
+    """
     v = [x for x in values if x is not None and math.isfinite(x)]
     if not v:
         return "n/a"
     mean, sem = mean_sem(v)
-    return fmt_num(mean) if len(v) < 2 else f"{fmt_num(mean)} ± {fmt_num(sem)}"
+    text = fmt_num(mean) if len(v) < 2 else f"{fmt_num(mean)} ± {fmt_num(sem)}"
+    return text if len(v) == len(values) else f"{text} ({len(v)} of {len(values)} seeds)"
 
 
 def specialist_metrics(runs: list[Run]) -> list[dict]:
@@ -190,7 +202,8 @@ TABLE_METRICS = (("hypervolume", "Hypervolume (↑)"), ("sparsity", "Sparsity (�
 
 
 def paper_table(runs: list[Run], env_id: str) -> str:
-    """Table 1 of the paper, re-shaped: one row per env, each metric for every variant and the specialists."""
+    """The paper's Table 1 layout (one row per env, a column group per metric) for every variant
+    and the specialists: its two metrics (hypervolume, sparsity) plus two it does not report."""
     groups = [*variants_in(runs), "specialists"]
     header = ["Environment"] + [f"{title} {label(g)}" for _, title in TABLE_METRICS for g in groups]
     cells = [env_id]
@@ -202,22 +215,23 @@ def paper_table(runs: list[Run], env_id: str) -> str:
 
 
 def details_table(runs: list[Run]) -> str:
-    """Per variant: HV ratio vs specialists, HV fraction, cardinality, extraction-time HV, budget."""
-    header = ["Variant", "seeds", "HV / HV(specialists)", "HV fraction of [ref, ideal] box", "cardinality",
-              "extraction-time HV", "iterations", "env samples (extraction)"]
+    """Per variant: HV ratio vs specialists, HV fraction, PGMORL sparsity, cardinality, extraction-time HV, budget."""
+    header = ["Variant", "seeds", "HV / HV(specialists)", "HV fraction of [ref, ideal] box", "sparsity (PGMORL)",
+              "cardinality", "extraction-time HV", "iterations", "env samples (extraction)"]
     rows = []
     for v in variants_in(runs):
         rs = [r for r in runs if r.variant == v]
         m = [r.metrics for r in rs]
         rows.append([label(v), str(len(rs)), fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
                      fmt_mean_sem([x["front"]["hv_fraction"] for x in m]),
+                     fmt_mean_sem([x["front"]["sparsity_pgmorl"] for x in m]),
                      fmt_mean_sem([x["front"]["cardinality"] for x in m]),
                      fmt_mean_sem([x["extraction_hypervolume"] for x in m]),
                      fmt_mean_sem([x["iterations"] for x in m]),
                      fmt_mean_sem([x["env_samples_extraction"] for x in m])])
     sm = specialist_metrics(runs)
     # the specialists' HV fraction depends on which variant's box it was measured in: not shown
-    rows.append([label("specialists"), str(len(sm)), "1", "",
+    rows.append([label("specialists"), str(len(sm)), "1", "", fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]),
                  fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
     return _md_table(header, rows)
 
@@ -234,46 +248,107 @@ class Verdict:
     sentence: str
 
 
-NOISE_SEMS = 2.0  # with >= 2 seeds, "beat" needs a paired mean difference beyond this many SEMs
+def verdict_outcome(d: np.ndarray, warm: np.ndarray, min_difference: float, noise_sems: float) -> str:
+    """'beat', 'lost' or 'tied' from the paired per-seed differences d = MAPEX - warm-up only (n,).
+
+    n >= 2: 'beat' when mean(d) > noise_sems * SEM(d) and MAPEX is higher in more than half of
+    the seeds; 'lost' the mirror image; otherwise 'tied' (inside the seed noise). n = 1: no
+    noise estimate, so 'beat'/'lost' need |d| > min_difference * |warm| (warm-up only's
+    hypervolume), otherwise 'tied'; with warm = 0 any nonzero difference counts.
+    """
+    n = len(d)
+    if n == 1:
+        big = abs(d[0]) > min_difference * abs(warm[0])
+        return "beat" if big and d[0] > 0 else "lost" if big and d[0] < 0 else "tied"
+    dm, dsem = mean_sem(d)
+    beyond = abs(dm) > noise_sems * dsem
+    if beyond and dm > 0 and (d > 0).sum() > n / 2:
+        return "beat"
+    if beyond and dm < 0 and (d < 0).sum() > n / 2:
+        return "lost"
+    return "tied"
 
 
-def hv_verdict(runs: list[Run], min_difference: float = 0.05) -> Verdict:
+def _percent(diff: float, base: float) -> str:
+    return f"{diff / abs(base) * 100:+.1f}%" if base != 0 else "n/a %"
+
+
+def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> Verdict:
     """Did the advantage-weighted phase (mapex) beat warm-up only on re-evaluated hypervolume?
 
-    Paired over the seeds that have both variants. With >= 2 seeds: "beat" (or "lost") only
-    when the mean paired difference exceeds NOISE_SEMS standard errors of the paired
-    differences, otherwise "tied": inside the seed noise. With one seed there is no noise
-    estimate, so the rule is a stated minimum relative difference (`min_difference` of warm-up
-    only's hypervolume, report.min_difference) and the sentence says it is one seed.
+    Paired over the seeds that have both variants; the rule is `verdict_outcome`'s, and the
+    sentence states it with the numbers: each variant's mean ± SEM over those seeds, the mean
+    paired difference ± its SEM (also relative to warm-up only's mean), and in how many seeds
+    MAPEX was higher and lower. With one seed it says there is no noise estimate.
     """
     hv = {(r.variant, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
     seeds = sorted(s for (v, s) in hv if v == "mapex" and ("warmup_only", s) in hv)
     if not seeds:
         return Verdict("unknown", "Cannot say whether the advantage-weighted phase (MAPEX) beat warm-up only on "
                                   "hypervolume: no seed has evaluated results for both variants.")
-    a = np.array([hv[("mapex", s)] for s in seeds])
-    b = np.array([hv[("warmup_only", s)] for s in seeds])
+    a = np.array([hv[("mapex", s)] for s in seeds], dtype=float)
+    b = np.array([hv[("warmup_only", s)] for s in seeds], dtype=float)
     d = a - b
-    iters = max(int(r.metrics["iterations"]) for r in runs)
     n = len(seeds)
+    outcome = verdict_outcome(d, b, min_difference, noise_sems)
+    iters = max(int(r.metrics["iterations"]) for r in runs)
+    tally = f"MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}"
     if n > 1:
         (am, asem), (bm, bsem), (dm, dsem) = mean_sem(a), mean_sem(b), mean_sem(d)
-        margin = NOISE_SEMS * dsem
-        outcome = "beat" if dm > margin else "lost" if dm < -margin else "tied"
-        rule = f"paired difference {fmt_num(dm)} ± {fmt_num(dsem)} (SEM)"
-        rule += (f", beyond {NOISE_SEMS:g} SEM" if outcome != "tied" else f", within {NOISE_SEMS:g} SEM: inside the seed noise")
-        means = f"mean ± SEM {fmt_num(am)} ± {fmt_num(asem)} vs {fmt_num(bm)} ± {fmt_num(bsem)}"
+        z = f"{abs(dm) / dsem:.1f} SEM from zero" if dsem > 0 else "every seed's difference the same"
+        numbers = (f"Mean ± SEM over seeds {', '.join(map(str, seeds))}: MAPEX {fmt_num(am)} ± {fmt_num(asem)}, "
+                   f"warm-up only {fmt_num(bm)} ± {fmt_num(bsem)}. Paired by seed, MAPEX - warm-up only = "
+                   f"{fmt_num(dm)} ± {fmt_num(dsem)} (SEM; {_percent(dm, bm)} of warm-up only's mean, {z}); {tally}.")
+        rule = (f"Rule: 'beat' or 'lost to' needs the mean paired difference beyond {noise_sems:g} SEM of the "
+                f"paired differences (report.noise_sems) and the same sign in more than half of the seeds; "
+                f"otherwise 'tied with': inside the seed noise.")
     else:
-        rel = float(d[0] / abs(b[0])) if b[0] != 0 else float("inf") * np.sign(d[0])
-        outcome = "beat" if rel > min_difference else "lost" if rel < -min_difference else "tied"
-        rule = (f"{rel * 100:+.1f}%; one seed only, so no estimate of seed noise: a difference within "
-                f"±{min_difference * 100:g}% (report.min_difference) counts as a tie")
-        means = f"{fmt_num(float(a[0]))} vs {fmt_num(float(b[0]))}"
+        numbers = (f"One seed only ({seeds[0]}), so no estimate of seed noise: MAPEX {fmt_num(float(a[0]))}, "
+                   f"warm-up only {fmt_num(float(b[0]))}, difference {fmt_num(float(d[0]))} "
+                   f"({_percent(float(d[0]), float(b[0]))}); {tally}.")
+        rule = (f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of warm-up only's hypervolume "
+                f"(report.min_difference) counts as a tie.")
     verb = {"beat": "beat", "lost": "lost to", "tied": "tied with"}[outcome]
-    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} extraction iterations), "
-            f"the advantage-weighted phase (MAPEX) {verb} warm-up only on re-evaluated hypervolume: {means}; "
-            f"{rule}. MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}.")
+    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} extraction iterations), the "
+            f"advantage-weighted phase (MAPEX) {verb} warm-up only on re-evaluated hypervolume. {numbers} {rule}")
     return Verdict(outcome, text)
+
+
+PROVENANCE_STAGES = ("extract", "evaluate", "score")
+PROVENANCE_COLUMNS = ("git commit", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "device", "threads")
+
+
+def provenance_cells(record: dict | None) -> tuple[str, ...]:
+    """One provenance record (pipeline.provenance) as table cells; 'not recorded' where absent."""
+    if not record:
+        return ("not recorded",) * len(PROVENANCE_COLUMNS)
+    versions = record.get("versions") or {}
+    commit = record.get("git_commit")
+    if commit is not None:  # a dirty checkout's results may come from uncommitted code
+        commit = commit[:10] + {True: " (dirty)", False: ""}.get(record.get("git_dirty"), " (dirty: not recorded)")
+    values = (commit, *(versions.get(lib) for lib in PROVENANCE_COLUMNS[1:6]), record.get("device"), record.get("torch_threads"))
+    return tuple("not recorded" if x is None else str(x) for x in values)
+
+
+def _run_list(runs: list[Run]) -> str:
+    """'MAPEX seeds 0, 1; warm-up only seed 2'."""
+    parts = []
+    for v in variants_in(runs):
+        seeds = sorted(r.seed for r in runs if r.variant == v)
+        parts.append(f"{label(v)} seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
+    return "; ".join(parts)
+
+
+def provenance_table(runs: list[Run]) -> str:
+    """Per stage, what produced each run (variant x seed): runs with identical provenance share a
+    row. 'extract' is the population's record (population.pt meta['provenance'])."""
+    rows = []
+    for stage in PROVENANCE_STAGES:
+        groups: dict[tuple[str, ...], list[Run]] = {}
+        for r in sorted(runs, key=lambda r: (r.seed, r.variant)):
+            groups.setdefault(provenance_cells((r.provenance or {}).get(stage)), []).append(r)
+        rows += [[stage, _run_list(rs), *cells] for cells, rs in groups.items()]
+    return _md_table(["stage", "runs", *PROVENANCE_COLUMNS], rows)
 
 
 def report_markdown(
@@ -283,8 +358,10 @@ def report_markdown(
     figures: dict[str, str],
     context: dict[str, str],
     min_difference: float = 0.05,
+    noise_sems: float = 2.0,
 ) -> str:
-    """The whole report.md: verdict, tables, figures (name -> caption, files beside report.md), definitions."""
+    """The whole report.md: verdict, tables, figures (name -> caption, files beside report.md),
+    provenance, definitions."""
     seeds = sorted({r.seed for r in runs})
     ref = runs[0].metrics.get("reference_point")
     lines = [
@@ -298,12 +375,14 @@ def report_markdown(
         "",
         "## Verdict",
         "",
-        hv_verdict(runs, min_difference).sentence,
+        hv_verdict(runs, min_difference, noise_sems).sentence,
         "",
         "## Metrics of the re-evaluated final fronts",
         "",
-        f"Mean ± SEM across seeds{' (one seed: no SEM)' if len(seeds) < 2 else ''}. Layout of the paper's Table 1; "
-        "'specialists only' is the front of the specialists alone.",
+        f"Mean ± SEM across seeds{' (one seed: no SEM)' if len(seeds) < 2 else ''}. The layout of the paper's "
+        "Table 1 (one row per environment, a column group per metric); the paper reports hypervolume and "
+        "sparsity, expected utility and distinct points are added here. 'specialists only' is the front of "
+        "the specialists alone.",
         "",
         paper_table(runs, env_id),
         details_table(runs),
@@ -313,6 +392,13 @@ def report_markdown(
     for fname, caption in figures.items():
         lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]
     lines += [
+        "## Provenance",
+        "",
+        "What produced each run: the population (extract), its re-evaluation (evaluate) and the "
+        "scoring (score). Runs with identical provenance share a row. Results are bitwise "
+        "reproducible only between runs that agree on every column (README, Reproducibility).",
+        "",
+        provenance_table(runs),
         "## Definitions",
         "",
         "- Every member of the final population was re-evaluated on fresh episode seeds (not those "
@@ -321,14 +407,17 @@ def report_markdown(
         "the volume of the box between the reference point and the ideal point (per-objective maximum "
         "of the re-evaluated population), the same box for the front and for the specialists.",
         "- Sparsity (the paper's Table 1): mean Euclidean distance between neighbouring points of the "
-        "front sorted along objective 0. Raw return units. PGMORL's sparsity (sort along each objective "
-        "separately, sum the squared gaps, divide by n - 1) is in metrics.json as sparsity_pgmorl.",
+        "front sorted along objective 0. Raw return units. Sparsity (PGMORL): sort the front along each "
+        "objective separately, sum the squared neighbour gaps over the objectives, divide by n - 1; "
+        "squared units, not comparable with the paper's.",
         "- Expected utility: mean over evenly spread weight vectors w of max over the front of w · J, on "
         "raw (unnormalised) returns as morl-baselines does; the larger-scale objective weighs more.",
         "- Distinct points: non-dominated points left after merging points closer than the tolerance "
         "(a fraction of the [reference, ideal] box side, objectives normalised to it).",
         "- Extraction-time HV: hypervolume of the front of the returns measured during extraction "
         "(fewer episodes, each member evaluated once); above the re-evaluated HV it shows selection optimism.",
+        "- Hypervolume history: after each iteration, the hypervolume of every member made so far, on "
+        "extraction-time returns (what the paper plots) and on the same members' re-evaluated returns.",
         "",
     ]
     return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""Stage report: one self-contained folder (report.md + figures) from every evaluated run."""
+"""Stage report: one self-contained folder (report.md + figures) from every scored run."""
 
 from __future__ import annotations
 
@@ -18,32 +18,37 @@ from pipeline.report import Run, front_figure, history_figure, label, report_mar
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
 RUN_DIR = re.compile(r"^seed(\d+)$")
+METRICS_KEYS = ("env_id", "variant", "seed", "episodes", "front", "specialists", "hv_ratio_vs_specialists",
+                "extraction_hypervolume", "iterations", "env_samples_extraction", "reference_point")
+FRONT_KEYS = ("hypervolume", "hv_fraction", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality", "distinct_count")
+HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolume")
 
 
 @reports_errors
 def report(
-    evaluated: Path = typer.Option(..., help="root of the evaluate outputs, scanned for VARIANT/seedS/metrics.json"),
-    extracted: Path = typer.Option(..., help="root of the extract outputs, holding VARIANT/seedS/history.csv"),
+    evaluated: Path = typer.Option(..., help="root of the evaluate outputs, holding VARIANT/seedS/evaluated.csv"),
+    scored: Path = typer.Option(..., help="root of the score outputs, scanned for VARIANT/seedS/metrics.json"),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
     params: Path = PARAMS_OPTION,
 ) -> None:
-    """Write the experiment report: fronts, hypervolume curves, the metrics table and the verdict.
+    """Write the experiment report: verdict, metrics table, fronts, hypervolume curves, provenance.
 
-    Params: sections `env` (objective names) and `report`. Reads every EVALUATED/VARIANT/seedS
-    (metrics.json, evaluated.csv from `evaluate`) and EXTRACTED/VARIANT/seedS/history.csv (from
-    `extract`). Writes OUT/report.md with one front figure per seed (front_seedS.png), the
-    hypervolume history (hypervolume.png) and a Table-1-shaped metrics table (mean ± SEM across
-    seeds). The folder is built beside OUT and renamed into place when complete.
+    Params: sections `env` (id, objective names), `seeds` and `report`. Reads every
+    SCORED/VARIANT/seedS (metrics.json, front.csv, hypervolume.csv, provenance.json from
+    `score`) of the seeds params.yaml lists, and EVALUATED/VARIANT/seedS/evaluated.csv (from
+    `evaluate`). Writes OUT/report.md with a verdict on MAPEX vs warm-up only (beyond the seed
+    noise or tied; report.noise_sems, report.min_difference), a Table-1-shaped metrics table
+    (mean ± SEM across seeds), one front figure per seed (front_seedS.png), the hypervolume
+    history (hypervolume.png) and each run's provenance. The folder is built beside OUT and
+    renamed into place when complete.
     """
     raw, env_p, cfg = read_params(params, "report", ReportParams)
     seeds = section(raw, "", RunParams, params).seeds
     # Only the seeds params.yaml names: folders of seeds dropped from the list may linger.
-    runs = [r for r in load_runs(evaluated, extracted) if r.seed in seeds]
+    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds]
     if not runs:
-        raise ArtifactError(f"{evaluated}: no evaluated run for seeds {seeds}")
-    if {r.metrics.get("env_id") for r in runs} != {env_p.id}:
-        raise ArtifactError(f"{evaluated}: runs are for env(s) {sorted({str(r.metrics.get('env_id')) for r in runs})}, "
-                            f"params env.id is {env_p.id!r}")
+        raise ArtifactError(f"{scored}: no scored run for seeds {seeds}")
+    check_comparable(scored, runs, env_p.id)
     names = objective_names(env_p.id, runs[0].returns.shape[1], env_p.objective_names)
 
     figures: dict[str, object] = {}
@@ -54,9 +59,11 @@ def report(
         captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member; "
                                              f"{' vs '.join(label(v) for v in variants_in(list(by_variant.values())))} side by side.")
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
-    captions["hypervolume.png"] = "Extraction-time hypervolume vs iteration and vs cumulative env samples."
-    context = {"evaluation episodes per member": str(runs[0].metrics.get("episodes"))}
-    text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference)
+    captions["hypervolume.png"] = ("Hypervolume of the population after each iteration, vs iteration and vs cumulative "
+                                   "extraction env samples: extraction-time returns (solid) and the same members "
+                                   "re-evaluated (dashed).")
+    context = {"evaluation episodes per member": str(runs[0].metrics["episodes"])}
+    text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference, cfg.noise_sems)
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
         raise ArtifactError(f"{out}: exists and is not a report folder; refusing to replace it")
@@ -68,56 +75,88 @@ def report(
         (tmp / "report.md").write_text(text)
 
 
-def load_runs(evaluated: Path, extracted: Path) -> list[Run]:
-    """Every EVALUATED/VARIANT/seedS with a metrics.json, with its evaluated.csv and history.csv."""
-    if not evaluated.is_dir():
-        raise ArtifactError(f"{evaluated}: not a directory of evaluate outputs")
+def load_runs(scored: Path, evaluated: Path) -> list[Run]:
+    """Every SCORED/VARIANT/seedS with a metrics.json, with its score outputs and evaluated.csv."""
+    if not scored.is_dir():
+        raise ArtifactError(f"{scored}: not a directory of score outputs")
     runs = []
-    for metrics_path in sorted(evaluated.glob("*/seed*/metrics.json")):
+    for metrics_path in sorted(scored.glob("*/seed*/metrics.json")):
         run_dir = metrics_path.parent
         match = RUN_DIR.match(run_dir.name)
         if match is None:
             continue
-        variant, seed = run_dir.parent.name, int(match.group(1))
-        metrics = _read_json(metrics_path)
-        cols = _read_csv(run_dir / "evaluated.csv", ["origin", "iteration", "on_front", "obj0", "obj1"])
-        n_obj = sum(1 for k in cols if re.fullmatch(r"obj\d+", k))
-        hist = _read_csv(extracted / variant / run_dir.name / "history.csv", ["iteration", "env_samples", "hypervolume"])
-        try:
-            runs.append(Run(
-                variant=variant, seed=seed, metrics=metrics,
-                returns=np.stack([np.asarray(cols[f"obj{m}"], float) for m in range(n_obj)], axis=1),
-                origin=np.asarray(cols["origin"]), iteration=np.asarray(cols["iteration"], int),
-                on_front=np.asarray(cols["on_front"], int).astype(bool),
-                history={k: np.asarray(hist[k], float) for k in ("iteration", "env_samples", "hypervolume")},
-            ))
-        except ValueError as exc:
-            raise ArtifactError(f"{run_dir}: unreadable numbers in evaluated.csv or history.csv ({exc})") from None
+        runs.append(load_run(run_dir, evaluated / run_dir.parent.name / run_dir.name, run_dir.parent.name, int(match.group(1))))
     if not runs:
-        raise ArtifactError(f"{evaluated}: no VARIANT/seedS/metrics.json found (run the evaluate stage first)")
+        raise ArtifactError(f"{scored}: no VARIANT/seedS/metrics.json found (run the score stage first)")
     return runs
 
 
-def _read_json(path: Path) -> dict:
+def load_run(score_dir: Path, eval_dir: Path, variant: str, seed: int) -> Run:
+    """One run from its score folder and evaluate folder; ArtifactError naming the file on a bad input."""
+    metrics = _read_json(score_dir / "metrics.json", METRICS_KEYS)
+    for group in ("front", "specialists"):
+        missing = [k for k in FRONT_KEYS if k not in (metrics[group] if isinstance(metrics[group], dict) else {})]
+        if missing:
+            raise ArtifactError(f"{score_dir / 'metrics.json'}: no {', '.join(f'{group}.{k}' for k in missing)} key")
+    if (metrics["variant"], metrics["seed"]) != (variant, seed):
+        raise ArtifactError(f"{score_dir / 'metrics.json'}: is for variant {metrics['variant']!r} seed {metrics['seed']!r}, "
+                            f"but sits in {variant}/seed{seed}")
+    chain = _read_json(score_dir / "provenance.json", ())
+    members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
+    n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
+    front = _read_csv(score_dir / "front.csv", ["id"], allow_empty=True)
+    hist = _read_csv(score_dir / "hypervolume.csv", list(HISTORY_COLUMNS))
+    try:
+        ids = np.asarray(front.get("id", []), int)
+        on_front = np.zeros(len(members["origin"]), bool)
+        on_front[ids] = True
+        return Run(
+            variant=variant, seed=seed, metrics=metrics,
+            returns=np.stack([np.asarray(members[f"obj{m}"], float) for m in range(n_obj)], axis=1),
+            origin=np.asarray(members["origin"]), iteration=np.asarray(members["iteration"], int), on_front=on_front,
+            history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS}, provenance=chain,
+        )
+    except (ValueError, IndexError) as exc:
+        raise ArtifactError(f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
+                            f"do not fit together or hold unreadable numbers ({exc})") from None
+
+
+def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:
+    """Every run is for params env.id and was scored against one reference point."""
+    envs = sorted({str(r.metrics["env_id"]) for r in runs})
+    if envs != [env_id]:
+        raise ArtifactError(f"{scored}: runs are for env(s) {envs}, params env.id is {env_id!r}")
+    refs = {tuple(r.metrics["reference_point"]) for r in runs}
+    if len(refs) > 1:
+        raise ArtifactError(f"{scored}: runs were scored against different reference points {sorted(refs)}; rerun score")
+
+
+def _read_json(path: Path, keys: tuple[str, ...]) -> dict:
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
     try:
         data = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
-    missing = [k for k in ("front", "specialists", "hv_ratio_vs_specialists", "iterations") if k not in data]
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    missing = [k for k in keys if k not in data]
     if missing:
-        raise ArtifactError(f"{path}: not an evaluate metrics file (missing {missing})")
+        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
     return data
 
 
-def _read_csv(path: Path, required: list[str]) -> dict[str, list[str]]:
+def _read_csv(path: Path, required: list[str], allow_empty: bool = False) -> dict[str, list[str]]:
     """Columns of a CSV file by name; ArtifactError naming the file if it is missing, empty or lacks a column."""
     if not path.is_file():
         raise ArtifactError(f"{path}: file not found")
     with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+        header = reader.fieldnames or []
+    if not rows and not allow_empty:
         raise ArtifactError(f"{path}: no rows")
-    missing = [c for c in required if c not in rows[0]]
+    missing = [c for c in required if c not in header]
     if missing:
         raise ArtifactError(f"{path}: missing column(s) {missing}")
-    return {k: [r[k] for r in rows] for k in rows[0]}
+    return {k: [r[k] for r in rows] for k in header}

@@ -2,7 +2,8 @@
 
 The paper evaluates each actor on 5 episodes during extraction; a lucky evaluation can keep a
 child on the front for good, so the final front is measured again on fresh episode seeds with
-more episodes.
+more episodes. Only what changes the episodes lives here: scoring them (front metrics) is the
+`score` stage's, so a change to a metric's setting never reruns an episode.
 """
 
 from __future__ import annotations
@@ -19,10 +20,6 @@ class EvaluateParams(Strict):
     seed_stream: int = Field(
         1, ge=1, description="eval_seeds stream; extraction evaluates on stream 0, so >= 1 gives unseen episodes"
     )
-    distinct_tol: float = Field(
-        0.02, gt=0, le=1, description="distinct_count merge radius, as a fraction of the [reference, ideal] box side"
-    )
-    utility_weights: int = Field(100, ge=2, le=100_000, description="evenly spread weight vectors for expected utility")
     device: Literal["auto", "cpu", "cuda"] = Field(
         "cpu", description="where the actors run; small MLPs stepped one env step at a time are fastest on cpu"
     )

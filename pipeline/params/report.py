@@ -1,4 +1,4 @@
-"""Section `report`: how the report stage draws its figures."""
+"""Section `report`: how the report stage draws its figures and decides its verdict."""
 
 from __future__ import annotations
 
@@ -18,6 +18,10 @@ class ReportParams(Strict):
     min_difference: float = Field(
         0.05, ge=0, lt=1,
         description="with one seed, the relative hypervolume difference below which the verdict is a tie",
+    )
+    noise_sems: float = Field(
+        2.0, gt=0, le=10,
+        description="with >= 2 seeds, how many SEMs the mean paired hypervolume difference must exceed to count",
     )
 
     @field_validator("formats")

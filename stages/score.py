@@ -1,0 +1,192 @@
+"""Stage score: the front and its metrics from re-evaluated returns. Arithmetic only, no episode.
+
+Outputs (in OUT):
+  front.csv        the non-dominated members (re-evaluated means), sorted by obj0: id, origin,
+                   iteration, obj<m>.
+  metrics.json     front and specialist-only metrics (pipeline.metrics), their HV ratio, the
+                   extraction-time hypervolume, and the run's context (DVC metrics).
+  hypervolume.csv  one row per extraction iteration t, for the population of every member made
+                   by iteration t: iteration, population, env_samples (cumulative, extraction),
+                   hypervolume_extract (of the extraction-time returns, the paper's learning
+                   curve) and hypervolume (of the same members' re-evaluated returns).
+  provenance.json  what produced this run's numbers: {"extract": population.pt's record (null if
+                   it has none), "evaluate": evaluation.json's, "score": this stage's}. Kept out of
+                   metrics.json so `dvc metrics show` stays a table of numbers.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from pipeline.artifacts import ArtifactError, write_text_atomic
+from pipeline.metrics import hypervolume_history, population_summary
+from pipeline.pareto import pareto_mask
+from pipeline.params import ParamsError
+from pipeline.params.score import ScoreParams
+from pipeline.population import Member, load_population
+from pipeline.provenance import provenance
+from stages.common import PARAMS_OPTION, read_params, reports_errors
+
+META_KEYS = ("env_id", "n_objectives", "seed", "variant")
+EVALUATION_KEYS = ("env_id", "variant", "seed", "episodes", "population", "env_samples_evaluation", "provenance")
+
+
+@reports_errors
+def score(
+    population: Path = typer.Option(..., help="population.pt written by the extract stage"),
+    evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
+    out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv, provenance.json)"),
+    params: Path = PARAMS_OPTION,
+) -> None:
+    """Score the re-evaluated population of one run: its front, metrics and hypervolume history.
+
+    Params: env.reference_point and section `score` (distinct_tol, utility_weights). Reads
+    POPULATION (members' origin, iteration, extraction-time returns, env samples) and the
+    evaluate stage's EVALUATED/evaluated.csv and evaluation.json, which must describe that
+    population. The front is the non-dominated set of the re-evaluated mean returns; it is
+    scored (hypervolume against env.reference_point, HV fraction of the [reference, ideal] box,
+    the paper's sparsity and PGMORL's, expected utility, cardinality, distinct count), and so
+    are the specialists alone. The hypervolume history is computed for every iteration, on
+    extraction-time and on re-evaluated returns.
+
+    Writes to OUT: front.csv, metrics.json (DVC metrics), hypervolume.csv (a `dvc plots`
+    curve) and provenance.json.
+    """
+    _, env_p, cfg = read_params(params, "score", ScoreParams)
+    members, meta = read_population(population, META_KEYS)
+    ref = reference_point(env_p.reference_point, meta["n_objectives"], params)
+    record = read_json(evaluated / "evaluation.json", EVALUATION_KEYS)
+    means = read_evaluated(evaluated / "evaluated.csv", members, meta["n_objectives"])
+    check_same_run(evaluated / "evaluation.json", record, population, meta, len(members))
+
+    iteration = np.array([m.iteration for m in members])
+    extract_returns = np.array([m.returns for m in members], dtype=float)
+    summary = population_summary(means, np.array([m.origin == "specialist" for m in members]), ref,
+                                 cfg.distinct_tol, cfg.utility_weights)
+    history = hypervolume_history(iteration, np.array([m.env_samples for m in members]),
+                                  {"hypervolume_extract": extract_returns, "hypervolume": means}, ref)
+    metrics = {
+        "env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "episodes": record["episodes"],
+        "population": len(members), "children": sum(m.origin == "child" for m in members),
+        "iterations": int(iteration.max()),
+        "env_samples_extraction": max(m.env_samples for m in members),
+        "env_samples_evaluation": record["env_samples_evaluation"],
+        **summary,
+        "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
+        "reference_point": ref.tolist(), "distinct_tol": cfg.distinct_tol, "utility_weights": cfg.utility_weights,
+    }
+    chain = {"extract": meta.get("provenance"), "evaluate": record["provenance"], "score": provenance("cpu")}
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / "front.csv", front_csv(members, means))
+    write_text_atomic(out / "metrics.json", json.dumps(finite(metrics), indent=2) + "\n")
+    write_text_atomic(out / "hypervolume.csv", _csv(list(history), list(zip(*(c.tolist() for c in history.values())))))
+    write_text_atomic(out / "provenance.json", json.dumps(chain, indent=2) + "\n")
+
+
+def reference_point(ref: list[float] | None, n_objectives: int, params: Path) -> np.ndarray:
+    if ref is None:
+        raise ParamsError(f"{params}: env.reference_point is missing; score needs one value per objective "
+                          f"({n_objectives}), each worse than any policy scores (see docs/reference_points.md)")
+    if len(ref) != n_objectives:
+        raise ParamsError(f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives")
+    return np.asarray(ref, dtype=float)
+
+
+def read_population(path: Path, keys: tuple[str, ...]) -> tuple[list[Member], dict]:
+    """load_population, plus: every metadata key in `keys` is present and there are members
+    (ArtifactError naming the file and the key otherwise, never a KeyError)."""
+    try:
+        members, meta = load_population(path)
+    except KeyError as exc:  # a population without `members`, `meta` or meta["n_objectives"]
+        raise ArtifactError(f"{path}: not a complete population artifact: no {exc.args[0]!r} key") from None
+    missing = [k for k in keys if k not in meta]
+    if missing:
+        raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, missing))} key")
+    if not members:
+        raise ArtifactError(f"{path}: population has no members")
+    return members, meta
+
+
+def read_json(path: Path, keys: tuple[str, ...]) -> dict:
+    """A JSON object holding every key in `keys`; ArtifactError naming the file and key otherwise."""
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
+    return data
+
+
+def read_evaluated(path: Path, members: list[Member], n_obj: int) -> np.ndarray:
+    """Re-evaluated mean returns (n, m) from evaluated.csv, after checking that its rows are
+    `members` in order (same origin, iteration and, bit for bit, extraction-time returns)."""
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    objs = [f"obj{m}" for m in range(n_obj)]
+    needed = ["id", "origin", "iteration", *objs, *(f"{c}_extract" for c in objs)]
+    missing = [c for c in needed if rows and c not in rows[0]]
+    if missing:
+        raise ArtifactError(f"{path}: missing column(s) {missing}")
+    if len(rows) != len(members):
+        raise ArtifactError(f"{path}: {len(rows)} rows, but the population has {len(members)} members")
+    try:
+        for i, (row, mem) in enumerate(zip(rows, members)):
+            mine = (int(row["id"]), row["origin"], int(row["iteration"]), [float(row[f"{c}_extract"]) for c in objs])
+            if mine != (i, mem.origin, mem.iteration, [float(x) for x in mem.returns]):
+                raise ArtifactError(f"{path}: row {i} does not describe member {i} of the population "
+                                    f"(id, origin, iteration, extraction-time returns differ); rerun evaluate")
+        return np.array([[float(row[c]) for c in objs] for row in rows])
+    except ValueError as exc:
+        raise ArtifactError(f"{path}: unreadable number ({exc})") from None
+
+
+def check_same_run(path: Path, record: dict, population: Path, meta: dict, n_members: int) -> None:
+    """evaluation.json must describe this population: same env, variant, seed and size."""
+    theirs = {k: record[k] for k in ("env_id", "variant", "seed", "population")}
+    ours = {"env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "population": n_members}
+    if theirs != ours:
+        differ = [k for k in ours if theirs[k] != ours[k]]
+        raise ArtifactError(f"{path} ({', '.join(f'{k} = {theirs[k]!r}' for k in differ)}) does not describe "
+                            f"{population} ({', '.join(f'{k} = {ours[k]!r}' for k in differ)})")
+
+
+def finite(obj):
+    """JSON-safe copy: NaN and infinities become null (json would write invalid `NaN`)."""
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [finite(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _csv(header: list[str], rows: list[list]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+def front_csv(members: list[Member], means: np.ndarray) -> str:
+    """The non-dominated members sorted by obj0 (ties by the later objectives, then id):
+    id, origin, iteration, obj<m>. Members with identical returns all appear."""
+    ids = sorted(np.flatnonzero(pareto_mask(means)), key=lambda i: (*means[i], i))
+    header = ["id", "origin", "iteration", *(f"obj{m}" for m in range(means.shape[1]))]
+    return _csv(header, [[int(i), members[i].origin, members[i].iteration, *map(float, means[i])] for i in ids])
