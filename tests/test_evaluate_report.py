@@ -1,27 +1,31 @@
-"""Stages evaluate and report end to end through the real `mapex` typer app, on tiny synthetic
-populations (random [16, 16] actors on HalfCheetah, 50-step episodes, 2 episodes a member)."""
+"""Stages evaluate, score and report end to end through their real typer commands, on tiny
+synthetic populations (random [16, 16] actors on HalfCheetah, 50-step episodes, 2 episodes a
+member); the verdict and provenance table on hand-made runs. The score stage's known answers
+are in test_score.py."""
 
 from __future__ import annotations
 
-import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+import typer
 import yaml
 from typer.testing import CliRunner
 
 from pipeline.envs import make_env
 from pipeline.evaluation import eval_seeds, evaluate_policy
-from pipeline.metrics import hypervolume
+from pipeline.metrics import hypervolume, mean_sem
 from pipeline.nets import Actor
-from pipeline.pareto import pareto_mask
 from pipeline.population import Member, actor_state, load_population, member_actor, save_population
-from pipeline.report import Run, hv_verdict
-from stages.cli import app
+from pipeline.report import Run, fmt_num, hv_verdict, provenance_table, verdict_outcome
+from stages.evaluate import evaluate
+from stages.report import report
+from stages.score import score
 
 ENV_ID = "mo-halfcheetah-v5"
 REF = [-100.0, -4500.0]
@@ -29,6 +33,8 @@ CAP = 50
 EPISODES = 2
 SEEDS = (0, 1)
 VARIANTS = ("mapex", "warmup_only")
+PROVENANCE = {"git_commit": "0123456789abcdef", "git_dirty": False, "device": "cpu: test", "torch_threads": 1,
+              "versions": {"torch": "2.13.0", "numpy": "2.4", "mujoco": "4.0", "gymnasium": "1.4", "mo-gymnasium": "1.3.2"}}
 
 
 def write_params(directory: Path, env: dict | None = None, evaluate: dict | None = None) -> Path:
@@ -45,8 +51,9 @@ def write_params(directory: Path, env: dict | None = None, evaluate: dict | None
     return path
 
 
-def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID) -> None:
-    """2 specialists (the same for every variant of a seed, as in a real run) + 3 children."""
+def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, drop: tuple[str, ...] = ()) -> None:
+    """2 specialists (the same for every variant of a seed, as in a real run) + 3 children.
+    Seed 1's population records no provenance (as populations from before it was recorded)."""
     low, high = [-1.0] * 6, [1.0] * 6
     members = []
     for i in range(5):
@@ -60,85 +67,87 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID) -
             returns=[float(10 * i - 20), float(-100 * i)], returns_std=[1.0, 2.0], eval_episodes=5,
             env_samples=250 * (i + 1), hidden_sizes=[16, 16], actor=actor_state(actor)))
     meta = dict(env_id=env_id, obs_dim=17, act_dim=6, n_objectives=2, action_low=low, action_high=high,
-                seed=seed, objective_names=None, reference_point=REF, params={}, variant=variant)
-    save_population(path, members, meta)
+                seed=seed, params={}, variant=variant, **({"provenance": PROVENANCE} if seed == 0 else {}))
+    save_population(path, members, {k: v for k, v in meta.items() if k not in drop})
+
+
+def _app() -> typer.Typer:
+    """The three stage commands as `mapex` runs them (stages.cli registers them; score lazily)."""
+    app = typer.Typer()
+
+    @app.callback()
+    def main() -> None:
+        torch.set_num_threads(1)  # what `mapex` does with MAPEX_TORCH_THREADS unset
+
+    for name, fn in (("evaluate", evaluate), ("score", score), ("report", report)):
+        app.command(name)(fn)
+    return app
+
+
+APP = _app()
 
 
 def invoke(*args) -> tuple[int, str]:
-    result = CliRunner().invoke(app, [str(a) for a in args])
+    result = CliRunner().invoke(APP, [str(a) for a in args])
     if result.exception is not None and not isinstance(result.exception, SystemExit):
         raise result.exception
     return result.exit_code, result.output
 
 
 def read_csv(path: Path) -> list[dict[str, str]]:
+    import csv
+
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
 
 
-def write_history(path: Path, hvs: list[float]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    lines = ["iteration,population,front_size,hypervolume,env_samples"]
-    lines += [f"{i},{2 + i},2,{hv},{500 + 250 * i}" for i, hv in enumerate(hvs)]
-    path.write_text("\n".join(lines) + "\n")
+def evaluate_and_score(root: Path, variant: str, seed: int, params: Path) -> None:
+    pop = root / "extract" / variant / f"seed{seed}" / "population.pt"
+    code, out = invoke("evaluate", "--population", pop, "--out", root / "evaluate" / variant / f"seed{seed}",
+                       "--seed", seed, "--params", params)
+    assert code == 0, out
+    code, out = invoke("score", "--population", pop, "--evaluated", root / "evaluate" / variant / f"seed{seed}",
+                       "--out", root / "score" / variant / f"seed{seed}", "--params", params)
+    assert code == 0, out
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> Path:
-    """Populations, evaluate outputs and extraction histories for 2 seeds x 2 variants."""
+    """Populations, evaluate and score outputs for 2 seeds x 2 variants."""
     root = tmp_path_factory.mktemp("runs")
     params = write_params(root)
     for v in VARIANTS:
         for s in SEEDS:
             make_population(root / "extract" / v / f"seed{s}" / "population.pt", s, v)
-            write_history(root / "extract" / v / f"seed{s}" / "history.csv", [1e5, 1.5e5, 1.6e5, 1.7e5])
-            code, out = invoke("evaluate", "--population", root / "extract" / v / f"seed{s}" / "population.pt",
-                               "--out", root / "evaluate" / v / f"seed{s}", "--seed", s, "--params", params)
-            assert code == 0, out
+            evaluate_and_score(root, v, s, params)
     return root
 
 
 # ---------------------------------------------------------------- evaluate
 
 
-def test_evaluated_csv_rows_columns_and_front_flags(runs):
-    run = runs / "evaluate" / "mapex" / "seed0"
-    rows = read_csv(run / "evaluated.csv")
+def test_evaluated_csv_rows_and_columns(runs):
+    rows = read_csv(runs / "evaluate" / "mapex" / "seed0" / "evaluated.csv")
+    assert list(rows[0]) == ["id", "origin", "objective", "iteration", "parents", "env_samples", "obj0_extract",
+                             "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
     assert [r["id"] for r in rows] == ["0", "1", "2", "3", "4"]
     assert [r["origin"] for r in rows] == ["specialist"] * 2 + ["child"] * 3
-    assert set(rows[0]) >= {"iteration", "parents", "obj0", "obj1", "obj0_std", "obj1_std",
-                            "obj0_extract", "obj1_extract", "on_front"}
     members, _ = load_population(runs / "extract" / "mapex" / "seed0" / "population.pt")
-    for r, m in zip(rows, members):  # extraction-time returns carried over unchanged
+    for r, m in zip(rows, members):  # extraction-time record carried over unchanged
         assert [float(r["obj0_extract"]), float(r["obj1_extract"])] == m.returns
+        assert (int(r["iteration"]), int(r["env_samples"]), r["parents"]) == (m.iteration, m.env_samples,
+                                                                            ";".join(map(str, m.parents)))
         assert float(r["obj0_std"]) >= 0 and float(r["obj1_std"]) >= 0
-    means = np.array([[float(r["obj0"]), float(r["obj1"])] for r in rows])
-    flags = np.array([r["on_front"] == "1" for r in rows])
-    np.testing.assert_array_equal(flags, pareto_mask(means))
-    front = read_csv(run / "front.csv")
-    assert sorted(int(r["id"]) for r in front) == list(np.flatnonzero(flags))
-    assert [float(r["obj0"]) for r in front] == sorted(float(r["obj0"]) for r in front)
 
 
-def test_metrics_json_consistent_with_csv(runs):
-    run = runs / "evaluate" / "mapex" / "seed0"
-    metrics = json.loads((run / "metrics.json").read_text())
-    rows = read_csv(run / "evaluated.csv")
-    means = np.array([[float(r["obj0"]), float(r["obj1"])] for r in rows])
-    on_front = means[[r["on_front"] == "1" for r in rows]]
-    assert metrics["front"]["hypervolume"] == pytest.approx(hypervolume(on_front, REF))
-    assert metrics["specialists"]["hypervolume"] == pytest.approx(hypervolume(means[:2], REF))
-    assert metrics["specialists"]["hypervolume"] <= metrics["front"]["hypervolume"] + 1e-9
-    assert metrics["hv_ratio_vs_specialists"] == pytest.approx(
-        metrics["front"]["hypervolume"] / metrics["specialists"]["hypervolume"])
-    assert metrics["front"]["cardinality"] == len(np.unique(on_front, axis=0))
-    assert 1 <= metrics["front"]["distinct_count"] <= metrics["front"]["cardinality"]
-    assert 0 < metrics["front"]["hv_fraction"] <= 1
-    assert metrics["ideal_point"] == pytest.approx(means.max(axis=0).tolist())
-    assert (metrics["env_id"], metrics["variant"], metrics["seed"], metrics["population"]) == (ENV_ID, "mapex", 0, 5)
-    assert metrics["episodes"] == EPISODES and metrics["env_samples_evaluation"] == 5 * EPISODES * CAP
-    extract = np.array([[float(r["obj0_extract"]), float(r["obj1_extract"])] for r in rows])
-    assert metrics["extraction_hypervolume"] == pytest.approx(hypervolume(extract, REF))
+def test_evaluation_json(runs):
+    record = json.loads((runs / "evaluate" / "mapex" / "seed0" / "evaluation.json").read_text())
+    assert (record["env_id"], record["variant"], record["seed"], record["population"]) == (ENV_ID, "mapex", 0, 5)
+    assert (record["episodes"], record["seed_stream"], record["max_episode_steps"]) == (EPISODES, 1, CAP)
+    assert record["env_samples_evaluation"] == 5 * EPISODES * CAP  # HalfCheetah never terminates
+    prov = record["provenance"]
+    assert prov["versions"]["torch"] == torch.__version__ and prov["torch_threads"] == 1
+    assert prov["device"].startswith("cpu")
 
 
 def test_reevaluation_uses_the_fresh_seed_stream(runs):
@@ -152,20 +161,12 @@ def test_reevaluation_uses_the_fresh_seed_stream(runs):
     assert not np.allclose(fresh, old)
 
 
-def test_specialists_score_the_same_in_both_variants(runs):
-    a = json.loads((runs / "evaluate" / "mapex" / "seed0" / "metrics.json").read_text())
-    b = json.loads((runs / "evaluate" / "warmup_only" / "seed0" / "metrics.json").read_text())
-    # hv_fraction and distinct_count are relative to each run's own [reference, ideal] box
-    for key in ("hypervolume", "sparsity", "expected_utility", "cardinality"):
-        assert a["specialists"][key] == b["specialists"][key]
-    assert a["front"] != b["front"]  # the children differ
-
-
-def test_evaluate_is_deterministic(runs, tmp_path):
+def test_evaluate_is_deterministic_and_needs_no_reference_point(runs, tmp_path):
+    params = write_params(tmp_path, env={"reference_point": None})
     code, out = invoke("evaluate", "--population", runs / "extract" / "mapex" / "seed0" / "population.pt",
-                       "--out", tmp_path / "again", "--seed", 0, "--params", write_params(tmp_path))
+                       "--out", tmp_path / "again", "--seed", 0, "--params", params)
     assert code == 0, out
-    for name in ("evaluated.csv", "front.csv", "metrics.json"):
+    for name in ("evaluated.csv", "evaluation.json"):
         assert (tmp_path / "again" / name).read_text() == (runs / "evaluate" / "mapex" / "seed0" / name).read_text()
 
 
@@ -173,6 +174,7 @@ def _evaluate_fails(tmp_path: Path, population: Path, params: Path, seed: int = 
     out_dir = tmp_path / "out"
     code, out = invoke("evaluate", "--population", population, "--out", out_dir, "--seed", seed, "--params", params)
     assert code == 2, out
+    assert out.startswith("error: ") and "Traceback" not in out
     assert not out_dir.exists(), "nothing may be written on bad input"
     return out
 
@@ -191,6 +193,14 @@ def test_evaluate_truncated_population(tmp_path):
     assert "truncated.pt" in out
 
 
+@pytest.mark.parametrize("key", ["variant", "seed", "action_low", "n_objectives"])
+def test_evaluate_population_metadata_key_missing(tmp_path, key):
+    pop = tmp_path / "pop.pt"
+    make_population(pop, 0, "mapex", drop=(key,))
+    out = _evaluate_fails(tmp_path, pop, write_params(tmp_path))
+    assert "pop.pt" in out and f"'{key}'" in out and len(out.strip().splitlines()) == 1
+
+
 def test_evaluate_env_mismatch(tmp_path):
     pop = tmp_path / "swimmer.pt"
     make_population(pop, 0, "mapex", env_id="mo-swimmer-v5")
@@ -205,14 +215,6 @@ def test_evaluate_seed_mismatch(tmp_path):
     assert "pop.pt" in out and "seed" in out
 
 
-@pytest.mark.parametrize("ref, needle", [(None, "missing"), ([-100.0], "1 values")])
-def test_evaluate_bad_reference_point(tmp_path, ref, needle):
-    pop = tmp_path / "pop.pt"
-    make_population(pop, 0, "mapex")
-    out = _evaluate_fails(tmp_path, pop, write_params(tmp_path, env={"reference_point": ref}))
-    assert "env.reference_point" in out and needle in out
-
-
 def test_evaluate_rejects_extraction_stream(tmp_path):
     pop = tmp_path / "pop.pt"
     make_population(pop, 0, "mapex")
@@ -220,13 +222,63 @@ def test_evaluate_rejects_extraction_stream(tmp_path):
     assert "evaluate.seed_stream" in out
 
 
+def test_evaluate_rejects_scoring_params(tmp_path):
+    """distinct_tol and utility_weights moved to the `score` section."""
+    pop = tmp_path / "pop.pt"
+    make_population(pop, 0, "mapex")
+    out = _evaluate_fails(tmp_path, pop, write_params(tmp_path, evaluate={"distinct_tol": 0.02}))
+    assert "evaluate.distinct_tol" in out and "unknown key" in out
+
+
+# ---------------------------------------------------------------- score on real evaluations
+
+
+def test_score_consistent_with_evaluated_csv(runs):
+    metrics = json.loads((runs / "score" / "mapex" / "seed0" / "metrics.json").read_text())
+    rows = read_csv(runs / "evaluate" / "mapex" / "seed0" / "evaluated.csv")
+    means = np.array([[float(r["obj0"]), float(r["obj1"])] for r in rows])
+    front_ids = [int(r["id"]) for r in read_csv(runs / "score" / "mapex" / "seed0" / "front.csv")]
+    assert metrics["front"]["hypervolume"] == pytest.approx(hypervolume(means, REF))
+    assert metrics["front"]["hypervolume"] == pytest.approx(hypervolume(means[front_ids], REF))
+    assert metrics["specialists"]["hypervolume"] == pytest.approx(hypervolume(means[:2], REF))
+    extract = np.array([[float(r["obj0_extract"]), float(r["obj1_extract"])] for r in rows])
+    assert metrics["extraction_hypervolume"] == pytest.approx(hypervolume(extract, REF))
+    assert metrics["env_samples_evaluation"] == 5 * EPISODES * CAP and metrics["episodes"] == EPISODES
+    history = read_csv(runs / "score" / "mapex" / "seed0" / "hypervolume.csv")
+    assert float(history[-1]["hypervolume"]) == pytest.approx(metrics["front"]["hypervolume"])
+    assert float(history[-1]["hypervolume_extract"]) == pytest.approx(metrics["extraction_hypervolume"])
+    assert all(isinstance(x, (int, float)) and math.isfinite(x) for x in metrics["front"].values())
+
+
+def test_specialists_score_the_same_in_both_variants(runs):
+    a = json.loads((runs / "score" / "mapex" / "seed0" / "metrics.json").read_text())
+    b = json.loads((runs / "score" / "warmup_only" / "seed0" / "metrics.json").read_text())
+    # hv_fraction and distinct_count are relative to each run's own [reference, ideal] box
+    for key in ("hypervolume", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality"):
+        assert a["specialists"][key] == b["specialists"][key]
+    assert a["front"] != b["front"]  # the children differ
+
+
+def test_provenance_travels_from_population_to_score(runs):
+    chain = json.loads((runs / "score" / "mapex" / "seed0" / "provenance.json").read_text())
+    assert chain["extract"] == PROVENANCE
+    evaluation = json.loads((runs / "evaluate" / "mapex" / "seed0" / "evaluation.json").read_text())
+    assert chain["evaluate"] == evaluation["provenance"]
+    assert json.loads((runs / "score" / "mapex" / "seed1" / "provenance.json").read_text())["extract"] is None
+
+
 # ---------------------------------------------------------------- report
+
+
+def report_args(runs: Path, out: Path, params: Path | None = None, scored: Path | None = None,
+                evaluated: Path | None = None) -> list:
+    return ["report", "--evaluated", evaluated or runs / "evaluate", "--scored", scored or runs / "score",
+            "--out", out, "--params", params or runs / "params.yaml"]
 
 
 @pytest.fixture(scope="module")
 def report_dir(runs) -> Path:
-    code, out = invoke("report", "--evaluated", runs / "evaluate", "--extracted", runs / "extract",
-                       "--out", runs / "report", "--params", runs / "params.yaml")
+    code, out = invoke(*report_args(runs, runs / "report"))
     assert code == 0, out
     return runs / "report"
 
@@ -254,38 +306,72 @@ def test_report_table_rows(report_dir):
     header = tables[0].split("|")[1:-1]
     assert header[0].strip() == "Environment" and len(header) == 1 + 4 * 3
     assert any("Hypervolume" in h and "specialists only" in h for h in header)
+    assert any("Sparsity (↓) MAPEX" in h for h in header)
     env_rows = [t for t in tables if t.startswith(f"| {ENV_ID} |")]
     assert len(env_rows) == 1
     assert all("±" in c for c in env_rows[0].split("|")[2:5])  # two seeds: mean ± SEM
     for variant in ("| MAPEX |", "| warm-up only |", "| specialists only |"):
         assert sum(t.startswith(variant) for t in tables) == 1
+    assert "the paper reports hypervolume and sparsity" in text  # the added columns are not claimed as the paper's
+
+
+def test_report_table_sparsity_is_the_papers(runs, report_dir):
+    values = [json.loads((runs / "score" / "mapex" / f"seed{s}" / "metrics.json").read_text())["front"]["sparsity"]
+              for s in SEEDS]
+    mean, sem = mean_sem(values)
+    row = next(t for t in (report_dir / "report.md").read_text().splitlines() if t.startswith(f"| {ENV_ID} |"))
+    assert row.split("|")[5].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"  # Sparsity (↓) MAPEX
 
 
 def test_report_verdict_matches_numbers(runs, report_dir):
-    hv = {v: [json.loads((runs / "evaluate" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
+    hv = {v: [json.loads((runs / "score" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
               for s in SEEDS] for v in VARIANTS}
     d = np.array(hv["mapex"]) - np.array(hv["warmup_only"])
     margin = 2 * d.std(ddof=1) / np.sqrt(len(d))
-    verb = "beat" if d.mean() > margin else "lost to" if d.mean() < -margin else "tied with"
+    majority = {1: (d > 0).sum() > 1, -1: (d < 0).sum() > 1}
+    verb = ("beat" if d.mean() > margin and majority[1] else "lost to" if d.mean() < -margin and majority[-1]
+            else "tied with")
     text = (report_dir / "report.md").read_text()
     assert f"(MAPEX) {verb} warm-up only" in text
     assert f"higher in {int((d > 0).sum())} of 2" in text
+    dm, dsem = mean_sem(d)
+    assert f"MAPEX - warm-up only = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in text
 
 
-def _run(variant: str, seed: int, hv: float) -> Run:
+def test_report_provenance_section(report_dir):
+    text = (report_dir / "report.md").read_text()
+    section = text.split("## Provenance", 1)[1].split("## Definitions", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| ")][1:]
+    extract = [r for r in rows if r.startswith("| extract |")]
+    # seed 0's populations record provenance, seed 1's do not: two rows, each naming its runs
+    assert len(extract) == 2
+    assert "MAPEX seed 0; warm-up only seed 0" in extract[0] and "0123456789 |" in extract[0]
+    assert "MAPEX seed 1; warm-up only seed 1" in extract[1] and "not recorded" in extract[1]
+    # evaluate and score ran in this process for every run: one row each
+    assert sum(r.startswith("| evaluate |") for r in rows) == 1 and sum(r.startswith("| score |") for r in rows) == 1
+    assert torch.__version__ in section
+
+
+def _run(variant: str, seed: int, hv: float, provenance: dict | None = None) -> Run:
     metrics = {"front": {"hypervolume": hv}, "iterations": 4}
     empty = np.zeros(0)
-    return Run(variant, seed, metrics, np.zeros((0, 2)), empty, empty, empty, {})
+    return Run(variant, seed, metrics, np.zeros((0, 2)), empty, empty, empty, {}, provenance)
+
+
+def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
+    return [_run("mapex", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only", s, h) for s, h in enumerate(warm_hv)]
 
 
 @pytest.mark.parametrize(
     "mapex_hv, warm_hv, outcome",
     [
-        # 3 seeds, paired differences 1.0, 1.1, 0.9: mean 1.0, SEM 0.058 -> beyond 2 SEM: beat
+        # 3 seeds, paired differences 1.0, 1.1, 0.9: mean 1.0, SEM 0.058 -> beyond 2 SEM, all higher: beat
         ([3.0, 5.1, 7.9], [2.0, 4.0, 7.0], "beat"),
         ([2.0, 4.0, 7.0], [3.0, 5.1, 7.9], "lost"),
         # differences +1, -1.2, +0.5: mean 0.1, SEM 0.65 -> inside the noise: tied, though 2 of 3 are higher
         ([3.0, 2.8, 5.5], [2.0, 4.0, 5.0], "tied"),
+        # 3 seeds, every difference 0 (+0.0%): SEM 0 and mean 0 -> tied
+        ([1.03e6, 2e6, 3e6], [1.03e6, 2e6, 3e6], "tied"),
         # one seed: +0.0% (the old report called this a win), +3% (inside 5%), +10% and -10%
         ([1.03e6], [1.03e6], "tied"),
         ([1.03], [1.0], "tied"),
@@ -294,22 +380,44 @@ def _run(variant: str, seed: int, hv: float) -> Run:
     ],
 )
 def test_hv_verdict_with_a_tolerance(mapex_hv, warm_hv, outcome):
-    runs = [_run("mapex", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only", s, h) for s, h in enumerate(warm_hv)]
-    verdict = hv_verdict(runs)
+    verdict = hv_verdict(_runs(mapex_hv, warm_hv))
     assert verdict.outcome == outcome
     verb = {"beat": "(MAPEX) beat", "lost": "(MAPEX) lost to", "tied": "(MAPEX) tied with"}[outcome]
     assert verb in verdict.sentence
-    assert f"{len(mapex_hv)} seed" in verdict.sentence
-    if len(mapex_hv) > 1:
-        assert "± " in verdict.sentence and "paired difference" in verdict.sentence
+    n = len(mapex_hv)
+    assert f"({n} seed{'s' if n > 1 else ''}," in verdict.sentence
+    d = np.array(mapex_hv) - np.array(warm_hv)
+    assert f"MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}" in verdict.sentence
+    if n > 1:  # mean ± SEM of each variant and of the paired differences, and the rule
+        (am, asem), (bm, bsem), (dm, dsem) = mean_sem(mapex_hv), mean_sem(warm_hv), mean_sem(d)
+        assert f"MAPEX {fmt_num(am)} ± {fmt_num(asem)}, warm-up only {fmt_num(bm)} ± {fmt_num(bsem)}" in verdict.sentence
+        assert f"MAPEX - warm-up only = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in verdict.sentence
+        assert "beyond 2 SEM" in verdict.sentence and "more than half of the seeds" in verdict.sentence
     else:
-        assert "one seed only" in verdict.sentence
+        assert "One seed only" in verdict.sentence
+        assert "within ±5% of warm-up only's hypervolume (report.min_difference)" in verdict.sentence
+        assert f"{d[0] / warm_hv[0] * 100:+.1f}%" in verdict.sentence
 
 
 def test_hv_verdict_min_difference_is_a_param():
-    runs = [_run("mapex", 0, 1.03), _run("warmup_only", 0, 1.0)]
+    runs = _runs([1.03], [1.0])
     assert hv_verdict(runs, min_difference=0.01).outcome == "beat"
     assert hv_verdict(runs, min_difference=0.05).outcome == "tied"
+
+
+def test_hv_verdict_noise_sems_is_a_param():
+    runs = _runs([3.0, 5.1, 7.9], [2.0, 4.0, 7.0])  # mean 1.0, SEM 0.058: 17 SEM from zero
+    assert hv_verdict(runs, noise_sems=10).outcome == "beat"
+    assert hv_verdict(_runs([3.0, 5.3, 7.9], [2.0, 4.0, 7.0]), noise_sems=10).outcome == "tied"  # SEM 0.12: 8.9 SEM
+
+
+def test_verdict_needs_a_majority_of_seeds():
+    # differences 10, 10, -0.1, -0.1, -0.1: mean 3.94, SEM 2.47 -> beyond 1 SEM, but MAPEX higher in only 2 of 5
+    d = np.array([10, 10, -0.1, -0.1, -0.1])
+    assert verdict_outcome(d, np.ones(5), 0.05, noise_sems=1.0) == "tied"
+    assert verdict_outcome(-d, np.ones(5), 0.05, noise_sems=1.0) == "tied"
+    # 10, 10, 10, -0.1, -0.1: 3 of 5 higher, mean 5.96, SEM 2.47 -> beat
+    assert verdict_outcome(np.array([10, 10, 10, -0.1, -0.1]), np.ones(5), 0.05, noise_sems=1.0) == "beat"
 
 
 def test_hv_verdict_without_pairs():
@@ -317,37 +425,116 @@ def test_hv_verdict_without_pairs():
     assert verdict.outcome == "unknown" and "Cannot say" in verdict.sentence
 
 
+def test_provenance_table_groups_identical_rows():
+    newer = {**PROVENANCE, "versions": {**PROVENANCE["versions"], "torch": "2.14.0"}, "git_dirty": True}
+    runs = [_run("mapex", 0, 1.0, {"extract": PROVENANCE}), _run("mapex", 1, 1.0, {"extract": PROVENANCE}),
+            _run("warmup_only", 0, 1.0, {"extract": newer}), _run("warmup_only", 1, 1.0, None)]
+    rows = [r for r in provenance_table(runs).splitlines() if r.startswith("| extract |")]
+    assert rows == [
+        "| extract | MAPEX seeds 0, 1 | 0123456789 | 2.13.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
+        "| extract | warm-up only seed 0 | 0123456789 (dirty) | 2.14.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
+        "| extract | warm-up only seed 1 |" + " not recorded |" * 8,
+    ]
+
+
 def test_report_replaces_old_report_and_refuses_foreign_folder(runs, tmp_path):
     out_dir = tmp_path / "rep"
     out_dir.mkdir()
     (out_dir / "report.md").write_text("old")
     (out_dir / "stale.png").write_bytes(b"x")
-    args = ("report", "--evaluated", runs / "evaluate", "--extracted", runs / "extract", "--params", runs / "params.yaml")
-    code, out = invoke(*args, "--out", out_dir)
+    code, out = invoke(*report_args(runs, out_dir))
     assert code == 0, out
     assert not (out_dir / "stale.png").exists() and (out_dir / "report.md").read_text() != "old"
     foreign = tmp_path / "data"
     foreign.mkdir()
     (foreign / "precious.txt").write_text("keep")
-    code, out = invoke(*args, "--out", foreign)
+    code, out = invoke(*report_args(runs, foreign))
     assert code == 2 and "refusing" in out and (foreign / "precious.txt").read_text() == "keep"
 
 
-def test_report_bad_inputs(runs, tmp_path):
-    params = runs / "params.yaml"
-    code, out = invoke("report", "--evaluated", tmp_path, "--extracted", runs / "extract", "--out", tmp_path / "r",
-                       "--params", params)
-    assert code == 2 and "no VARIANT/seedS/metrics.json" in out
-    code, out = invoke("report", "--evaluated", runs / "evaluate", "--extracted", tmp_path / "nothing",
-                       "--out", tmp_path / "r", "--params", params)
-    assert code == 2 and "history.csv" in out and "not found" in out
+def _report_fails(runs: Path, tmp_path: Path, **kw) -> str:
+    code, out = invoke(*report_args(runs, tmp_path / "r", **kw))
+    assert code == 2, out
+    assert out.startswith("error: ") and "Traceback" not in out and len(out.strip().splitlines()) == 1
     assert not (tmp_path / "r").exists()
+    return out
 
 
-def test_sparsity_in_report_is_finite(runs):
-    for v in VARIANTS:
-        m = json.loads((runs / "evaluate" / v / "seed0" / "metrics.json").read_text())
-        assert all(isinstance(x, (int, float)) and math.isfinite(x) for x in m["front"].values())
+def _copy_scored(runs: Path, tmp_path: Path) -> Path:
+    scored = tmp_path / "score"
+    shutil.copytree(runs / "score", scored)
+    return scored
+
+
+def test_report_without_score_outputs(runs, tmp_path):
+    assert "no VARIANT/seedS/metrics.json" in _report_fails(runs, tmp_path, scored=tmp_path)
+
+
+def test_report_without_evaluated_csv(runs, tmp_path):
+    out = _report_fails(runs, tmp_path, evaluated=tmp_path / "nothing")
+    assert "evaluated.csv" in out and "not found" in out
+
+
+@pytest.mark.parametrize("name", ["provenance.json", "front.csv", "hypervolume.csv"])
+def test_report_missing_score_file(runs, tmp_path, name):
+    scored = _copy_scored(runs, tmp_path)
+    (scored / "mapex" / "seed1" / name).unlink()
+    out = _report_fails(runs, tmp_path, scored=scored)
+    assert str(scored / "mapex" / "seed1" / name) in out and "not found" in out
+
+
+@pytest.mark.parametrize("key", ["episodes", "reference_point", "front.sparsity_pgmorl"])
+def test_report_metrics_key_missing(runs, tmp_path, key):
+    scored = _copy_scored(runs, tmp_path)
+    path = scored / "warmup_only" / "seed0" / "metrics.json"
+    metrics = json.loads(path.read_text())
+    group, _, leaf = key.rpartition(".")
+    del (metrics[group] if group else metrics)[leaf]
+    path.write_text(json.dumps(metrics))
+    out = _report_fails(runs, tmp_path, scored=scored)
+    assert str(path) in out and key in out
+
+
+def test_report_history_column_missing(runs, tmp_path):
+    scored = _copy_scored(runs, tmp_path)
+    path = scored / "mapex" / "seed0" / "hypervolume.csv"
+    path.write_text("\n".join(",".join(line.split(",")[:-1]) for line in path.read_text().splitlines()) + "\n")
+    out = _report_fails(runs, tmp_path, scored=scored)
+    assert str(path) in out and "missing column(s) ['hypervolume']" in out
+
+
+def test_report_refuses_mixed_reference_points(runs, tmp_path):
+    scored = _copy_scored(runs, tmp_path)
+    path = scored / "mapex" / "seed1" / "metrics.json"
+    path.write_text(json.dumps(json.loads(path.read_text()) | {"reference_point": [0.0, 0.0]}))
+    assert "different reference points" in _report_fails(runs, tmp_path, scored=scored)
+
+
+def test_report_refuses_a_run_in_the_wrong_folder(runs, tmp_path):
+    scored = _copy_scored(runs, tmp_path)
+    path = scored / "mapex" / "seed1" / "metrics.json"
+    path.write_text(json.dumps(json.loads(path.read_text()) | {"seed": 0}))
+    out = _report_fails(runs, tmp_path, scored=scored)
+    assert str(path) in out and "seed1" in out
+
+
+def test_report_with_one_variant_one_seed(runs, tmp_path):
+    shutil.copytree(runs / "score" / "mapex" / "seed1", tmp_path / "sc" / "mapex" / "seed1")
+    code, out = invoke(*report_args(runs, tmp_path / "rep", scored=tmp_path / "sc"))
+    assert code == 0, out
+    text = (tmp_path / "rep" / "report.md").read_text()
+    assert "Cannot say whether" in text and "(one seed: no SEM)" in text
+    assert sorted(p.name for p in (tmp_path / "rep").iterdir()) == ["front_seed1.png", "hypervolume.png", "report.md"]
+
+
+def test_report_ignores_seeds_params_does_not_list(runs, tmp_path):
+    params = yaml.safe_load((runs / "params.yaml").read_text())
+    params["seeds"] = [1]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    code, out = invoke(*report_args(runs, tmp_path / "rep", params=tmp_path / "params.yaml"))
+    assert code == 0, out
+    assert sorted(p.name for p in (tmp_path / "rep").glob("front_seed*.png")) == ["front_seed1.png"]
+    assert "seeds: 1\n" in (tmp_path / "rep" / "report.md").read_text()
 
 
 # ---------------------------------------------------------------- reference points
@@ -376,25 +563,3 @@ def test_halfcheetah_energy_bound_is_attained_by_saturated_actions():
     assert total == pytest.approx(-60.0)
     env.reset(seed=0)
     assert sum(env.step(np.full(6, 0.5))[1][1] for _ in range(10)) == pytest.approx(-15.0)
-
-
-def test_report_with_one_variant_one_seed(runs, tmp_path):
-    import shutil
-
-    shutil.copytree(runs / "evaluate" / "mapex" / "seed1", tmp_path / "ev" / "mapex" / "seed1")
-    code, out = invoke("report", "--evaluated", tmp_path / "ev", "--extracted", runs / "extract",
-                       "--out", tmp_path / "rep", "--params", runs / "params.yaml")
-    assert code == 0, out
-    text = (tmp_path / "rep" / "report.md").read_text()
-    assert "Cannot say whether" in text and "(one seed: no SEM)" in text
-    assert sorted(p.name for p in (tmp_path / "rep").iterdir()) == ["front_seed1.png", "hypervolume.png", "report.md"]
-
-
-def test_report_ignores_seeds_params_does_not_list(runs, tmp_path):
-    params = yaml.safe_load((runs / "params.yaml").read_text())
-    params["seeds"] = [1]
-    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
-    r = CliRunner().invoke(app, ["report", "--evaluated", str(runs / "evaluate"), "--extracted", str(runs / "extract"),
-                                 "--out", str(tmp_path / "rep"), "--params", str(tmp_path / "params.yaml")])
-    assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in (tmp_path / "rep").glob("front_seed*.png")) == ["front_seed1.png"]

@@ -46,6 +46,18 @@ def test_sparsity_of_duplicates_is_zero_and_counts_them():
     # Two identical points add a zero gap: (0 + 5) / 2 = 2.5 with the paper's definition.
     assert M.sparsity(np.array([[0.0, 0.0], [0.0, 0.0]])) == 0.0
     assert M.sparsity(np.array([[0.0, 4.0], [0.0, 4.0], [3.0, 0.0]])) == pytest.approx(2.5)
+    # PGMORL's: obj0 sorted 0,0,3 -> gaps 0,3; obj1 sorted 0,4,4 -> gaps 4,0; (9 + 16) / (3 - 1) = 12.5
+    assert M.sparsity_pgmorl(np.array([[0.0, 0.0], [0.0, 0.0]])) == 0.0
+    assert M.sparsity_pgmorl(np.array([[0.0, 4.0], [0.0, 4.0], [3.0, 0.0]])) == pytest.approx(12.5)
+
+
+def test_front_metrics_sparsity_counts_a_duplicate_point_once():
+    # front_metrics scores the distinct non-dominated set: (0,4) twice is one point and (1,-0.5)
+    # is dominated by (3,0), so the paper's sparsity is the single gap sqrt(9 + 16) = 5 and
+    # PGMORL's (3^2 + 4^2) / (2 - 1) = 25
+    m = M.front_metrics(np.array([[0.0, 4.0], [0.0, 4.0], [3.0, 0.0], [1.0, -0.5]]), [-1, -1], np.array([3.0, 4.0]))
+    assert m["sparsity"] == pytest.approx(5.0) and m["sparsity_pgmorl"] == pytest.approx(25.0)
+    assert m["cardinality"] == 2
 
 
 def test_hypervolume_hand_computed():
@@ -140,6 +152,22 @@ def test_front_metrics_and_population_summary():
     assert s["hv_ratio_vs_specialists"] == pytest.approx(s["front"]["hypervolume"] / 21)
 
 
+def test_hypervolume_history_hand_computed():
+    # members: iteration 0: (4,1), (1,4); iteration 2: (3,3) then (2,2) (dominated); reference (0,0)
+    it = np.array([0, 0, 2, 2])
+    samples = np.array([10, 20, 30, 40])
+    pts = np.array([[4.0, 1.0], [1.0, 4.0], [3.0, 3.0], [2.0, 2.0]])
+    h = M.hypervolume_history(it, samples, {"a": pts, "b": pts[:, ::-1] * 2}, [0.0, 0.0])
+    np.testing.assert_array_equal(h["iteration"], [0, 2])  # only the iterations present
+    np.testing.assert_array_equal(h["population"], [2, 4])
+    np.testing.assert_array_equal(h["env_samples"], [20, 40])
+    # iteration 0: 4*1 + 1*4 - 1*1 = 7; iteration 2 adds (3,3): sweeping x downwards 4*1 + 3*2 + 1*1 = 11
+    np.testing.assert_allclose(h["a"], [7.0, 11.0])
+    np.testing.assert_allclose(h["b"], [28.0, 44.0])  # the same set mirrored and doubled: x4 the area
+    with pytest.raises(ValueError):
+        M.hypervolume_history(it, samples[:3], {"a": pts}, [0.0, 0.0])
+
+
 def test_mean_sem():
     assert M.mean_sem([1.0, 2.0, 3.0]) == pytest.approx((2.0, 1 / math.sqrt(3)))
     m, s = M.mean_sem([4.0])
@@ -200,3 +228,12 @@ def test_non_dominated_is_idempotent_and_keeps_extremes(pts):
     np.testing.assert_array_equal(M.non_dominated(nd), nd)
     for j in range(2):  # a maximiser of one objective is never dominated unless tied
         assert nd[:, j].max() == pts[:, j].max()
+
+
+@settings(max_examples=30, deadline=None)
+@given(fronts, st.randoms(use_true_random=False))
+def test_hypervolume_history_never_decreases_and_ends_at_the_whole_population(pts, rnd):
+    it = np.array(sorted(rnd.randrange(0, 4) for _ in range(len(pts))))
+    h = M.hypervolume_history(it, np.arange(len(pts)), {"hv": pts}, REF)
+    assert np.all(np.diff(h["hv"]) >= -1e-9 * max(1.0, h["hv"].max()))
+    assert h["hv"][-1] == pytest.approx(M.hypervolume(pts, REF)) and h["population"][-1] == len(pts)
