@@ -270,7 +270,7 @@ def verdict_outcome(d: np.ndarray, warm: np.ndarray, min_difference: float, nois
 
 
 def _percent(diff: float, base: float) -> str:
-    return f"{diff / abs(base) * 100:+.1f}%" if base != 0 else "n/a %"
+    return f"{diff / abs(base) * 100:+.1f}%" if base != 0 else "n/a"
 
 
 def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> Verdict:
@@ -381,8 +381,8 @@ def report_markdown(
         "",
         f"Mean ± SEM across seeds{' (one seed: no SEM)' if len(seeds) < 2 else ''}. The layout of the paper's "
         "Table 1 (one row per environment, a column group per metric); the paper reports hypervolume and "
-        "sparsity, expected utility and distinct points are added here. 'specialists only' is the front of "
-        "the specialists alone.",
+        "sparsity only, expected utility and distinct points are added here. 'specialists only' is the front "
+        "of the specialists alone.",
         "",
         paper_table(runs, env_id),
         details_table(runs),
