@@ -73,3 +73,43 @@ def module_closure(module: str) -> tuple[str, ...]:
 def closure_files(module: str) -> list[Path]:
     """module_closure as absolute paths (for hashing into a fingerprint)."""
     return [ROOT / p for p in module_closure(module)]
+
+
+def sync_dvc_yaml(path: Path | None = None) -> list[str]:
+    """Rewrite the code deps of every stage in dvc.yaml to its import closure plus stages/cli.py.
+
+    Line-based, so comments and data deps stay as written; code deps go after the data deps,
+    sorted. Returns the names of the stages whose deps changed.
+    """
+    path = path or ROOT / "dvc.yaml"
+    lines = path.read_text().splitlines(keepends=True)
+    out: list[str] = []
+    changed: list[str] = []
+    stage = None
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        if line.startswith("  ") and not line.startswith("   ") and line.rstrip().endswith(":"):
+            stage = line.strip()[:-1]
+        if stage is not None and line.rstrip() == "    deps:":
+            out.append(line)
+            i += 1
+            block: list[str] = []
+            while i < len(lines) and lines[i].startswith("      - "):
+                block.append(lines[i])
+                i += 1
+            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/"))]
+            code = sorted(set(module_closure(f"stages.{stage}")) | {"stages/cli.py"})
+            new = data + [f"      - {c}\n" for c in code]
+            if new != block:
+                changed.append(stage)
+            out.extend(new)
+            continue
+        out.append(line)
+        i += 1
+    path.write_text("".join(out))
+    return changed
+
+
+if __name__ == "__main__":  # python -m pipeline.codedeps: bring dvc.yaml's code deps up to date
+    print("updated:", ", ".join(sync_dvc_yaml()) or "nothing")

@@ -12,6 +12,7 @@ from stages.critic_fidelity import critic_fidelity
 from stages.fit_critics import fit_critics
 from stages.train_specialist import train_specialist
 from stages.evaluate import evaluate
+from stages.score import score
 from stages.report import report
 
 app = typer.Typer(
@@ -40,6 +41,7 @@ app.command("fit-critics")(fit_critics)
 app.command("critic-fidelity")(critic_fidelity)
 app.command("extract")(extract)
 app.command("evaluate")(evaluate)
+app.command("score")(score)
 app.command("report")(report)
 
 

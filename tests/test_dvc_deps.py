@@ -4,7 +4,8 @@ A stage's code deps must equal the transitive in-project import closure of its m
 (stages/<stage>.py, computed by pipeline.codedeps, the same function extract's resume
 fingerprint uses) plus stages/cli.py (the `mapex` entry point, which sets the torch thread
 count and so the results' last bits). An import added without its dep (an edit that would
-change results without a rerun) or a stale dep (a rerun for nothing) fails here.
+change results without a rerun) or a stale dep (a rerun for nothing) fails here;
+`python -m pipeline.codedeps` rewrites them.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ def code_deps(stage: dict) -> set[str]:
 def test_stage_code_deps_are_its_import_closure(name):
     expected = set(module_closure(f"stages.{name}")) | {"stages/cli.py"}
     got = code_deps(STAGES[name])
-    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)}"
-    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)}"
+    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.codedeps)"
+    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.codedeps)"
 
 
 def test_every_stage_has_its_module():

@@ -67,18 +67,22 @@ def repo(tmp_path_factory) -> Path:
     return root
 
 
-def set_beta(root: Path, beta: float) -> None:
+def set_key(root: Path, section: str, key: str, value) -> None:
     params = yaml.safe_load((root / "params.yaml").read_text())
-    params["extract"]["beta"] = beta
+    params.setdefault(section, {})[key] = value
     (root / "params.yaml").write_text(yaml.safe_dump(params))
+
+
+def set_beta(root: Path, beta: float) -> None:
+    set_key(root, "extract", "beta", beta)
 
 
 def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     dvc = str(BIN / "dvc")
     first = run([dvc, "repro"], repo)
-    assert ran(first) == {"train_specialist", "fit_critics", "critic_fidelity", "extract", "evaluate", "report"}
+    assert ran(first) == {"train_specialist", "fit_critics", "critic_fidelity", "extract", "evaluate", "score", "report"}
     report = (repo / "data" / "report" / "report.md").read_text()
-    metrics_before = (repo / "data" / "evaluate" / "mapex" / "seed0" / "metrics.json").read_text()
+    metrics_before = (repo / "data" / "score" / "mapex" / "seed0" / "metrics.json").read_text()
 
     # nothing changed: nothing runs
     assert ran(run([dvc, "repro"], repo)) == set()
@@ -86,12 +90,25 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     # an extraction param: extract (both variants), evaluate and report rerun, specialists do not
     set_beta(repo, 0.5)
     changed = run([dvc, "repro"], repo)
-    assert ran(changed) == {"extract", "evaluate", "report"}
+    assert ran(changed) == {"extract", "evaluate", "score", "report"}
 
     # back to the old value: everything comes from the run-cache, nothing is recomputed
     set_beta(repo, 1.0)
     restored = run([dvc, "repro"], repo)
     assert ran(restored) == set()
     assert "run-cache" in restored or "is cached" in restored
-    assert (repo / "data" / "evaluate" / "mapex" / "seed0" / "metrics.json").read_text() == metrics_before
+    assert (repo / "data" / "score" / "mapex" / "seed0" / "metrics.json").read_text() == metrics_before
     assert (repo / "data" / "report" / "report.md").read_text() == report
+
+    # a scoring setting reruns no episode: only score and report
+    set_key(repo, "score", "distinct_tol", 0.05)
+    assert ran(run([dvc, "repro"], repo)) == {"score", "report"}
+
+    # the reference point is scoring too: extraction and evaluation stay cached
+    env = yaml.safe_load((repo / "params.yaml").read_text())["env"]
+    set_key(repo, "env", "reference_point", [x - 1.0 for x in env["reference_point"]])
+    assert ran(run([dvc, "repro"], repo)) == {"score", "report"}
+
+    # a fidelity setting reruns only the joint critics' fidelity check, not the post-hoc fits
+    set_key(repo, "critic_fidelity", "episodes", 3)
+    assert ran(run([dvc, "repro"], repo)) == {"critic_fidelity"}

@@ -12,6 +12,7 @@ from pipeline.params.evaluate import EvaluateParams
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
 from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.params.report import ReportParams
+from pipeline.params.score import ScoreParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,6 +23,7 @@ MODELS = {
     "critic_fidelity": CriticFidelityParams,
     "extract": ExtractParams,
     "evaluate": EvaluateParams,
+    "score": ScoreParams,
     "report": ReportParams,
 }
 

@@ -28,6 +28,7 @@ KNOWN_SECTIONS = (
     "critic_fidelity",
     "extract",
     "evaluate",
+    "score",
     "report",
 )
 
