@@ -1,12 +1,20 @@
 """Atomic writing of artifacts and the error raised for a bad one.
 
-Every artifact is written under a temporary name beside its destination and renamed into
-place only when complete, so a killed stage never leaves a half-written file that a later
-stage would accept.
+Every artifact is written under a temporary name beside its destination, fsynced, and
+renamed into place only when complete, so a killed stage never leaves a half-written file
+that a later stage would accept. A directory that already exists (a Zarr buffer, say) is
+swapped with its replacement in one atomic exchange (Linux renameat2 RENAME_EXCHANGE), so a
+kill at any point leaves either the old directory or the new one, whole, at the destination.
+Where the exchange is unavailable (another OS, a file system without it) the old directory
+is first renamed aside to DEST.old and the next write, or `recover`, puts it back if the
+process died between the two renames.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import errno
 import io
 import os
 import shutil
@@ -30,14 +38,95 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # e.g. a platform where directories cannot be opened
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def fsync_tree(path: Path) -> None:
+    """fsync every file under `path` (or `path` itself), then the directories, deepest first."""
+    if path.is_file():
+        with open(path, "rb") as f:
+            os.fsync(f.fileno())
+        return
+    dirs = []
+    for root, _, files in os.walk(path):
+        dirs.append(Path(root))
+        for name in files:
+            with open(Path(root) / name, "rb") as f:
+                os.fsync(f.fileno())
+    for d in reversed(dirs):
+        _fsync_dir(d)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically swap paths a and b (Linux renameat2). False where unsupported."""
+    libc_name = ctypes.util.find_library("c")
+    if libc_name is None:
+        return False
+    libc = ctypes.CDLL(libc_name, use_errno=True)
+    fn = getattr(libc, "renameat2", None)
+    if fn is None:
+        return False
+    if fn(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def recover(dest: str | Path) -> None:
+    """Undo a directory swap a kill interrupted: DEST missing but DEST.old whole -> put it back."""
+    dest = Path(dest)
+    old = dest.with_name(dest.name + ".old")
+    if old.exists() and not dest.exists():
+        os.replace(old, dest)
+    elif old.exists():
+        _remove(old)
+
+
+def replace_path(tmp: Path, dest: Path) -> None:
+    """Move the complete `tmp` (file or directory) to `dest`, replacing what is there atomically."""
+    fsync_tree(tmp)
+    if dest.is_dir() and not dest.is_symlink():
+        if _exchange(tmp, dest):
+            _fsync_dir(dest.parent)
+            _remove(tmp)  # the old directory, now at tmp
+        else:
+            old = dest.with_name(dest.name + ".old")
+            _remove(old)
+            os.replace(dest, old)
+            os.replace(tmp, dest)  # a kill before this line: `recover` restores DEST.old
+            _fsync_dir(dest.parent)
+            shutil.rmtree(old)
+    else:
+        os.replace(tmp, dest)
+        _fsync_dir(dest.parent)
+
+
 @contextmanager
 def atomic_path(dest: str | Path) -> Iterator[Path]:
-    """Yield a temporary path to write `dest` at (a file or a directory); rename on success.
+    """Yield a temporary path to write `dest` at (a file or a directory); replace `dest` on success.
 
-    On an exception the temporary is removed and `dest` is left as it was.
+    On an exception the temporary is removed and `dest` is left as it was. The temporary is
+    fsynced before it replaces `dest`, and the replacement is atomic (see the module doc).
     """
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
+    recover(dest)
     tmp = dest.with_name(dest.name + TMP_SUFFIX)
     _remove(tmp)
     try:
@@ -45,14 +134,7 @@ def atomic_path(dest: str | Path) -> Iterator[Path]:
     except BaseException:
         _remove(tmp)
         raise
-    if dest.is_dir() and not dest.is_symlink():
-        old = dest.with_name(dest.name + ".old")
-        _remove(old)
-        os.replace(dest, old)
-        os.replace(tmp, dest)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, dest)
+    replace_path(tmp, dest)
 
 
 def write_bytes_atomic(dest: str | Path, data: bytes) -> None:

@@ -147,13 +147,16 @@ def score_critics(
 
     data: buffer D_k arrays (`load_buffer`); critic: an ensemble covering `objectives` in
     member order (its twin_min gives (len(objectives), B)); policy: pi_k, evaluated at the
-    scored states; gamma: the discount the critic was trained with. Runs on CPU.
+    scored states; gamma: the discount the critic was trained with. Runs on the critic's
+    device (critic and policy on the same one).
     """
     horizon = tail_horizon(gamma, tail_tolerance)
     idx, g, n_episodes = scored_states(data, gamma, episodes, horizon)
+    params = getattr(critic, "parameters", None)
+    device = next(params()).device if params is not None else torch.device("cpu")
     q = np.zeros((len(objectives), len(idx)), np.float64)
     for a in range(0, len(idx), chunk):
-        obs = torch.from_numpy(data["obs"][idx[a : a + chunk]])
-        q[:, a : a + chunk] = critic.twin_min(obs, policy(obs)).double().numpy()
+        obs = torch.from_numpy(data["obs"][idx[a : a + chunk]]).to(device)
+        q[:, a : a + chunk] = critic.twin_min(obs, policy(obs)).double().cpu().numpy()
     per = [_stats(int(m), q[j], g[:, m]) for j, m in enumerate(objectives)]
     return FidelityReport(float(gamma), horizon, n_episodes, per)

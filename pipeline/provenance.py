@@ -30,13 +30,17 @@ def _version(dist: str) -> str | None:
 
 @functools.lru_cache(maxsize=None)
 def _git() -> dict[str, Any]:
-    """Commit of the project checkout and whether tracked files differ from it (None outside git)."""
+    """Commit of the project checkout and whether tracked files differ from it (None outside git).
+
+    dvc.lock is left out: `dvc repro` rewrites it after every stage, so it would mark every
+    later stage of a clean checkout dirty. Params are recorded in the artifacts themselves.
+    """
     try:
         commit = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, timeout=10, check=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!dvc.lock"],
             cwd=ROOT, capture_output=True, text=True, timeout=10, check=True,
         ).stdout.strip() != ""
     except (OSError, subprocess.SubprocessError):

@@ -32,17 +32,22 @@ def trained_gamma(path: Path, meta: dict[str, Any]) -> float:
 def critic_fidelity(
     objective: int = typer.Option(..., help="k: the specialist whose buffer D_k the critics were trained on"),
     specialist: Path = typer.Option(..., help="specialist directory holding buffer.zarr and policy.pt"),
-    critics: Optional[Path] = typer.Option(None, help="critics file to score (default: SPECIALIST/critics.pt, the joint critics)"),
+    critics: Optional[Path] = typer.Option(
+        None, help="critics file to score: joint (default: SPECIALIST/critics.pt) or post-hoc (fit-critics' critics.pt)"
+    ),
     out: Path = typer.Option(..., help="output JSON file (DVC metrics)"),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Score critics Q^(k)_m against discounted Monte-Carlo returns of their own buffer D_k.
 
-    Params: section `critic_fidelity` (the same rule `fit-critics` applies to post-hoc
-    critics, so joint and post-hoc scores compare like with like). The discount is the one
-    the critics were trained with, read from their metadata. For each covered objective m,
-    OUT holds the Pearson correlation and normalised error mean|Q - G| / mean|G| of
-    Q^(k)_m(s, pi_k(s)) against the return G_m over the buffer's last episodes.
+    Params: section `critic_fidelity`. Joint and post-hoc critics are scored by this same
+    rule, so their scores compare like with like. The discount is the one the critics were
+    trained with, read from their metadata; pi_k is the specialist's TD3 target actor, whose
+    actions both kinds of critic bootstrap through (its online actor if it has none). For
+    each covered objective m, OUT holds the Pearson correlation and normalised error
+    mean|Q - G| / mean|G| of Q^(k)_m(s, pi_k(s)) against the return G_m over the buffer's
+    last episodes. The critics must be of this specialist: same env, dims, seed and buffer
+    objective, and post-hoc critics must carry the checksums of this buffer.
     """
     fid = section(load_params(params), "critic_fidelity", CriticFidelityParams, params)
     spec = load_specialist(specialist, objective)
@@ -51,6 +56,16 @@ def critic_fidelity(
     check_matches(critics_path, meta, spec.attrs, str(spec.buffer_path))
     if meta.get("buffer_objective") != objective:
         raise ArtifactError(f"{critics_path}: critics of buffer objective {meta.get('buffer_objective')!r}, expected {objective}")
+    policy_path = specialist / "policy.pt"
+    if meta.get("seed") != spec.policy_meta.get("seed"):
+        raise ArtifactError(f"{critics_path}: critics of seed {meta.get('seed')!r}, but {policy_path} is of seed {spec.policy_meta.get('seed')!r}")
+    if meta.get("source") == "posthoc":
+        theirs, ours = meta.get("buffer_checksums"), spec.attrs.get("checksums", {})
+        if theirs is None:
+            raise ArtifactError(f"{critics_path}: post-hoc critics without 'buffer_checksums'; refit them with fit-critics")
+        if theirs != ours:
+            diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
+            raise ArtifactError(f"{critics_path}: fitted on a different buffer than {spec.buffer_path} (checksums differ: {diff})")
     gamma = trained_gamma(critics_path, meta)
-    report = score_critics(spec.data, online, meta["objectives"], spec.actor, gamma, fid.episodes, fid.tail_tolerance)
-    write_text_atomic(out, fidelity_json(report, objective))
+    report = score_critics(spec.data, online, meta["objectives"], spec.target_actor, gamma, fid.episodes, fid.tail_tolerance)
+    write_text_atomic(out, fidelity_json(report, objective, source=meta.get("source"), actor="target"))

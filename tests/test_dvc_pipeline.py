@@ -1,8 +1,9 @@
 """The whole DVC pipeline on a tiny preset, in a temporary git + DVC copy of the repository.
 
 Checks the caching users rely on: a second `dvc repro` runs nothing; changing an extraction
-param reruns extract, evaluate and report but not the specialists; changing it back restores
-the earlier outputs from DVC's run-cache without recomputation.
+param reruns extract, evaluate, score and report but not the specialists; changing it back
+restores the earlier outputs from DVC's run-cache without recomputation; a scoring setting or
+the reference point reruns only score and report; a fidelity setting only critic_fidelity.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ TINY = {
         "epochs": 1, "beta": 1.0, "omega_max": 1.0, "batch_size": 32, "hidden_sizes": [16, 16],
     },
     "evaluate": {"episodes": 2},
+    "score": {"distinct_tol": 0.02},
     "report": {"dpi": 60},
 }
 

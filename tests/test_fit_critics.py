@@ -16,6 +16,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from pipeline.buffer import load_buffer
 from pipeline.checkpoint import load_critics, save_policy
 from pipeline.fidelity import discounted_returns, scored_states, score_critics, tail_horizon
 from pipeline.nets import Actor
@@ -129,6 +130,39 @@ def test_fitting_is_deterministic_given_the_generators():
     assert not torch.equal(a.online.weights[0], other.online.weights[0])
 
 
+def test_stops_when_fidelity_stops_improving_and_keeps_the_best_weights():
+    """A scripted error: improves for 3 checks, then 4 checks that do not beat the best by
+    min_improvement (one of them slightly better: kept, still counted as stale). With patience
+    4 the fit stops at the 7th check and returns the weights of the best check."""
+    rng = np.random.default_rng(0)
+    data = synthetic_buffer(64, (0.5, 1.0), np.zeros(64), np.zeros(64), rng)
+    script = iter([0.9, 0.6, 0.5, 0.52, 0.499, 0.51, 0.55, 0.1])
+    snapshots = {}
+
+    def error(critic):
+        e = next(script)
+        snapshots[e] = {k: v.clone() for k, v in critic.state_dict().items()}
+        return e
+
+    cfg = FitCriticsParams(steps=1000, check_every=10, patience=4, min_improvement=0.01, **FAST)
+    out = fit_posthoc_critics(data, Actor(3, 2, [8], [-1, -1], [1, 1]), [0, 1], cfg,
+                              np.random.default_rng(1), torch.Generator().manual_seed(1), error=error)
+    assert [c.step for c in out.checks] == [10, 20, 30, 40, 50, 60, 70]
+    assert (out.steps, out.best_step) == (70, 50)
+    for key, value in out.online.state_dict().items():
+        assert torch.equal(value, snapshots[0.499][key])
+
+
+def test_without_checks_it_runs_exactly_the_steps():
+    rng = np.random.default_rng(0)
+    data = synthetic_buffer(64, (0.5, 1.0), np.zeros(64), np.zeros(64), rng)
+    calls = []
+    cfg = FitCriticsParams(steps=30, check_every=0, **FAST)
+    out = fit_posthoc_critics(data, Actor(3, 2, [8], [-1, -1], [1, 1]), [0, 1], cfg, np.random.default_rng(1),
+                              torch.Generator().manual_seed(1), error=lambda c: calls.append(1) or 0.0)
+    assert (out.steps, out.best_step, out.checks, calls) == (30, 30, (), [])
+
+
 # ---------------------------------------------------------------------------- fidelity
 
 
@@ -224,6 +258,9 @@ fit_critics:
   batch_size: 64
   hidden_sizes: [32, 32]
   device: cpu
+  check_every: 20
+  fidelity_episodes: 2
+  tail_tolerance: 0.5
 critic_fidelity:
   episodes: 2
   tail_tolerance: 0.5
@@ -249,6 +286,9 @@ def run_dir(tmp_path_factory) -> Path:
     assert res.exit_code == 0, res.output
     res = mapex("critic-fidelity", "--objective", 0, "--specialist", root / "spec", "--out", root / "joint.json", "--params", params)
     assert res.exit_code == 0, res.output
+    res = mapex("critic-fidelity", "--objective", 0, "--specialist", root / "spec", "--critics", root / "posthoc" / "critics.pt",
+                "--out", root / "posthoc.json", "--params", params)
+    assert res.exit_code == 0, res.output
     return root
 
 
@@ -263,24 +303,38 @@ def test_fit_critics_stage_writes_loadable_posthoc_critics(run_dir):
     assert online.twin_min(obs, torch.zeros(7, meta["act_dim"])).shape == (2, 7)
 
 
-@pytest.mark.parametrize("path", ["posthoc/fidelity.json", "joint.json"])
-def test_fidelity_metrics_files(run_dir, path):
+@pytest.mark.parametrize("path, source", [("posthoc.json", "posthoc"), ("joint.json", "joint")])
+def test_fidelity_metrics_files(run_dir, path, source):
     import json
 
     m = json.loads((run_dir / path).read_text())
     # 3 truncated 100-step episodes; last 2 scored; H = 69 at gamma 0.99, tolerance 0.5 -> 32 states each.
     assert (m["buffer_objective"], m["n_episodes"], m["horizon"], m["gamma"]) == (0, 2, 69, 0.99)
+    assert (m["source"], m["actor"]) == (source, "target")
     for key in ("obj0", "obj1"):
         assert m[key]["n_states"] == 64
         assert -1.0 <= m[key]["pearson"] <= 1.0
         assert m[key]["rel_error"] >= 0.0 and isinstance(m[key]["mean_g"], float)
 
 
+def test_fit_csv_records_every_check_and_meta_the_fit(run_dir):
+    lines = (run_dir / "posthoc" / "fit.csv").read_text().splitlines()
+    assert lines[0] == "step,loss,mean_rel_error"
+    assert [int(line.split(",")[0]) for line in lines[1:]] == [20, 40, 50]  # every 20 steps, and the last
+    _, _, meta = load_critics(run_dir / "posthoc" / "critics.pt")
+    errors = [float(line.split(",")[2]) for line in lines[1:]]
+    assert meta["fit"]["steps"] == 50 and meta["fit"]["best_error"] == pytest.approx(min(errors), rel=1e-5)
+    assert meta["fit"]["best_step"] == [20, 40, 50][errors.index(min(errors))]
+    data, attrs = load_buffer(run_dir / "spec" / "buffer.zarr")
+    assert meta["buffer_checksums"] == attrs["checksums"]
+
+
 def test_posthoc_and_joint_critics_share_one_format(run_dir):
     joint = torch.load(run_dir / "spec" / "critics.pt", weights_only=True)
     post = torch.load(run_dir / "posthoc" / "critics.pt", weights_only=True)
     assert joint.keys() == post.keys()
-    assert joint["meta"].keys() == post["meta"].keys()
+    assert post["meta"].keys() - joint["meta"].keys() == {"buffer_checksums", "fit"}  # post-hoc only
+    assert joint["meta"].keys() <= post["meta"].keys()
     assert joint["meta"]["source"] == "joint" and post["meta"]["source"] == "posthoc"
     for part in ("online", "target"):
         assert {k: v.shape for k, v in joint[part].items()} == {k: v.shape for k, v in post[part].items()}
@@ -329,6 +383,31 @@ def test_bad_inputs_exit_2_name_the_file_and_write_nothing(run_dir, tmp_path, co
     assert res.exit_code == 2, res.output
     assert str(spec / names) in res.stderr and says in res.stderr
     assert not out.exists()
+
+
+def test_fit_critics_refuses_a_specialist_of_another_seed(run_dir, tmp_path):
+    res = mapex("fit-critics", "--objective", 0, "--seed", 7, "--specialist", run_dir / "spec", "--out", tmp_path / "out",
+                "--params", run_dir / "params.yaml")
+    assert res.exit_code == 2, res.output
+    assert str(run_dir / "spec" / "policy.pt") in res.stderr and "expected --seed 7" in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("change, says", [
+    ({"seed": 3}, "critics of seed 3"),
+    ({"buffer_checksums": {"obs": "0"}}, "fitted on a different buffer"),
+    ({"buffer_checksums": None}, "without 'buffer_checksums'"),
+])
+def test_critic_fidelity_refuses_posthoc_critics_of_another_run(run_dir, tmp_path, change, says):
+    other = tmp_path / "critics.pt"
+    obj = torch.load(run_dir / "posthoc" / "critics.pt", weights_only=True)
+    obj["meta"] = {k: v for k, v in (obj["meta"] | change).items() if v is not None}
+    torch.save(obj, other)
+    res = mapex("critic-fidelity", "--objective", 0, "--specialist", run_dir / "spec", "--critics", other,
+                "--out", tmp_path / "f.json", "--params", run_dir / "params.yaml")
+    assert res.exit_code == 2, res.output
+    assert str(other) in res.stderr and says in res.stderr
+    assert not (tmp_path / "f.json").exists()
 
 
 def test_critic_fidelity_rejects_critics_of_another_env(run_dir, tmp_path):
