@@ -1,17 +1,21 @@
 """The population artifact of an extraction run: every policy with its record.
 
-population.pt (format "mapex.population", version 1), loadable with torch.load(weights_only=True):
+population.pt (format "mapex.population", version 2), loadable with torch.load(weights_only=True):
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
               variant, params (the env and extract params, seed and variant the run used),
               provenance (pipeline.provenance: git commit, library versions, device, threads)
-    members:  list, in the order policies joined the population (index = policy id):
-        origin         "specialist" or "child"
-        objective      the specialist's objective (None for a child)
-        iteration      0 for specialists, i >= 1 for the children made in iteration i
+    members:  list, in the order policies joined the population (index = policy id): first
+              the starting policies (every policy of specialist 0's policy set, in the set's
+              order, then specialist 1's, ...), then the children
+        origin         "specialist" (a starting policy) or "child"
+        objective      the objective of the specialist the starting policy came from (None for a child)
+        policy_name    its name in that specialist's policy set ("rl", "pop3", ...; "policy" when
+                       the specialist gave a single policy.pt), None for a child
+        iteration      0 for starting policies, i >= 1 for the children made in iteration i
                        (extract.children_per_iteration of them, consecutive ids)
-        parents        policy ids of the parents ([] for specialists)
-        target_weight  the unit target weight vector the child was trained for (None for specialists)
+        parents        policy ids of the parents ([] for starting policies)
+        target_weight  the unit target weight vector the child was trained for (None for starting policies)
         returns        mean undiscounted return vector over the evaluation episodes
         returns_std    its per-objective standard deviation over those episodes
         eval_episodes  number of evaluation episodes
@@ -19,16 +23,19 @@ population.pt (format "mapex.population", version 1), loadable with torch.load(w
         hidden_sizes   the actor's hidden widths
         actor          state dict of pipeline.nets.Actor
 
-history.csv, one row per iteration (iteration 0 = specialists alone): iteration, population,
-front_size, env_samples. No hypervolume: it needs env.reference_point, which is not an input of
-extraction; it is computed downstream from the members' iteration and returns.
+Version 1 (before policy sets) lacks `policy_name`; it still loads, its starting policies
+named "policy" (each came from a policy.pt) and its children None.
+
+history.csv, one row per iteration (iteration 0 = the starting policies alone): iteration,
+population, front_size, env_samples. No hypervolume: it needs env.reference_point, which is not
+an input of extraction; it is computed downstream from the members' iteration and returns.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import torch
 
@@ -36,7 +43,8 @@ from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_ato
 from pipeline.nets import Actor
 
 FORMAT = "mapex.population"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+OLDEST_READABLE = 1  # version 1: no policy_name
 
 
 @dataclass
@@ -52,6 +60,10 @@ class Member:
     env_samples: int
     hidden_sizes: list[int]
     actor: dict[str, torch.Tensor] = field(repr=False)
+    policy_name: str | None = None  # the starting policy's name in its specialist's policy set; None for a child
+
+
+MEMBER_KEYS = tuple(f.name for f in fields(Member))
 
 
 def member_actor(member: Member, meta: dict[str, Any]) -> Actor:
@@ -69,15 +81,50 @@ def save_population(path: str | Path, members: list[Member], meta: dict[str, Any
     torch_save_atomic({"format": FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "members": [asdict(m) for m in members]}, path)
 
 
-def load_population(path: str | Path) -> tuple[list[Member], dict[str, Any]]:
-    """Load (members, meta); raises ArtifactError naming the file if it is not a valid population."""
-    obj = torch_load_checked(path, FORMAT, FORMAT_VERSION)
+def _load_any_version(path: str | Path) -> tuple[dict[str, Any], int]:
+    """The population's dict and its format version (the current one or version 1)."""
     try:
-        members = [Member(**m) for m in obj["members"]]
-    except TypeError as exc:
-        raise ArtifactError(f"{path}: malformed member record ({exc})") from None
-    n_obj = obj["meta"]["n_objectives"]
+        return torch_load_checked(path, FORMAT, FORMAT_VERSION), FORMAT_VERSION
+    except ArtifactError as current:
+        try:
+            return torch_load_checked(path, FORMAT, OLDEST_READABLE), OLDEST_READABLE
+        except ArtifactError:
+            raise current from None  # missing, unreadable, another format or an unknown version
+
+
+def load_population(path: str | Path, meta_keys: Sequence[str] = ()) -> tuple[list[Member], dict[str, Any]]:
+    """Load (members, meta) of a population.pt of the current format or version 1.
+
+    Raises ArtifactError naming the file (never a KeyError) when it is not a valid population:
+    no `meta` or `members`, a metadata key of `meta_keys` (or `n_objectives`) missing, a member
+    lacking a key or holding an unknown one, or returns of the wrong length.
+    """
+    obj, version = _load_any_version(path)
+    for key, kind in (("meta", dict), ("members", list)):
+        if key not in obj:
+            raise ArtifactError(f"{path}: not a complete population artifact: no {key!r} key")
+        if not isinstance(obj[key], kind):
+            raise ArtifactError(f"{path}: {key!r} is a {type(obj[key]).__name__}, expected a {kind.__name__}")
+    meta = obj["meta"]
+    missing = [k for k in ("n_objectives", *meta_keys) if k not in meta]
+    if missing:
+        raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, dict.fromkeys(missing)))} key")
+    required = MEMBER_KEYS if version >= 2 else tuple(k for k in MEMBER_KEYS if k != "policy_name")
+    members = []
+    for i, record in enumerate(obj["members"]):
+        if not isinstance(record, dict):
+            raise ArtifactError(f"{path}: member {i} is a {type(record).__name__}, expected a dict")
+        lacking = [k for k in required if k not in record]
+        if lacking:
+            raise ArtifactError(f"{path}: member {i} has no {', '.join(map(repr, lacking))} key")
+        unknown = sorted(set(record) - set(required))
+        if unknown:
+            raise ArtifactError(f"{path}: member {i} has unknown key(s) {unknown} (format_version {version})")
+        if version < 2:
+            record = {**record, "policy_name": "policy" if record["origin"] == "specialist" else None}
+        members.append(Member(**record))
+    n_obj = meta["n_objectives"]
     for i, m in enumerate(members):
         if len(m.returns) != n_obj:
             raise ArtifactError(f"{path}: member {i} has {len(m.returns)} returns, expected {n_obj}")
-    return members, obj["meta"]
+    return members, meta

@@ -4,7 +4,9 @@ Only the episodes run here; the `score` stage turns their returns into a front a
 so a change to a metric's setting or to env.reference_point reruns no episode.
 
 Outputs (in OUT):
-  evaluated.csv    one row per member: id, origin, objective, iteration, parents (';'-joined),
+  evaluated.csv    one row per member (every starting policy and every child): id, origin,
+                   objective and policy_name (a starting policy's specialist and its name in that
+                   specialist's policy set; empty for a child), iteration, parents (';'-joined),
                    env_samples, obj<m>_extract (extraction-time mean return), obj<m> and obj<m>_std
                    (re-evaluated mean and std over `evaluate.episodes` episodes). Columns are named
                    obj0, obj1, ... rather than after the objectives so dvc.yaml's plot axes fit every env.
@@ -44,6 +46,7 @@ def evaluate(
 ) -> None:
     """Re-evaluate every member of an extracted population on fresh episode seeds.
 
+    Every member: each starting policy (all of every specialist's policy set) and each child.
     Params: sections `env` (id, max_episode_steps) and `evaluate`. Each member runs
     `evaluate.episodes` deterministic episodes whose seeds differ from extraction's
     (`evaluate.seed_stream`). Nothing is scored here: run `mapex score` on the outputs.
@@ -52,7 +55,7 @@ def evaluate(
     a `dvc plots` scatter of obj0 vs obj1) and evaluation.json (what was run, and provenance).
     """
     _, env_p, cfg = read_params(params, "evaluate", EvaluateParams)
-    members, meta = read_population(population, META_KEYS)
+    members, meta = load_population(population, META_KEYS)
     _check_population(population, members, meta, env_p.id, seed)
     try:
         device = select_device(cfg.device)
@@ -86,19 +89,6 @@ def evaluate(
     write_text_atomic(out / "evaluation.json", json.dumps(record, indent=2) + "\n")
 
 
-def read_population(path: Path, keys: tuple[str, ...]) -> tuple[list[Member], dict]:
-    """load_population, plus: every metadata key in `keys` is present (ArtifactError naming the
-    file and the key otherwise, never a KeyError)."""
-    try:
-        members, meta = load_population(path)
-    except KeyError as exc:  # a population without `members`, `meta` or meta["n_objectives"]
-        raise ArtifactError(f"{path}: not a complete population artifact: no {exc.args[0]!r} key") from None
-    missing = [k for k in keys if k not in meta]
-    if missing:
-        raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, missing))} key")
-    return members, meta
-
-
 def _check_population(path: Path, members: list[Member], meta: dict, env_id: str, seed: int) -> None:
     if meta["env_id"] != env_id:
         raise ArtifactError(f"{path}: population is for env {meta['env_id']!r}, params env.id is {env_id!r}")
@@ -112,7 +102,7 @@ def evaluated_csv(members: list[Member], results: list[EvalResult]) -> str:
     """One row per member; see the module docstring for the columns. Floats at full precision
     (Python's repr, so they read back bit for bit)."""
     n_obj = len(members[0].returns)
-    header = ["id", "origin", "objective", "iteration", "parents", "env_samples"]
+    header = ["id", "origin", "objective", "policy_name", "iteration", "parents", "env_samples"]
     header += [f"obj{m}_extract" for m in range(n_obj)] + [f"obj{m}" for m in range(n_obj)]
     header += [f"obj{m}_std" for m in range(n_obj)]
     buf = io.StringIO()
@@ -120,6 +110,6 @@ def evaluated_csv(members: list[Member], results: list[EvalResult]) -> str:
     w.writerow(header)
     for i, (mem, res) in enumerate(zip(members, results)):
         objective = "" if mem.objective is None else mem.objective
-        w.writerow([i, mem.origin, objective, mem.iteration, ";".join(map(str, mem.parents)), mem.env_samples,
+        w.writerow([i, mem.origin, objective, mem.policy_name or "", mem.iteration, ";".join(map(str, mem.parents)), mem.env_samples,
                     *map(float, mem.returns), *map(float, np.asarray(res.mean)), *map(float, np.asarray(res.std))])
     return buf.getvalue()

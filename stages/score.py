@@ -3,8 +3,10 @@
 Outputs (in OUT):
   front.csv        the non-dominated members (re-evaluated means), sorted by obj0: id, origin,
                    iteration, obj<m>.
-  metrics.json     front and specialist-only metrics (pipeline.metrics), their HV ratio, the
-                   extraction-time hypervolume, and the run's context (DVC metrics).
+  metrics.json     front and specialist-only metrics (pipeline.metrics; "specialists" = every
+                   starting policy, all of each specialist's policy set), their HV ratio, the
+                   extraction-time hypervolume, and the run's context, with the number of
+                   starting policies and of children (DVC metrics).
   hypervolume.csv  one row per extraction iteration t, for the population of every member made
                    by iteration t: iteration, population, env_samples (cumulative, extraction),
                    hypervolume_extract (of the extraction-time returns, the paper's learning
@@ -53,14 +55,16 @@ def score(
     population. The front is the non-dominated set of the re-evaluated mean returns; it is
     scored (hypervolume against env.reference_point, HV fraction of the [reference, ideal] box,
     the paper's sparsity and PGMORL's, expected utility, cardinality, distinct count), and so
-    are the specialists alone. The hypervolume history is computed for every iteration, on
-    extraction-time and on re-evaluated returns.
+    are the specialists alone (every starting policy of their policy sets). The hypervolume
+    history is computed for every iteration, on extraction-time and on re-evaluated returns.
 
     Writes to OUT: front.csv, metrics.json (DVC metrics), hypervolume.csv (a `dvc plots`
     curve) and provenance.json.
     """
     _, env_p, cfg = read_params(params, "score", ScoreParams)
-    members, meta = read_population(population, META_KEYS)
+    members, meta = load_population(population, META_KEYS)
+    if not members:
+        raise ArtifactError(f"{population}: population has no members")
     ref = reference_point(env_p.reference_point, meta["n_objectives"], params)
     record = read_json(evaluated / "evaluation.json", EVALUATION_KEYS)
     means = read_evaluated(evaluated / "evaluated.csv", members, meta["n_objectives"])
@@ -74,7 +78,8 @@ def score(
                                   {"hypervolume_extract": extract_returns, "hypervolume": means}, ref)
     metrics = {
         "env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "episodes": record["episodes"],
-        "population": len(members), "children": sum(m.origin == "child" for m in members),
+        "population": len(members), "starting_policies": sum(m.origin == "specialist" for m in members),
+        "children": sum(m.origin == "child" for m in members),
         "iterations": int(iteration.max()),
         "env_samples_extraction": max(m.env_samples for m in members),
         "env_samples_evaluation": record["env_samples_evaluation"],
@@ -97,21 +102,6 @@ def reference_point(ref: list[float] | None, n_objectives: int, params: Path) ->
     if len(ref) != n_objectives:
         raise ParamsError(f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives")
     return np.asarray(ref, dtype=float)
-
-
-def read_population(path: Path, keys: tuple[str, ...]) -> tuple[list[Member], dict]:
-    """load_population, plus: every metadata key in `keys` is present and there are members
-    (ArtifactError naming the file and the key otherwise, never a KeyError)."""
-    try:
-        members, meta = load_population(path)
-    except KeyError as exc:  # a population without `members`, `meta` or meta["n_objectives"]
-        raise ArtifactError(f"{path}: not a complete population artifact: no {exc.args[0]!r} key") from None
-    missing = [k for k in keys if k not in meta]
-    if missing:
-        raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, missing))} key")
-    if not members:
-        raise ArtifactError(f"{path}: population has no members")
-    return members, meta
 
 
 def read_json(path: Path, keys: tuple[str, ...]) -> dict:
