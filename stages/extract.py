@@ -1,4 +1,4 @@
-"""Stage extract: MAPEX Algorithm 1 over the specialists of one seed, resumable per iteration."""
+"""Stage extract: MAPEX Algorithm 1 over the specialists (their policy sets, buffers, critics) of one seed, resumable per iteration."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import csv
 import io
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -14,14 +14,16 @@ import typer
 
 from pipeline.artifacts import ArtifactError, write_text_atomic
 from pipeline.buffer import load_buffer
-from pipeline.checkpoint import load_critics, load_policy
+from pipeline.checkpoint import load_critics
 from pipeline.codedeps import closure_files
 from pipeline.envs import EnvError, env_spec, make_env
 from pipeline.evaluation import eval_seeds, evaluate_policies, evaluate_policy
 from pipeline.extraction import AdvantageConfig, ChildConfig, ChildSeeds, make_children, population_scale
+from pipeline.nets import Actor
 from pipeline.pareto import hypervolume, pareto_mask
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
+from pipeline.policyset import load_policy_set
 from pipeline.population import Member, actor_state, member_actor, save_population
 from pipeline.provenance import provenance
 from pipeline.resume import clear_progress, fingerprint, load_progress, save_progress
@@ -36,9 +38,10 @@ Claim = tuple[Path, dict[str, Any], str]  # (file, its metadata, the key naming 
 
 
 def check_slot(k: int, seed: int, spec_meta: dict, policy: Claim, buffer: Claim, critics: Claim) -> None:
-    """Policy, buffer and critics of slot obj{k} must describe one specialist: objective k, run
-    seed `seed`, the params' env and dims. Raises ArtifactError naming both files of the first
-    disagreement (or the file lacking a key and the one it is checked against)."""
+    """Policies (policies.pt, or policy.pt), buffer and critics of slot obj{k} must describe one
+    specialist: objective k, run seed `seed`, the params' env and dims. Raises ArtifactError
+    naming both files of the first disagreement (or the file lacking a key and the one it is
+    checked against)."""
     files = [policy, buffer, critics]
     expected = {"objective": (k, f"directory obj{k}"), "seed": (seed, f"--seed {seed}")}
     expected |= {key: (spec_meta[key], "params env") for key in SPEC_KEYS}
@@ -79,23 +82,40 @@ def check_critics(crit_path: Path, cmeta: dict, buf_path: Path, attrs: dict, mod
         raise ArtifactError(f"{crit_path} was fitted on another buffer than {buf_path}: the checksums of {differ} differ")
 
 
+class StartingPolicy(NamedTuple):
+    """One policy of a specialist's policy set: it starts in the population."""
+
+    objective: int  # the specialist's objective (its slot obj{k})
+    name: str  # its name in the set ("rl", "pop3", ...; "policy" for a policy.pt)
+    actor: Actor
+    hidden_sizes: list[int]
+
+
+def policies_path(spec_root: Path, k: int) -> Path:
+    """Slot obj{k}'s starting policies: its policy set policies.pt if there is one (a PDERL
+    specialist: population actors and RL actor), else its policy.pt (a TD3 specialist)."""
+    slot = spec_root / f"obj{k}"
+    return slot / "policies.pt" if (slot / "policies.pt").exists() else slot / "policy.pt"
+
+
 def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int], spec_meta: dict, seed: int, critics_mode: str):
-    """Policies, buffers and critics of specialists 0..m-1, each slot cross-checked (see check_slot)."""
-    actors, hidden, buffers, critics, files = [], [], [], [], []
+    """Starting policies, buffers and critics of specialists 0..m-1, each slot cross-checked
+    (see check_slot). Returns (starting policies, slot by slot in each set's order, buffers,
+    critics, the files read)."""
+    starts, buffers, critics, files = [], [], [], []
     for k in objectives:
-        pol_path, buf_path = spec_root / f"obj{k}" / "policy.pt", spec_root / f"obj{k}" / "buffer.zarr"
+        pol_path, buf_path = policies_path(spec_root, k), spec_root / f"obj{k}" / "buffer.zarr"
         crit_path = critics_root / f"obj{k}" / "critics.pt"
-        actor, pmeta = load_policy(pol_path)
+        pset = load_policy_set(pol_path)
         data, attrs = load_buffer(buf_path)
         online, _, cmeta = load_critics(crit_path)
-        check_slot(k, seed, spec_meta, (pol_path, pmeta, "objective"), (buf_path, attrs, "objective"), (crit_path, cmeta, "buffer_objective"))
+        check_slot(k, seed, spec_meta, (pol_path, pset.meta, "objective"), (buf_path, attrs, "objective"), (crit_path, cmeta, "buffer_objective"))
         check_critics(crit_path, cmeta, buf_path, attrs, critics_mode, spec_meta["n_objectives"])
-        actors.append(actor)
-        hidden.append(list(pmeta["hidden_sizes"]))
+        starts += [StartingPolicy(k, name, actor, list(pset.meta["hidden_sizes"])) for name, actor in zip(pset.names, pset.actors)]
         buffers.append(data)
         critics.append(online)
         files += [pol_path, buf_path / "zarr.json", crit_path]
-    return actors, hidden, buffers, critics, files
+    return starts, buffers, critics, files
 
 
 def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
@@ -129,7 +149,8 @@ def normalised_hypervolume(returns: np.ndarray) -> float:
 def extract(
     seed: int = typer.Option(0, help="run seed (selects the specialists of this seed and seeds every draw)"),
     variant: str = typer.Option("mapex", help="'mapex' (Algorithm 1) or 'warmup_only' (ablation: epochs = 0)"),
-    specialists: Path = typer.Option(..., help="directory with obj{K}/policy.pt, buffer.zarr, critics.pt per objective"),
+    specialists: Path = typer.Option(..., help="directory with, per objective K, obj{K}/policies.pt (a policy set, e.g. PDERL's) "
+                                          "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt"),
     posthoc: Path = typer.Option(None, help="directory with obj{K}/critics.pt fitted post hoc (used if extract.critics = posthoc)"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
     resume_dir: Path = typer.Option(Path("data/resume"), help="where progress is checkpointed after every iteration"),
@@ -137,16 +158,19 @@ def extract(
 ) -> None:
     """Extract a Pareto front from single-objective specialists (MAPEX, Algorithm 1).
 
-    Params: sections `env` (id, max_episode_steps) and `extract`. The population starts as the
-    specialists; each iteration adds extract.children_per_iteration children (1 = Algorithm 1),
-    each trained on its own hybrid buffer by mixed-advantage-weighted regression. The policy,
-    buffer and critics of each objective must agree on objective, seed and env. Progress is
-    checkpointed after each iteration: killed and rerun with the same params and inputs, the
-    stage resumes and ends with the same artifacts as an uninterrupted run; changed params,
-    inputs or code start over.
+    Params: sections `env` (id, max_episode_steps) and `extract`. The population starts as every
+    policy of every specialist's policy set (SPECIALISTS/obj{K}/policies.pt, e.g. a PDERL
+    population and its RL actor; or the one policy of obj{K}/policy.pt when there is no set),
+    each evaluated; each iteration adds extract.children_per_iteration children (1 = Algorithm 1),
+    each trained on its own hybrid buffer by mixed-advantage-weighted regression, with parents
+    chosen from the whole population. The policies, buffer and critics of each objective must
+    agree on objective, seed and env. Progress is checkpointed after each iteration: killed and
+    rerun with the same params and inputs, the stage resumes and ends with the same artifacts as
+    an uninterrupted run; changed params, inputs or code start over.
 
-    Writes OUT/population.pt (every policy with its returns, parents, target weight, iteration
-    and cumulative env samples) and OUT/history.csv (population, front size and env samples per
+    Writes OUT/population.pt (every policy with its origin: the specialist and policy name of a
+    starting policy, or a child's parents, target weight and iteration; its returns and
+    cumulative env samples) and OUT/history.csv (population, front size and env samples per
     iteration). Hypervolumes are computed downstream from population.pt, so env.reference_point
     is not an input here.
     """
@@ -175,12 +199,12 @@ def extract(
     spec_meta = {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives}
     bounds = {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
     critics_root = posthoc if cfg.critics == "posthoc" else specialists
-    actors, hidden, buffers, critics, files = load_specialists(
+    starts, buffers, critics, files = load_specialists(
         specialists, critics_root, list(range(spec.n_objectives)), spec_meta, seed, cfg.critics
     )
 
     device = select_device(cfg.device)
-    actors = [a.to(device) for a in actors]
+    actors = [s.actor.to(device) for s in starts]
     critics = [c.to(device) for c in critics]
     # Everything that can change the artifacts: params, inputs, every code file the stage
     # runs, and the device and thread count (which can change the last bits of results).
@@ -188,17 +212,22 @@ def extract(
     config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
     fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + closure_files("stages.extract"))
     progress_dir = resume_dir / "extract" / variant / f"seed{seed}"
-    n_spec = spec.n_objectives
+    n_start = len(starts)  # the starting policies: member ids 0 .. n_start - 1
     saved = load_progress(progress_dir, fp)
-    if saved is not None and (len(saved[0]) - n_spec) % k_children:
-        saved = None  # not a whole number of iterations: not progress this code wrote
+    if saved is not None and (len(saved[0]) < n_start or (len(saved[0]) - n_start) % k_children):
+        saved = None  # not the starting policies plus whole iterations: not progress this code wrote
 
     if saved is None:
         members, history, samples = [], [], 0
-        for k, actor in enumerate(actors):
-            res = evaluate_policy(actor, envs, eval_seeds(seed, EVAL_STREAM, k, cfg.eval_episodes))
+        # Member i is evaluated on stream i: a specialist's single policy (TD3) is member k.
+        for i, (start, actor) in enumerate(zip(starts, actors)):
+            res = evaluate_policy(actor, envs, eval_seeds(seed, EVAL_STREAM, i, cfg.eval_episodes))
             samples += res.env_samples
-            members.append(Member("specialist", k, 0, [], None, res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, hidden[k], actor_state(actor)))
+            members.append(Member(
+                origin="specialist", objective=start.objective, iteration=0, parents=[], target_weight=None,
+                returns=res.mean.tolist(), returns_std=res.std.tolist(), eval_episodes=cfg.eval_episodes,
+                env_samples=samples, hidden_sizes=start.hidden_sizes, actor=actor_state(actor), policy_name=start.name,
+            ))
         history.append(history_row(0, members))
         written = save_progress(progress_dir, fp, [asdict(m) for m in members], 0, {"history": history})
     else:
@@ -207,8 +236,8 @@ def extract(
         history = extra["history"]
         samples = members[-1].env_samples
         written = len(members)
-    done = (len(members) - n_spec) // k_children
-    pop_actors = actors + [member_actor(m, {**spec_meta, **bounds}).to(device) for m in members[n_spec:]]
+    done = (len(members) - n_start) // k_children
+    pop_actors = actors + [member_actor(m, {**spec_meta, **bounds}).to(device) for m in members[n_start:]]
     child_cfg = ChildConfig(
         tuple(cfg.hidden_sizes), cfg.child_buffer_size, cfg.weight_norm, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size,
         AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute, cfg.advantage_norm),
@@ -219,12 +248,16 @@ def extract(
     with bar:
         for it in range(done + 1, cfg.iterations + 1):
             returns = np.array([m.returns for m in members])
-            children = make_children(returns, pop_actors, buffers, critics, child_cfg, child_seeds(seed, len(members) - n_spec + 1, k_children), device)
+            children = make_children(returns, pop_actors, buffers, critics, child_cfg, child_seeds(seed, len(members) - n_start + 1, k_children), device)
             ids = range(len(members), len(members) + k_children)
             results = evaluate_policies([a for a, _ in children], envs, [eval_seeds(seed, EVAL_STREAM, i, cfg.eval_episodes) for i in ids])
             for (child, rec), res in zip(children, results):
                 samples += res.env_samples
-                members.append(Member("child", None, it, list(rec.parents), rec.weight.tolist(), res.mean.tolist(), res.std.tolist(), cfg.eval_episodes, samples, list(cfg.hidden_sizes), actor_state(child)))
+                members.append(Member(
+                    origin="child", objective=None, iteration=it, parents=list(rec.parents), target_weight=rec.weight.tolist(),
+                    returns=res.mean.tolist(), returns_std=res.std.tolist(), eval_episodes=cfg.eval_episodes,
+                    env_samples=samples, hidden_sizes=list(cfg.hidden_sizes), actor=actor_state(child), policy_name=None,
+                ))
                 pop_actors.append(child)
             history.append(history_row(it, members))
             written = save_progress(progress_dir, fp, [asdict(m) for m in members[-k_children:]], written, {"history": history})
