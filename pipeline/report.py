@@ -23,6 +23,7 @@ from pipeline.metrics import mean_sem
 VARIANT_ORDER = ("mapex", "warmup_only")
 LABELS = {"mapex": "MAPEX", "warmup_only": "warm-up only", "specialists": "specialists only"}
 COLOURS = {"mapex": "tab:blue", "warmup_only": "tab:orange"}
+SPECIALIST_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive")  # by the specialist's objective
 
 
 @dataclass
@@ -33,12 +34,20 @@ class Run:
     seed: int
     metrics: dict  # the score stage's metrics.json
     returns: np.ndarray  # (n, m) re-evaluated mean return of each member
-    origin: np.ndarray  # (n,) "specialist" or "child"
-    iteration: np.ndarray  # (n,) iteration that made the member (0 for specialists)
+    origin: np.ndarray  # (n,) "specialist" (a starting policy, from a specialist's policy set) or "child"
+    iteration: np.ndarray  # (n,) iteration that made the member (0 for starting policies)
     on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
     # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))
     history: dict[str, np.ndarray]
     provenance: dict | None = None  # stage -> pipeline.provenance record or None (score's provenance.json)
+    objective: np.ndarray | None = None  # (n,) the specialist a starting policy came from, -1 for a child
+
+    def starting_counts(self) -> dict[int, int]:
+        """Number of starting policies per specialist objective (1 each for TD3 specialists)."""
+        spec = self.origin == "specialist"
+        objectives = self.objective[spec] if self.objective is not None else np.full(int(spec.sum()), -1)
+        keys, counts = np.unique(objectives, return_counts=True)
+        return {int(k): int(c) for k, c in zip(keys, counts)}
 
 
 def label(variant: str) -> str:
@@ -65,11 +74,26 @@ def _front_line(ax, points: np.ndarray, **kw) -> None:
     ax.step(p[:, 0], p[:, 1], where="pre", **kw)
 
 
-def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
-    """Fronts of one seed, one panel per variant: specialists vs children coloured by iteration.
+def _starting_policies(ax, run: Run, pts: np.ndarray) -> None:
+    """The starting policies as stars, one colour per specialist (by its objective); smaller
+    stars where a specialist gave a whole policy set."""
+    spec = run.origin == "specialist"
+    objective = run.objective if run.objective is not None else np.full(len(spec), -1)
+    for k, n in run.starting_counts().items():
+        sel = spec & (objective == k)
+        name = "specialist" if k < 0 else f"specialist {k}"
+        ax.scatter(pts[sel, 0], pts[sel, 1], marker="*", s=220 if n == 1 else 110,
+                   color=SPECIALIST_COLOURS[k % len(SPECIALIST_COLOURS)] if k >= 0 else "tab:red", edgecolors="black",
+                   lw=0.8, zorder=5, label=name if n == 1 else f"{name}: {n} starting policies")
 
-    Non-dominated members are ringed and joined by the front's boundary; each panel also shows
-    the other variants' fronts dashed for comparison. Only objectives 0 and 1 are drawn.
+
+def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
+    """Fronts of one seed, one panel per variant: starting policies vs children coloured by iteration.
+
+    Starting policies (every policy of each specialist's policy set; one per specialist for
+    TD3) are stars, one colour per specialist. Non-dominated children are ringed, and the
+    front's boundary joins the non-dominated members; each panel also shows the other
+    variants' fronts dashed for comparison. Only objectives 0 and 1 are drawn.
     """
     variants = [v for v in variants_in(list(runs.values()))]
     fig = _figure(width, width * 0.42 if len(variants) > 1 else width * 0.6)
@@ -79,7 +103,7 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
     mappable = None
     for ax, v in zip(axes, variants):
         run = runs[v]
-        pts, child, spec = run.returns[:, :2], run.origin == "child", run.origin == "specialist"
+        pts, child = run.returns[:, :2], run.origin == "child"
         for other in variants:
             if other != v:
                 _front_line(ax, runs[other].returns[runs[other].on_front, :2], color=COLOURS.get(other, "grey"),
@@ -92,8 +116,7 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
         if nd.any():
             ax.scatter(pts[nd, 0], pts[nd, 1], s=70, facecolors="none", edgecolors="black", lw=1.2,
                        label="non-dominated child")
-        ax.scatter(pts[spec, 0], pts[spec, 1], marker="*", s=220, color="tab:red", edgecolors="black", lw=0.8,
-                   zorder=5, label="specialists")
+        _starting_policies(ax, run, pts)
         ax.set_title(f"{label(v)} - {env_id}, seed {seed}")
         ax.set_xlabel(names[0])
         ax.grid(alpha=0.3)
@@ -214,15 +237,21 @@ def paper_table(runs: list[Run], env_id: str) -> str:
     return _md_table(header, [cells])
 
 
+def _count(runs: list[Run], origin: str) -> str:
+    return fmt_mean_sem([float((r.origin == origin).sum()) for r in runs])
+
+
 def details_table(runs: list[Run]) -> str:
-    """Per variant: HV ratio vs specialists, HV fraction, PGMORL sparsity, cardinality, extraction-time HV, budget."""
-    header = ["Variant", "seeds", "HV / HV(specialists)", "HV fraction of [ref, ideal] box", "sparsity (PGMORL)",
-              "cardinality", "extraction-time HV", "iterations", "env samples (extraction)"]
+    """Per variant: starting policies and children (members of each kind), HV ratio vs
+    specialists, HV fraction, PGMORL sparsity, cardinality, extraction-time HV, budget."""
+    header = ["Variant", "seeds", "starting policies", "children", "HV / HV(specialists)", "HV fraction of [ref, ideal] box",
+              "sparsity (PGMORL)", "cardinality", "extraction-time HV", "iterations", "env samples (extraction)"]
     rows = []
     for v in variants_in(runs):
         rs = [r for r in runs if r.variant == v]
         m = [r.metrics for r in rs]
-        rows.append([label(v), str(len(rs)), fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
+        rows.append([label(v), str(len(rs)), _count(rs, "specialist"), _count(rs, "child"),
+                     fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
                      fmt_mean_sem([x["front"]["hv_fraction"] for x in m]),
                      fmt_mean_sem([x["front"]["sparsity_pgmorl"] for x in m]),
                      fmt_mean_sem([x["front"]["cardinality"] for x in m]),
@@ -230,9 +259,10 @@ def details_table(runs: list[Run]) -> str:
                      fmt_mean_sem([x["iterations"] for x in m]),
                      fmt_mean_sem([x["env_samples_extraction"] for x in m])])
     sm = specialist_metrics(runs)
+    one_per_seed = list({r.seed: r for r in runs}.values())  # every variant of a seed starts from the same policies
     # the specialists' HV fraction depends on which variant's box it was measured in: not shown
-    rows.append([label("specialists"), str(len(sm)), "1", "", fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]),
-                 fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
+    rows.append([label("specialists"), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
+                 fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
     return _md_table(header, rows)
 
 
@@ -382,7 +412,8 @@ def report_markdown(
         f"Mean ± SEM across seeds{' (one seed: no SEM)' if len(seeds) < 2 else ''}. The layout of the paper's "
         "Table 1 (one row per environment, a column group per metric); the paper reports hypervolume and "
         "sparsity only, expected utility and distinct points are added here. 'specialists only' is the front "
-        "of the specialists alone.",
+        "of the specialists alone: every starting policy (all of each specialist's policy set, one policy for a "
+        "TD3 specialist), before any child. 'starting policies' and 'children' count the population's members.",
         "",
         paper_table(runs, env_id),
         details_table(runs),

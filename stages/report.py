@@ -38,9 +38,10 @@ def report(
     `score`) of the seeds params.yaml lists, and EVALUATED/VARIANT/seedS/evaluated.csv (from
     `evaluate`). Writes OUT/report.md with a verdict on MAPEX vs warm-up only (beyond the seed
     noise or tied; report.noise_sems, report.min_difference), a Table-1-shaped metrics table
-    (mean ± SEM across seeds), one front figure per seed (front_seedS.png), the hypervolume
-    history (hypervolume.png) and each run's provenance. The folder is built beside OUT and
-    renamed into place when complete.
+    (mean ± SEM across seeds) and a details table (with the counts of starting policies and of
+    children), one front figure per seed (front_seedS.png: starting policies apart from the
+    children), the hypervolume history (hypervolume.png) and each run's provenance. The folder
+    is built beside OUT and renamed into place when complete.
     """
     raw, env_p, cfg = read_params(params, "report", ReportParams)
     seeds = section(raw, "", RunParams, params).seeds
@@ -56,13 +57,15 @@ def report(
     for seed in sorted({r.seed for r in runs}):
         by_variant = {r.variant: r for r in runs if r.seed == seed}
         figures[f"front_seed{seed}"] = front_figure(by_variant, names, env_p.id, seed, cfg.figure_width)
-        captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member; "
+        captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member, starting policies "
+                                             f"as stars (one colour per specialist), children coloured by iteration; "
                                              f"{' vs '.join(label(v) for v in variants_in(list(by_variant.values())))} side by side.")
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
     captions["hypervolume.png"] = ("Hypervolume of the population after each iteration, vs iteration and vs cumulative "
                                    "extraction env samples: extraction-time returns (solid) and the same members "
                                    "re-evaluated (dashed).")
-    context = {"evaluation episodes per member": str(runs[0].metrics["episodes"])}
+    context = {"evaluation episodes per member": str(runs[0].metrics["episodes"]),
+               "starting policies per specialist": starting_policies_line(runs)}
     text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference, cfg.noise_sems)
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
@@ -73,6 +76,18 @@ def report(
             for fmt in cfg.formats:
                 fig.savefig(tmp / f"{name}.{fmt}", dpi=cfg.dpi)
         (tmp / "report.md").write_text(text)
+
+
+def starting_policies_line(runs: list[Run]) -> str:
+    """'specialist 0: 3, specialist 1: 3' (the policies of each specialist's policy set that
+    started the population), or each run's where they differ."""
+    def text(r: Run) -> str:
+        return ", ".join(f"specialist {k}: {n}" if k >= 0 else f"{n}" for k, n in r.starting_counts().items())
+
+    lines = {text(r) for r in runs}
+    if len(lines) == 1:
+        return lines.pop()
+    return "; ".join(f"{label(r.variant)} seed {r.seed}: {text(r)}" for r in sorted(runs, key=lambda r: (r.seed, r.variant)))
 
 
 def load_runs(scored: Path, evaluated: Path) -> list[Run]:
@@ -115,6 +130,7 @@ def load_run(score_dir: Path, eval_dir: Path, variant: str, seed: int) -> Run:
             returns=np.stack([np.asarray(members[f"obj{m}"], float) for m in range(n_obj)], axis=1),
             origin=np.asarray(members["origin"]), iteration=np.asarray(members["iteration"], int), on_front=on_front,
             history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS}, provenance=chain,
+            objective=np.array([int(x) if x != "" else -1 for x in members.get("objective", [""] * len(members["origin"]))]),
         )
     except (ValueError, IndexError) as exc:
         raise ArtifactError(f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
