@@ -65,7 +65,8 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
             iteration=0 if specialist else i - 1, parents=[] if specialist else [0, 1],
             target_weight=None if specialist else [0.6, 0.8],
             returns=[float(10 * i - 20), float(-100 * i)], returns_std=[1.0, 2.0], eval_episodes=5,
-            env_samples=250 * (i + 1), hidden_sizes=[16, 16], actor=actor_state(actor)))
+            env_samples=250 * (i + 1), hidden_sizes=[16, 16], actor=actor_state(actor),
+            policy_name="policy" if specialist else None))
     meta = dict(env_id=env_id, obs_dim=17, act_dim=6, n_objectives=2, action_low=low, action_high=high,
                 seed=seed, params={}, variant=variant, **({"provenance": PROVENANCE} if seed == 0 else {}))
     save_population(path, members, {k: v for k, v in meta.items() if k not in drop})
@@ -128,10 +129,11 @@ def runs(tmp_path_factory) -> Path:
 
 def test_evaluated_csv_rows_and_columns(runs):
     rows = read_csv(runs / "evaluate" / "mapex" / "seed0" / "evaluated.csv")
-    assert list(rows[0]) == ["id", "origin", "objective", "iteration", "parents", "env_samples", "obj0_extract",
-                             "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
+    assert list(rows[0]) == ["id", "origin", "objective", "policy_name", "iteration", "parents", "env_samples",
+                             "obj0_extract", "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
     assert [r["id"] for r in rows] == ["0", "1", "2", "3", "4"]
     assert [r["origin"] for r in rows] == ["specialist"] * 2 + ["child"] * 3
+    assert [r["policy_name"] for r in rows] == ["policy"] * 2 + [""] * 3
     members, _ = load_population(runs / "extract" / "mapex" / "seed0" / "population.pt")
     for r, m in zip(rows, members):  # extraction-time record carried over unchanged
         assert [float(r["obj0_extract"]), float(r["obj1_extract"])] == m.returns
