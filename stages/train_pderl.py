@@ -1,0 +1,218 @@
+"""Stage train_pderl: PDERL specialists of one seed, one PDERL run per objective (pipeline/pderl.py)."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any, Optional
+
+import torch
+import typer
+
+from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.buffer import save_buffer
+from pipeline.checkpoint import save_critics, save_policy
+from pipeline.codedeps import closure_files
+from pipeline.envs import EnvSpec, env_spec, make_env, objective_names
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.train_pderl import TrainPderlParams
+from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
+from pipeline.policyset import save_policy_set
+from pipeline.provenance import provenance
+from pipeline.resume import fingerprint
+from pipeline.seeding import select_device
+from stages.common import PARAMS_OPTION, progress, reports_errors
+
+CHECKPOINT = "pderl_state.pt"
+CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
+CHECKPOINT_VERSION = 1
+
+# train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; it runs
+# unstacked, eagerly, on train_pderl.device): left out of the resume fingerprint.
+_UNUSED_TD3_KEYS = {"total_steps", "batched", "cuda_graphs", "device"}
+
+
+@reports_errors
+def train_pderl(
+    seed: int = typer.Option(0, help="run seed; with the params it fixes every random draw"),
+    out: Path = typer.Option(..., help="output directory of the seed: one obj{K}/ folder per specialist"),
+    objective: Optional[list[int]] = typer.Option(
+        None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
+    ),
+    params: Path = PARAMS_OPTION,
+) -> None:
+    """Train the PDERL specialists of one seed: one PDERL run per objective.
+
+    Params: sections `env`, `objectives`, `train_pderl` (population, evolution, budget) and
+    `train_specialist` (the RL agent: TD3 with secondary critics; its total_steps is unused).
+    Each generation evaluates the population (fitness: return of the specialist's objective),
+    evolves it (elites, tournament selection, distillation crossover, proximal mutation), runs
+    one noisy RL episode, makes one TD3 update per frame collected and copies the RL actor
+    over the worst individual. Every frame lands in the RL agent's replay buffer. When
+    train_pderl.total_frames are spent, every actor is evaluated once more.
+
+    Writes OUT/obj{K}/ for each objective K: policies.pt (policy set: the RL actor "rl" and
+    the population "pop0".., with their final fitness), policy.pt (the RL actor and its
+    target actor), critics.pt (the RL agent's critics, online and target), buffer.zarr (its
+    replay buffer, full reward vectors) and fitness.csv (per generation: frames, updates,
+    best and mean population fitness, the RL episode's return; last row "final": the final
+    evaluation). Progress is checkpointed to OUT/obj{K}/pderl_state.pt every
+    train_pderl.checkpoint_every generations; a rerun with the same params, code, device and
+    thread count resumes from it and ends with the same artifacts. It is deleted once the
+    artifacts are written.
+    """
+    raw = load_params(params)
+    env_p = section(raw, "env", EnvParams, params)
+    td3 = section(raw, "train_specialist", TrainSpecialistParams, params)
+    cfg = section(raw, "train_pderl", TrainPderlParams, params)
+    objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
+    if td3.learning_starts >= cfg.total_frames:
+        raise ParamsError(
+            f"{params}: train_specialist.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
+            f"({cfg.total_frames}), or the RL agent is never trained"
+        )
+    probe = make_env(env_p.id, env_p.max_episode_steps)
+    spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
+    probe.close()
+    bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
+    if bad:
+        where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"
+        raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
+    names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
+    device = select_device(cfg.device)
+    for k in objectives:
+        train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device)
+
+
+def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams, device) -> str:
+    """Everything a PDERL run's results depend on: params it reads, seed, objective, device,
+    thread count and every code file the stage runs (as in pipeline/resume.py)."""
+    config = {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
+        "train_pderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+        "seed": seed,
+        "objective": objective,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+    }
+    return fingerprint(config, closure_files("stages.train_pderl"))
+
+
+def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
+    """The run state saved at `path` under fingerprint `fp`, else None (missing, unreadable or
+    stale checkpoints are never trusted)."""
+    if not path.exists():
+        return None
+    try:
+        obj = torch_load_checked(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
+    except ArtifactError as exc:
+        typer.echo(f"{path}: ignored, starting over ({exc})", err=True)
+        return None
+    if obj.get("fingerprint") != fp:
+        typer.echo(f"{path}: params, code, device or threads changed since it was written; starting over", err=True)
+        return None
+    return obj.get("state")
+
+
+def save_checkpoint(path: Path, fp: str, run: PderlRun) -> None:
+    obj = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": fp, "state": run.state_dict()}
+    with atomic_path(path) as tmp:  # streamed to disk: no second in-memory copy of the buffer
+        torch.save(obj, tmp)
+
+
+def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
+              cfg: TrainPderlParams, device: torch.device) -> None:
+    """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts."""
+    fp = run_fingerprint(seed, k, env_p, td3, cfg, device)
+    ckpt = out / CHECKPOINT
+    state = load_checkpoint(ckpt, fp)
+    run = PderlRun(spec, td3, cfg, k, seed, device)
+    if state is not None:
+        try:
+            run.load_state_dict(state)
+            typer.echo(f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt}", err=True)
+        except ValueError as exc:  # right fingerprint, yet it does not fit: never trust it
+            typer.echo(f"{ckpt}: cannot be resumed ({exc}); starting over", err=True)
+            run = PderlRun(spec, td3, cfg, k, seed, device)
+    del state
+    env = make_env(env_p.id, env_p.max_episode_steps)
+    bar = progress(cfg.total_frames, f"PDERL seed {seed}: obj {k} ({name})", unit="frame")
+    bar.update(run.frames)
+
+    def on_episode(ep: EpisodeResult) -> None:
+        bar.update(ep.length)
+
+    def on_generation(run: PderlRun, rec: GenerationRecord) -> None:
+        bar.set_postfix_str(f"gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}", refresh=False)
+        if rec.generation % cfg.checkpoint_every == 0:
+            save_checkpoint(ckpt, fp, run)
+
+    try:
+        with bar:
+            result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
+            bar.total = result.frames
+            bar.set_postfix_str(f"final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
+    finally:
+        env.close()
+    save_pderl(out, result, spec, env_p, td3, cfg, device)
+    ckpt.unlink(missing_ok=True)
+
+
+def save_pderl(out: Path, result: PderlResult, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
+               cfg: TrainPderlParams, device) -> None:
+    """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
+    those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
+    k = result.objective
+    meta = {
+        "env_id": spec.env_id,
+        "obs_dim": spec.obs_dim,
+        "act_dim": spec.act_dim,
+        "n_objectives": spec.n_objectives,
+        "max_episode_steps": spec.max_episode_steps,
+        "action_low": list(spec.action_low),
+        "action_high": list(spec.action_high),
+        "hidden_sizes": list(td3.hidden_sizes),
+        "seed": result.seed,
+        "params": {"env": env_p.model_dump(), "train_specialist": td3.model_dump(), "train_pderl": cfg.model_dump()},
+        "trainer": "pderl",
+        "env_frames": result.frames,
+        "provenance": provenance(device),
+    }
+    save_buffer(
+        out / "buffer.zarr",
+        result.buffer,
+        {key: meta[key] for key in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
+        | {"objective": k},
+    )
+    save_policy_set(
+        out / "policies.pt",
+        [result.actor, *result.actors],
+        ["rl", *(f"pop{i}" for i in range(len(result.actors)))],
+        [result.rl_fitness, *result.fitness],
+        meta | {"objective": k},
+    )
+    save_policy(out / "policy.pt", result.actor, meta | {"objective": k}, result.actor_target)
+    save_critics(
+        out / "critics.pt",
+        result.critic,
+        result.critic_target,
+        meta | {"buffer_objective": k, "objectives": result.objectives, "source": "joint"},
+    )
+    write_text_atomic(out / "fitness.csv", fitness_csv(result))
+
+
+def fitness_csv(result: PderlResult) -> str:
+    """Per generation: generation, frames, updates, best, mean (population fitness on the run's
+    objective), rl_fitness (the noisy RL episode's return); last row 'final': the final
+    deterministic evaluation of the population and the RL actor."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["generation", "frames", "updates", "best", "mean", "rl_fitness"])
+    for r in result.history:
+        w.writerow([r.generation, r.frames, r.updates, f"{r.best:.6g}", f"{r.mean:.6g}", f"{r.rl_fitness:.6g}"])
+    fit = result.fitness
+    w.writerow(["final", result.frames, result.updates, f"{max(fit):.6g}", f"{sum(fit) / len(fit):.6g}", f"{result.rl_fitness:.6g}"])
+    return buf.getvalue()
