@@ -408,9 +408,8 @@ class PderlRun:
         # without disturbing the caller's global torch RNG.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seeds["torch_init"])
-            self.td3: TD3State = init_td3(spec, td3_cfg, objective, torch.device("cpu"))
+            self.td3: TD3State = init_td3(spec, td3_cfg, objective, self.device)  # built on the CPU, then moved
             actors = [self._new_actor() for _ in range(cfg.population_size)]
-        self._to_device(self.td3)
         self.population = [Individual(a.to(self.device), StateRing(cfg.mini_buffer_size, spec.obs_dim)) for a in actors]
         self.buffer = ReplayBuffer(td3_cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives)
         self.evo_rng = np.random.default_rng(self.seeds["evolution"])
@@ -427,12 +426,6 @@ class PderlRun:
     def _new_actor(self) -> Actor:
         s = self.spec
         return Actor(s.obs_dim, s.act_dim, self.td3_cfg.hidden_sizes, s.action_low, s.action_high)
-
-    def _to_device(self, st: TD3State) -> None:
-        # init_td3 built the optimizers on CPU parameters; moving modules in place keeps the
-        # parameter objects, and the optimizers hold no state yet, so they follow them.
-        for m in (st.actor, st.actor_target, st.critic, st.critic_target):
-            m.to(self.device)
 
     # -- acting ---------------------------------------------------------------------------
 

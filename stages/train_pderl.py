@@ -49,9 +49,11 @@ def train_pderl(
     `train_specialist` (the RL agent: TD3 with secondary critics; its total_steps is unused).
     Each generation evaluates the population (fitness: return of the specialist's objective),
     evolves it (elites, tournament selection, distillation crossover, proximal mutation), runs
-    one noisy RL episode, makes one TD3 update per frame collected and copies the RL actor
-    over the worst individual. Every frame lands in the RL agent's replay buffer. When
-    train_pderl.total_frames are spent, every actor is evaluated once more.
+    one noisy RL episode and makes one TD3 update per frame collected (once
+    train_specialist.learning_starts frames are in); every train_pderl.rl_sync_period
+    generations the RL actor replaces the worst individual. Every frame lands in the RL
+    agent's replay buffer. Once train_pderl.total_frames are spent (the last generation runs
+    to its end), every actor is evaluated once more; those frames count too.
 
     Writes OUT/obj{K}/ for each objective K: policies.pt (policy set: the RL actor "rl" and
     the population "pop0".., with their final fitness), policy.pt (the RL actor and its
