@@ -11,6 +11,7 @@ from stages.extract import extract
 from stages.critic_fidelity import critic_fidelity
 from stages.fit_critics import fit_critics
 from stages.train_specialist import train_specialist
+from stages.train_pderl import train_pderl
 from stages.evaluate import evaluate
 from stages.score import score
 from stages.report import report
@@ -37,6 +38,7 @@ def main() -> None:
     # CPU results bitwise reproducible across machines with different core counts.
     torch.set_num_threads(int(os.environ.get("MAPEX_TORCH_THREADS", "1")))
 app.command("train-specialist")(train_specialist)
+app.command("train-pderl")(train_pderl)
 app.command("fit-critics")(fit_critics)
 app.command("critic-fidelity")(critic_fidelity)
 app.command("extract")(extract)

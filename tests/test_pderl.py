@@ -271,8 +271,7 @@ def test_checkpoint_resume_is_bitwise(hopper):
 @pytest.fixture
 def stage(monkeypatch, write_params):
     """Invoke the stage in this process on the tiny preset: stage(directory, overrides) -> Result."""
-    if "train_pderl" not in pipeline.params.KNOWN_SECTIONS:  # until the section is registered
-        monkeypatch.setattr(pipeline.params, "KNOWN_SECTIONS", (*pipeline.params.KNOWN_SECTIONS, "train_pderl"))
+    assert "train_pderl" in pipeline.params.KNOWN_SECTIONS
     app = typer.Typer()
     app.command()(train_pderl_stage)
 

@@ -14,11 +14,13 @@ from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.params.report import ReportParams
 from pipeline.params.score import ScoreParams
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.train_pderl import TrainPderlParams
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
 MODELS = {
     "train_specialist": TrainSpecialistParams,
+    "train_pderl": TrainPderlParams,
     "fit_critics": FitCriticsParams,
     "critic_fidelity": CriticFidelityParams,
     "extract": ExtractParams,

@@ -17,13 +17,15 @@ from pipeline.params.common import EnvParams, RunParams
 
 __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "KNOWN_SECTIONS"]
 
-# Top-level keys params.yaml may hold. Shared: env, seeds, objectives. The others are the
+# Top-level keys params.yaml may hold. Shared: env, seeds, objectives, pderl_seeds. The others are the
 # stage sections, each named like its stage (dvc.yaml stage = stages/<name>.py = section).
 KNOWN_SECTIONS = (
     "env",
     "seeds",
     "objectives",
+    "pderl_seeds",
     "train_specialist",
+    "train_pderl",
     "fit_critics",
     "critic_fidelity",
     "extract",
@@ -74,7 +76,7 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     """
     data = raw.get(name, {})
     if model is RunParams:
-        data = {k: raw[k] for k in ("seeds", "objectives") if k in raw}
+        data = {k: raw[k] for k in ("seeds", "objectives", "pderl_seeds") if k in raw}
         name = ""
     if data is None:
         data = {}

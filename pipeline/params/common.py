@@ -23,12 +23,15 @@ class EnvParams(Strict):
 
 
 class RunParams(Strict):
-    """Top-level `seeds` and `objectives`: the lists dvc.yaml fans stages out over."""
+    """Top-level `seeds`, `objectives` and `pderl_seeds`: the lists dvc.yaml fans stages out over."""
 
     seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run")
     objectives: list[int] = Field([0, 1], min_length=1, description="objective indices, one specialist each")
+    pderl_seeds: list[int] = Field(
+        [], description="seeds that also train PDERL specialists (stage train_pderl; empty: none, as in the quickstart)"
+    )
 
-    @field_validator("seeds", "objectives")
+    @field_validator("seeds", "objectives", "pderl_seeds")
     @classmethod
     def _unique_non_negative(cls, v: list[int]) -> list[int]:
         if len(set(v)) != len(v):
