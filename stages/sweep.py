@@ -1,0 +1,70 @@
+"""`mapex sweep`: run a grid of pipeline runs on Ray, a shared DVC remote holding the artifacts.
+
+Not a DVC stage: it drives DVC. The library is pipeline/sweep.py; the guide is docs/sweeps.md.
+Ray is an optional extra (pip install -e ".[sweep]") imported only when a sweep runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from pipeline.sweep import SweepError, run_sweep
+from stages.common import reports_errors
+
+
+@reports_errors
+def sweep(
+    grid: Path = typer.Argument(
+        ..., help="grid file (YAML): envs (ids, preset files or mappings), seeds, named param override sets, "
+        "per-stage resources; see docs/sweeps.md"
+    ),
+    remote: str = typer.Option(
+        ..., "--remote", help="shared DVC remote every worker can reach: a directory (created if missing) or a URL "
+        "such as s3://bucket/path; holds every output and the run-cache"
+    ),
+    address: Optional[str] = typer.Option(
+        None, "--address", help="Ray cluster to run on ('auto', or host:6379 of a `ray start --head`); "
+        "default: start a local one on this machine"
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", min=1, help="CPUs of the local Ray cluster (default: every core); ignored with --address"
+    ),
+    workdir: Optional[Path] = typer.Option(
+        None, "--workdir", help="where the driver keeps one DVC workspace per grid cell, with its dvc.lock and "
+        "outputs (default: sweeps/<grid file name> in the repository)"
+    ),
+    repo: Path = typer.Option(Path("."), "--repo", help="the project checkout; workers run its HEAD commit, so commit first"),
+    git_url: Optional[str] = typer.Option(
+        None, "--git-url", help="where workers clone that commit from (default: --repo's path, fine on one machine or a "
+        "shared filesystem; else a git URL every node can reach)"
+    ),
+    scratch: Optional[str] = typer.Option(
+        None, "--scratch", help="directory on each worker for its temporary clones (default: <tmp>/mapex-sweep)"
+    ),
+    max_retries: int = typer.Option(
+        3, "--max-retries", min=0, help="retries of a task whose worker or node died; a stage that exits with an error "
+        "is not retried"
+    ),
+    dry_run: bool = typer.Option(False, "--dry-run", help="prepare the workspaces, print every cell's stage items and stop"),
+) -> None:
+    """Run a grid (envs x override sets, each with its seeds and dvc.yaml's variants) on Ray.
+
+    One workspace per grid cell (a clone of HEAD with the cell's params.yaml) and one Ray task
+    per DVC stage item, ordered by DVC's DAG. Each task runs `dvc repro --single-item --pull`
+    in its own clone and pushes outputs and run-cache to --remote; the driver then writes each
+    cell's dvc.lock once, restoring every stage from the run-cache. Run it again to resume:
+    completed stages are restored, not recomputed, and a completed cell runs nothing.
+    """
+    try:
+        results = run_sweep(
+            grid, remote, repo=repo, workdir=workdir, address=address, workers=workers, max_retries=max_retries,
+            git_url=git_url, scratch=scratch, dry_run=dry_run, log=typer.echo,
+        )
+    except SweepError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=exc.exit_code) from None
+    for r in results:
+        typer.echo(f"{r.name}: {r.status} ({len(r.executed)} ran, {len(r.restored)} restored) {r.workspace}")

@@ -1,0 +1,316 @@
+"""`mapex sweep` (pipeline/sweep.py) on a local two-node Ray cluster and a local-directory DVC
+remote, with the real dvc.yaml on a tiny preset in a temporary git + DVC copy of the project.
+
+Checks: grid files are validated with errors naming file and key; the DAG and each cell's
+workspace come from DVC; a sweep whose worker dies mid-task (after its stage ran, before it
+published anything) still completes, and each cell's dvc.lock is byte-identical to a serial
+`dvc repro` of that cell; a second sweep runs nothing; a cell sharing a run with another grid
+restores it from the remote's run-cache instead of computing it.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import typer
+import yaml
+from typer.testing import CliRunner
+
+from pipeline import sweep as sw
+from stages.sweep import sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+TINY = {
+    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0], "objective_names": None},
+    "seeds": [0],
+    "objectives": [0, 1],
+    "pderl_seeds": [],
+    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "critic_fidelity": {"episodes": 2},
+    "extract": {
+        "iterations": 2, "child_buffer_size": 200, "eval_episodes": 2, "warmup_steps": 10, "warmup_batch_size": 32,
+        "epochs": 1, "beta": 1.0, "omega_max": 1.0, "batch_size": 32, "hidden_sizes": [16, 16],
+    },
+    "evaluate": {"episodes": 2},
+    "score": {"distinct_tol": 0.02},
+    "report": {"dpi": 60},
+}
+# The sweep the Ray tests run: both envs up to extract@0-mapex (4 stage items each).
+GRID = {
+    "envs": [{"name": "halfcheetah", "id": "mo-halfcheetah-v5"}, "mo-hopper-2obj-v5"],
+    "seeds": [0],
+    "targets": ["extract@0-mapex"],
+}
+DIES = "halfcheetah/extract@0-mapex"  # this task's worker dies once, after its stage ran
+
+
+def git(cwd: Path, *args: str) -> str:
+    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
+
+
+def write_grid(path: Path, grid: dict) -> Path:
+    path.write_text(yaml.safe_dump(grid, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory) -> Path:
+    """A git + DVC repository holding the project's code, dvc.yaml and the tiny params."""
+    root = tmp_path_factory.mktemp("source")
+    for name in ("pipeline", "stages"):
+        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
+    (root / "presets").mkdir()
+    shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
+    (root / "params.yaml").write_text(yaml.safe_dump(TINY, sort_keys=False))
+    (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n/sweeps/\n")
+    git(root, "init", "-q")
+    git(root, "config", "user.email", "test@example.com")
+    git(root, "config", "user.name", "test")
+    subprocess.run([str(BIN / "dvc"), "init", "-q"], cwd=root, check=True)
+    git(root, "add", "-A")
+    git(root, "commit", "-qm", "tiny pipeline")
+    return root
+
+
+def cli_app() -> typer.Typer:
+    app = typer.Typer(add_completion=False)
+
+    @app.callback()
+    def main() -> None:  # a group, so the command is invoked by name as under `mapex`
+        pass
+
+    app.command("sweep")(sweep)
+    return app
+
+
+def run_cli(*args) -> "typer.testing.Result":
+    return CliRunner().invoke(cli_app(), ["sweep", *map(str, args)])
+
+
+# ------------------------------------------------------------------------------------------
+# Without Ray: grid validation, cells, workspaces and the DAG
+
+
+def test_grid_errors_name_file_and_key(tmp_path, source):
+    commit = git(source, "rev-parse", "HEAD")
+
+    def plan(grid: dict):
+        path = write_grid(tmp_path / "grid.yaml", grid)
+        return sw.plan_cells(sw.load_grid(path), path, source, commit)
+
+    with pytest.raises(sw.GridError, match=r"grid.yaml: invalid grid:\n[\s\S]*  env: unknown key"):
+        plan({"env": ["mo-hopper-2obj-v5"]})
+    with pytest.raises(sw.GridError, match=r"envs: required key is missing"):
+        plan({"seeds": [0]})
+    with pytest.raises(sw.GridError, match=r"seeds = \[0, 0\]"):
+        plan({"envs": ["mo-hopper-2obj-v5"], "seeds": [0, 0]})
+    with pytest.raises(sw.GridError, match=r"envs.0.params = 3: Input should be a valid dictionary"):
+        plan({"envs": [{"id": "mo-hopper-2obj-v5", "params": 3}]})
+    with pytest.raises(sw.GridError, match=r"resources.extract.gpus"):
+        plan({"envs": ["mo-hopper-2obj-v5"], "resources": {"extract": {"gpus": -1}}})
+    with pytest.raises(sw.GridError, match=r"envs.0.preset: presets/paper/nope.yaml is not in commit"):
+        plan({"envs": ["presets/paper/nope.yaml"]})
+    # a params value the stages would reject is caught before anything runs, naming cell and key
+    with pytest.raises(sw.GridError, match=r"cell mo-hopper-2obj-v5.bad: invalid params:\n  extract.iterations = -1"):
+        plan({"envs": ["mo-hopper-2obj-v5"], "overrides": {"ok": {}, "bad": {"extract": {"iterations": -1}}}})
+    with pytest.raises(sw.GridError, match=r"cells \['mo-hopper-2obj-v5'\] appear more than once"):
+        plan({"envs": ["mo-hopper-2obj-v5", {"id": "mo-hopper-2obj-v5", "params": {"seeds": [1]}}]})
+    with pytest.raises(sw.GridError, match="grid file not found"):
+        sw.load_grid(tmp_path / "missing.yaml")
+    # through the command: one line on stderr, exit 2
+    path = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "sedes": [0]})
+    result = run_cli(path, "--remote", tmp_path / "remote", "--repo", source, "--dry-run")
+    assert result.exit_code == 2
+    assert "sedes: unknown key" in result.output
+
+
+def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
+    commit = git(source, "rev-parse", "HEAD")
+    grid = {
+        "envs": [{"name": "cheetah", "id": "mo-halfcheetah-v5", "params": {"extract": {"iterations": 3}}}, "mo-hopper-2obj-v5"],
+        "seeds": [1, 2],
+        "overrides": {"joint": {}, "posthoc": {"extract": {"critics": "posthoc"}}},
+    }
+    path = write_grid(tmp_path / "grid.yaml", grid)
+    cells = {c.name: c.params for c in sw.plan_cells(sw.load_grid(path), path, source, commit)}
+    assert list(cells) == ["cheetah.joint", "cheetah.posthoc", "mo-hopper-2obj-v5.joint", "mo-hopper-2obj-v5.posthoc"]
+    assert cells["cheetah.joint"]["extract"]["iterations"] == 3
+    assert cells["cheetah.joint"]["extract"]["beta"] == TINY["extract"]["beta"]  # the rest of the base stays
+    assert cells["cheetah.posthoc"]["extract"]["critics"] == "posthoc"
+    assert cells["mo-hopper-2obj-v5.joint"]["env"]["reference_point"] == [-100.0, -3390.0]  # presets/reference_points.yaml
+    assert cells["mo-hopper-2obj-v5.joint"]["extract"]["iterations"] == TINY["extract"]["iterations"]
+    assert all(c["seeds"] == [1, 2] for c in cells.values())
+
+
+def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source):
+    grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]})
+    result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run")
+    assert result.exit_code == 0, result.output
+    assert "mo-hopper-2obj-v5: planned" in result.output
+    ws = tmp_path / "work" / "mo-hopper-2obj-v5"
+    # the workspace is a clean checkout of the cell commit: HEAD's code, the cell's params.yaml, no dvc.lock
+    head = git(source, "rev-parse", "HEAD")
+    assert git(ws, "rev-parse", "HEAD^") == head
+    assert git(ws, "diff", "--name-status", head, "HEAD").splitlines() == ["M\tparams.yaml"]
+    assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
+    assert yaml.safe_load((ws / "params.yaml").read_text())["env"]["id"] == "mo-hopper-2obj-v5"
+    # the same params give the same commit anywhere (the workers rebuild and check it)
+    clone = tmp_path / "clone"
+    git(tmp_path, "clone", "-q", str(source), str(clone))
+    assert sw.cell_commit(clone, head, (ws / "params.yaml").read_text(), sw.cell_message(head)) == git(ws, "rev-parse", "HEAD")
+
+    items = {i.name: i for i in sw.stage_items(ws)}
+    listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
+    assert set(items) == set(listed.stdout.split())
+    assert items["fit_critics@0-1"].upstream == ("train_specialist@0",)
+    assert items["fit_critics@0-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
+    assert items["report"].upstream == ("evaluate@0-mapex", "evaluate@0-warmup_only", "score@0-mapex", "score@0-warmup_only")
+    assert "data/evaluate/mapex/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
+    assert "data/score/warmup_only/seed0/metrics.json" in items["report"].pull
+    order = list(items)
+    assert all(order.index(u) < order.index(n) for n, i in items.items() for u in i.upstream)
+    sub = [i.name for i in sw.stage_items(ws, ["extract@0-mapex"])]
+    assert sorted(sub) == ["extract@0-mapex", "fit_critics@0-0", "fit_critics@0-1", "train_specialist@0"]
+    with pytest.raises(ValueError, match="target 'nope' is no stage"):
+        sw.stage_items(ws, ["nope"])
+
+
+def test_core_install_does_not_need_ray():
+    code = (
+        "import sys, builtins\n"
+        "real = builtins.__import__\n"
+        "def block(name, *a, **k):\n"
+        "    if name == 'ray' or name.startswith('ray.'):\n"
+        "        raise ImportError('no ray')\n"
+        "    return real(name, *a, **k)\n"
+        "builtins.__import__ = block\n"
+        "import pipeline.sweep, stages.sweep\n"
+        "try:\n"
+        "    pipeline.sweep._import_ray()\n"
+        "except pipeline.sweep.SweepError as e:\n"
+        "    print(e)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert 'pip install -e ".[sweep]"' in r.stdout
+
+
+# ------------------------------------------------------------------------------------------
+# On a two-node Ray cluster
+
+try:
+    import ray
+except ImportError:  # the optional extra; `make test` installs it
+    ray = None
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """Two Ray nodes of one CPU each; the DIES task's worker exits on its first attempt."""
+    if ray is None:
+        pytest.skip('Ray is the optional extra: pip install -e ".[sweep]" (make test installs it)')
+    from ray.cluster_utils import Cluster
+
+    marker = tmp_path_factory.mktemp("fault") / "died"
+    os.environ[sw.DIE_ONCE_ENV] = f"{DIES}={marker}"  # inherited by the nodes' workers
+    try:
+        c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+        c.add_node(num_cpus=1)
+        c.wait_for_nodes()
+        ray.init(address=c.address, log_to_driver=False)
+    finally:
+        del os.environ[sw.DIE_ONCE_ENV]
+    yield marker
+    ray.shutdown()
+    c.shutdown()
+
+
+@pytest.fixture(scope="module")
+def swept(cluster, source, tmp_path_factory):
+    """The first sweep of GRID, through the command."""
+    base = tmp_path_factory.mktemp("sweep")
+    grid = write_grid(base / "grid.yaml", GRID)
+    result = run_cli(
+        grid, "--remote", base / "remote", "--repo", source, "--workdir", base / "work", "--max-retries", 2,
+        "--scratch", base / "scratch",
+    )
+    return base, result
+
+
+def serial_lock(ws: Path, tmp: Path, targets: list[str]) -> bytes:
+    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the workspace's cell commit.
+
+    With targets, DVC's stage order in dvc.lock follows Python's string hashes (see
+    pipeline.sweep.write_lock), so that run fixes PYTHONHASHSEED as the driver does."""
+    clone = tmp / f"serial-{ws.name}"
+    git(tmp, "clone", "-q", "--no-checkout", str(ws), str(clone))
+    git(clone, "checkout", "-q", "--detach", git(ws, "rev-parse", "HEAD"))
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(clone), "MAPEX_TORCH_THREADS": "1"}
+    if targets:
+        env["PYTHONHASHSEED"] = "0"
+    r = subprocess.run([str(BIN / "dvc"), "repro", *targets], cwd=clone, env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    return (clone / "dvc.lock").read_bytes()
+
+
+def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster, tmp_path):
+    base, result = swept
+    assert result.exit_code == 0, result.output
+    assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
+    out = result.output
+    assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
+    assert re.search(r"halfcheetah extract@0-mapex: ran", out)
+    for cell in ("halfcheetah", "mo-hopper-2obj-v5"):
+        assert f"{cell}: done (4 ran, 0 restored)" in out
+        ws = base / "work" / cell
+        assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
+        assert (ws / "data" / "extract" / "mapex" / "seed0" / "population.pt").is_file()
+    # the cell whose worker died: the lock equals a serial run's, byte for byte
+    ws = base / "work" / "halfcheetah"
+    assert serial_lock(ws, tmp_path, GRID["targets"]) == (ws / "dvc.lock").read_bytes()
+    # every clone is gone, the dead worker's too (its retry removed it)
+    assert [p for p in (base / "scratch").rglob("*") if p.is_dir() and p.parent != base / "scratch"] == []
+
+
+def test_a_second_sweep_runs_nothing(swept, source):
+    base, _ = swept
+    locks = {ws.name: (ws / "dvc.lock").read_bytes() for ws in (base / "work").iterdir()}
+    result = run_cli(base / "grid.yaml", "--remote", base / "remote", "--repo", source, "--workdir", base / "work")
+    assert result.exit_code == 0, result.output
+    assert "halfcheetah: up to date" in result.output and "mo-hopper-2obj-v5: up to date" in result.output
+    assert "nothing to run" in result.output and "ran (" not in result.output
+    assert {ws.name: (ws / "dvc.lock").read_bytes() for ws in (base / "work").iterdir()} == locks
+
+
+def test_another_grid_restores_shared_runs_and_completes_the_pipeline(swept, source, tmp_path):
+    """Same params and code, another grid and cell name: the cell commit is the same, so the four
+    items the first sweep ran are restored from the run-cache (in tasks), the rest of the
+    pipeline (report's folder deps included) runs, and the driver's lock lists all 14."""
+    base, _ = swept
+    grid = write_grid(tmp_path / "full.yaml", {"envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}], "seeds": [0]})
+    result = run_cli(grid, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
+    assert result.exit_code == 0, result.output
+    assert "hopper: done (10 ran, 4 restored)" in result.output
+    for item in GRID_ITEMS:
+        assert f"hopper {item}: restored from the run-cache" in result.output
+    full = yaml.safe_load((tmp_path / "work" / "hopper" / "dvc.lock").read_text())["stages"]
+    first = yaml.safe_load((base / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
+    assert len(full) == 14 and "report" in full
+    assert {k: full[k] for k in first} == first
+    assert (tmp_path / "work" / "hopper" / "data" / "report" / "report.md").is_file()
+    # the whole pipeline's lock is what a plain serial `dvc repro` of the cell writes
+    ws = tmp_path / "work" / "hopper"
+    assert serial_lock(ws, tmp_path, []) == (ws / "dvc.lock").read_bytes()
+
+
+GRID_ITEMS = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
