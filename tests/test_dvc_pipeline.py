@@ -25,6 +25,7 @@ TINY = {
     "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0], "objective_names": None},
     "seeds": [0],
     "objectives": [0, 1],
+    "pderl_seeds": [],
     "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
     "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
     "critic_fidelity": {"episodes": 2},
