@@ -413,7 +413,12 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
                 for s in hits:
                     keep |= {s} | nx.descendants(graph, s)
             graph = graph.subgraph(keep)
-        for stage in nx.lexicographical_topological_sort(graph.reverse(copy=False), key=lambda s: s.name):
+        # Ray starts ready tasks roughly in submission order: the longest chain of dependents first
+        # (the critical path: training before the fidelity checks that nothing waits for).
+        height: dict[Any, int] = {}
+        for stage in nx.topological_sort(graph):  # dependents before their upstream
+            height[stage] = 1 + max((height[d] for d in graph.predecessors(stage)), default=0)
+        for stage in nx.lexicographical_topological_sort(graph.reverse(copy=False), key=lambda s: (-height[s], s.name)):
             ups = sorted(graph.successors(stage), key=lambda s: s.name)
             # `dvc repro --pull` pulls a missing dep that is an upstream output (or inside one)
             # itself; a dep that is a folder holding outputs (report's data/evaluate) it cannot,
@@ -456,6 +461,7 @@ class StageResult:
     executed: bool  # the stage's command ran (False: restored from the run-cache)
     seconds: float
     host: str
+    phases: dict[str, float] = field(default_factory=dict)  # seconds: clone, pull, repro, push
 
 
 def _safe(item: str) -> str:
@@ -531,6 +537,7 @@ def stage_env(clone: Path, threads: int, gpus: float) -> dict[str, str]:
 def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
     """Run one stage item in a fresh clone: the Ray task body. Upstream results are its args."""
     start = time.monotonic()
+    phases: dict[str, float] = {}
     host = socket.gethostname()
     root = Path(task.scratch or Path(tempfile.gettempdir()) / "mapex-sweep") / task.cell
     root.mkdir(parents=True, exist_ok=True)
@@ -550,15 +557,20 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
                 f"(different git version or source {task.source} not at {task.commit[:12]}?)",
             )
         _checkout(clone, made)
+        phases["clone"] = time.monotonic() - start
         configure_remote(clone, task.remote)
         if upstream:
             lock = {"schema": "2.0", "stages": {u.item: u.lock for u in upstream}}
             (clone / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
         env = stage_env(clone, task.threads, task.gpus)
         try:
+            t = time.monotonic()
             if task.pull:
                 _run_dvc(clone, env, "pull", "--quiet", *task.pull)
+                phases["pull"] = time.monotonic() - t
+            t = time.monotonic()
             out = _run_dvc(clone, env, "repro", "--single-item", "--pull", task.item)
+            phases["repro"] = time.monotonic() - t
         except RuntimeError as exc:
             raise StageFailed(task.cell, task.item, str(exc)) from None
         executed = f"Running stage '{task.item}'" in out
@@ -569,10 +581,12 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
         if _keep_own_run(clone, entry) == 0:
             raise StageFailed(task.cell, task.item, "no run-cache entry matches its dvc.lock entry (is every out cached?)")
         try:
+            t = time.monotonic()
             _run_dvc(clone, env, "push", "--quiet", "--run-cache", task.item)
+            phases["push"] = time.monotonic() - t
         except RuntimeError as exc:
             raise StageFailed(task.cell, task.item, str(exc)) from None
-        return StageResult(task.cell, task.item, entry, executed, time.monotonic() - start, host)
+        return StageResult(task.cell, task.item, entry, executed, time.monotonic() - start, host, phases)
     finally:
         shutil.rmtree(clone, ignore_errors=True)
 
@@ -810,7 +824,8 @@ def run_sweep(
                     continue
                 (res.executed if r.executed else res.restored).append(it.name)
                 how = "ran" if r.executed else "restored from the run-cache"
-                log(f"[{done}/{total}] {cell_name} {it.name}: {how} ({r.seconds:.1f} s on {r.host}; {time.monotonic() - t0:.0f} s elapsed)")
+                split = ", ".join(f"{k} {v:.1f}" for k, v in r.phases.items())
+                log(f"[{done}/{total}] {cell_name} {it.name}: {how} in {r.seconds:.1f} s on {r.host} ({split}); {time.monotonic() - t0:.0f} s elapsed")
     finally:
         if started:
             ray.shutdown()

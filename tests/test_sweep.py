@@ -3,9 +3,9 @@ remote, with the real dvc.yaml on a tiny preset in a temporary git + DVC copy of
 
 Checks: grid files are validated with errors naming file and key; the DAG and each cell's
 workspace come from DVC; a sweep whose worker dies mid-task (after its stage ran, before it
-published anything) still completes, and each cell's dvc.lock is byte-identical to a serial
-`dvc repro` of that cell; a second sweep runs nothing; a cell sharing a run with another grid
-restores it from the remote's run-cache instead of computing it.
+published anything) still completes, and the cell's dvc.lock is byte-identical to a serial
+`dvc repro` of that cell; a second sweep runs nothing; a grid of two envs whose one cell shares
+its runs with the first sweep restores them from the remote's run-cache instead of computing.
 """
 
 from __future__ import annotations
@@ -44,13 +44,9 @@ TINY = {
     "score": {"distinct_tol": 0.02},
     "report": {"dpi": 60},
 }
-# The sweep the Ray tests run: both envs up to extract@0-mapex (4 stage items each).
-GRID = {
-    "envs": [{"name": "halfcheetah", "id": "mo-halfcheetah-v5"}, "mo-hopper-2obj-v5"],
-    "seeds": [0],
-    "targets": ["extract@0-mapex"],
-}
-DIES = "halfcheetah/extract@0-mapex"  # this task's worker dies once, after its stage ran
+# The first sweep the Ray tests run: the whole pipeline (14 stage items) of one cell.
+GRID = {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]}
+DIES = "mo-hopper-2obj-v5/extract@0-mapex"  # this task's worker dies once, after its stage ran
 
 
 def git(cwd: Path, *args: str) -> str:
@@ -237,7 +233,7 @@ def cluster(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def swept(cluster, source, tmp_path_factory):
-    """The first sweep of GRID, through the command."""
+    """The first sweep of GRID (the whole pipeline of one cell), through the command."""
     base = tmp_path_factory.mktemp("sweep")
     grid = write_grid(base / "grid.yaml", GRID)
     result = run_cli(
@@ -247,18 +243,13 @@ def swept(cluster, source, tmp_path_factory):
     return base, result
 
 
-def serial_lock(ws: Path, tmp: Path, targets: list[str]) -> bytes:
-    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the workspace's cell commit.
-
-    With targets, DVC's stage order in dvc.lock follows Python's string hashes (see
-    pipeline.sweep.write_lock), so that run fixes PYTHONHASHSEED as the driver does."""
+def serial_lock(ws: Path, tmp: Path) -> bytes:
+    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the workspace's cell commit."""
     clone = tmp / f"serial-{ws.name}"
     git(tmp, "clone", "-q", "--no-checkout", str(ws), str(clone))
     git(clone, "checkout", "-q", "--detach", git(ws, "rev-parse", "HEAD"))
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(clone), "MAPEX_TORCH_THREADS": "1"}
-    if targets:
-        env["PYTHONHASHSEED"] = "0"
-    r = subprocess.run([str(BIN / "dvc"), "repro", *targets], cwd=clone, env=env, capture_output=True, text=True)
+    r = subprocess.run([str(BIN / "dvc"), "repro"], cwd=clone, env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return (clone / "dvc.lock").read_bytes()
 
@@ -269,48 +260,49 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster,
     assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
     out = result.output
     assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
-    assert re.search(r"halfcheetah extract@0-mapex: ran", out)
-    for cell in ("halfcheetah", "mo-hopper-2obj-v5"):
-        assert f"{cell}: done (4 ran, 0 restored)" in out
-        ws = base / "work" / cell
-        assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
-        assert (ws / "data" / "extract" / "mapex" / "seed0" / "population.pt").is_file()
-    # the cell whose worker died: the lock equals a serial run's, byte for byte
-    ws = base / "work" / "halfcheetah"
-    assert serial_lock(ws, tmp_path, GRID["targets"]) == (ws / "dvc.lock").read_bytes()
+    assert "mo-hopper-2obj-v5 extract@0-mapex: ran" in out  # by its retry
+    assert "mo-hopper-2obj-v5: done (14 ran, 0 restored)" in out
+    ws = base / "work" / "mo-hopper-2obj-v5"
+    assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
+    assert (ws / "data" / "report" / "report.md").is_file()
+    # the lock equals a plain serial `dvc repro` of the cell's commit, byte for byte
+    assert serial_lock(ws, tmp_path) == (ws / "dvc.lock").read_bytes()
     # every clone is gone, the dead worker's too (its retry removed it)
     assert [p for p in (base / "scratch").rglob("*") if p.is_dir() and p.parent != base / "scratch"] == []
 
 
 def test_a_second_sweep_runs_nothing(swept, source):
     base, _ = swept
-    locks = {ws.name: (ws / "dvc.lock").read_bytes() for ws in (base / "work").iterdir()}
+    ws = base / "work" / "mo-hopper-2obj-v5"
+    lock = (ws / "dvc.lock").read_bytes()
     result = run_cli(base / "grid.yaml", "--remote", base / "remote", "--repo", source, "--workdir", base / "work")
     assert result.exit_code == 0, result.output
-    assert "halfcheetah: up to date" in result.output and "mo-hopper-2obj-v5: up to date" in result.output
-    assert "nothing to run" in result.output and "ran (" not in result.output
-    assert {ws.name: (ws / "dvc.lock").read_bytes() for ws in (base / "work").iterdir()} == locks
+    assert "mo-hopper-2obj-v5: up to date" in result.output
+    assert "nothing to run" in result.output and ": ran" not in result.output
+    assert (ws / "dvc.lock").read_bytes() == lock
 
 
-def test_another_grid_restores_shared_runs_and_completes_the_pipeline(swept, source, tmp_path):
-    """Same params and code, another grid and cell name: the cell commit is the same, so the four
-    items the first sweep ran are restored from the run-cache (in tasks), the rest of the
-    pipeline (report's folder deps included) runs, and the driver's lock lists all 14."""
+def test_a_grid_of_two_envs_restores_the_runs_it_shares(swept, source, tmp_path):
+    """Another grid: the hopper cell (another name, same params and code, so the same cell
+    commit) restores the four items it shares with the first sweep from the run-cache, in its
+    tasks, without computing them; the halfcheetah cell computes its four. Up to extract only."""
     base, _ = swept
-    grid = write_grid(tmp_path / "full.yaml", {"envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}], "seeds": [0]})
-    result = run_cli(grid, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
+    grid = {
+        "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "halfcheetah", "id": "mo-halfcheetah-v5"}],
+        "seeds": [0],
+        "targets": ["extract@0-mapex"],
+    }
+    path = write_grid(tmp_path / "two.yaml", grid)
+    result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
     assert result.exit_code == 0, result.output
-    assert "hopper: done (10 ran, 4 restored)" in result.output
-    for item in GRID_ITEMS:
-        assert f"hopper {item}: restored from the run-cache" in result.output
-    full = yaml.safe_load((tmp_path / "work" / "hopper" / "dvc.lock").read_text())["stages"]
+    assert "hopper: done (0 ran, 4 restored)" in result.output
+    assert "halfcheetah: done (4 ran, 0 restored)" in result.output
+    shared = yaml.safe_load((tmp_path / "work" / "hopper" / "dvc.lock").read_text())["stages"]
     first = yaml.safe_load((base / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
-    assert len(full) == 14 and "report" in full
-    assert {k: full[k] for k in first} == first
-    assert (tmp_path / "work" / "hopper" / "data" / "report" / "report.md").is_file()
-    # the whole pipeline's lock is what a plain serial `dvc repro` of the cell writes
-    ws = tmp_path / "work" / "hopper"
-    assert serial_lock(ws, tmp_path, []) == (ws / "dvc.lock").read_bytes()
+    assert sorted(shared) == sorted(SHARED) and all(shared[k] == first[k] for k in SHARED)
+    cheetah = yaml.safe_load((tmp_path / "work" / "halfcheetah" / "dvc.lock").read_text())["stages"]
+    assert sorted(cheetah) == sorted(SHARED) and cheetah["extract@0-mapex"] != shared["extract@0-mapex"]
+    assert "mo-halfcheetah-v5" in (tmp_path / "work" / "halfcheetah" / "params.yaml").read_text()
 
 
-GRID_ITEMS = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
+SHARED = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
