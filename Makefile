@@ -29,6 +29,9 @@ repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install
+	@# the optional Ray extra too, so tests/test_sweep.py runs instead of skipping its Ray tests
+	$(BIN)/pip install -q -e ".[dev,sweep]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[sweep] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
 
 bench: install
