@@ -346,17 +346,31 @@ def cell_commit(clone: Path, commit: str, params_text: str, message: str) -> str
         _git(clone, "update-index", "--add", "--cacheinfo", f"100644,{blob},params.yaml", env=env)
         _git(clone, "update-index", "--force-remove", "dvc.lock", env=env)
         tree = _git(clone, "write-tree", env=env).strip()
-        return _git(clone, "commit-tree", "--no-gpg-sign", tree, "-p", commit, "-m", message.rstrip("\n"), env=env).strip()
+        return _git(
+            clone, "-c", "i18n.commitEncoding=UTF-8", "commit-tree", "--no-gpg-sign", tree, "-p", commit,
+            "-m", message.rstrip("\n"), env=env,
+        ).strip()
     finally:
         if os.path.exists(index):
             os.unlink(index)
 
 
+def _has_commit(clone: Path, commit: str) -> bool:
+    return subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=clone, capture_output=True).returncode == 0
+
+
+def _fetch_commit(clone: Path, source: str, commit: str) -> None:
+    """Make `commit` available in `clone`: fetched from `source` by name if no branch has it."""
+    if not _has_commit(clone, commit):
+        _git(clone, "fetch", "--quiet", source)
+    if not _has_commit(clone, commit):
+        _git(clone, "fetch", "--quiet", source, commit)
+
+
 def _clone_at(source: str, commit: str, dest: Path) -> None:
-    """`git clone` source into dest and make `commit` available there (fetched if no branch has it)."""
+    """`git clone` source into dest, with `commit` available there."""
     _git(dest.parent, "clone", "--quiet", "--no-checkout", source, str(dest))
-    if subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=dest, capture_output=True).returncode != 0:
-        _git(dest, "fetch", "--quiet", "origin", commit)
+    _fetch_commit(dest, source, commit)
 
 
 def _checkout(clone: Path, commit: str) -> None:
@@ -619,9 +633,9 @@ def _repo_root(path: Path) -> Path:
 
 
 def _check_clean(repo: Path, commit: str) -> None:
-    dirty = _git(repo, "status", "--porcelain", "--untracked-files=no", "--", ".", ":!dvc.lock").strip()
+    dirty = [line for line in _git(repo, "status", "--porcelain", "--untracked-files=no", "--", ".", ":!dvc.lock").splitlines() if line]
     if dirty:
-        files = ", ".join(line[3:] for line in dirty.splitlines()[:10])
+        files = ", ".join(line[3:] for line in dirty[:10]) + (", ..." if len(dirty) > 10 else "")
         raise SweepError(
             f"{repo} has uncommitted changes ({files}); workers run commit {commit[:12]}, so commit them first"
         )
@@ -638,8 +652,7 @@ def prepare_workspace(plan_ws: Path, cell: Cell, source: str, commit: str, targe
     if plan_ws.exists():
         if _git_config(plan_ws, CELL_KEY) != cell.name:
             raise SweepError(f"{plan_ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir")
-        if subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=plan_ws, capture_output=True).returncode:
-            _git(plan_ws, "fetch", "--quiet", source, commit)
+        _fetch_commit(plan_ws, source, commit)
     else:
         plan_ws.parent.mkdir(parents=True, exist_ok=True)
         _clone_at(source, commit, plan_ws)

@@ -19,7 +19,7 @@ from stages.common import reports_errors
 def sweep(
     grid: Path = typer.Argument(
         ..., help="grid file (YAML): envs (ids, preset files or mappings), seeds, named param override sets, "
-        "per-stage resources; see docs/sweeps.md"
+        "targets, per-stage resources; see docs/sweeps.md"
     ),
     remote: str = typer.Option(
         ..., "--remote", help="shared DVC remote every worker can reach: a directory (created if missing) or a URL "
