@@ -6,23 +6,24 @@ How a grid maps onto DVC
 A grid file lists envs, seeds and named param override sets. One *cell* is one (env, override
 set): its params.yaml is the base params (or the env's preset) with the env's and the override
 set's values merged in and the grid's seeds. dvc.yaml already fans a params.yaml out over seeds,
-objectives and variants, so a cell is one ordinary DVC workspace and its stage items
-(`train_specialist@0`, `extract@0-mapex`, ..., `report`) are exactly what `dvc repro` would run.
+objectives and variants, so a cell is one ordinary DVC workspace (a clone of the project's HEAD
+commit with the cell's params.yaml, dvc.lock removed) and its stage items (`train_specialist@0`,
+`extract@0-mapex`, ..., `report`) are exactly what `dvc repro` would run there.
 
-Each cell is pinned by a *cell commit*: the project's HEAD commit with params.yaml replaced by
-the cell's and dvc.lock removed, made with git plumbing from fixed author, committer, date and
-message, so the driver and every worker compute the same hash independently (the workers check
-it). Artifacts therefore record a clean checkout in their provenance (`git_dirty: false`), and
-its commit names the code commit as its parent.
-
-Tasks: one Ray task per stage item, in DVC's own DAG (`Repo.index.graph` of the cell
+Tasks: one Ray task per stage item, from DVC's own DAG (`Repo.index.graph` of the cell
 workspace). A task's arguments are the results of its direct upstream tasks, so Ray runs it only
-after them; a result carries the upstream item's dvc.lock entry. The task clones the code
-commit into a scratch directory, rebuilds and checks the cell commit, writes the upstream
-entries into the clone's dvc.lock, `dvc pull`s exactly the upstream outputs its stage reads,
-runs `dvc repro --single-item --pull <item>` (restored from the remote's run-cache if this
-exact run was published before, else computed), publishes outputs and its run-cache entry with
-`dvc push --run-cache <item>`, and deletes the clone. Workers never write the driver's files.
+after them; a result carries the upstream item's dvc.lock entry. The task clones the commit into
+a scratch directory, writes the cell's params.yaml and the upstream entries into the clone's
+dvc.lock, runs `dvc repro --single-item --pull <item>` (a missing input is pulled from the
+remote; the stage is restored from the remote's run-cache if this exact run was published
+before, else computed), publishes outputs and run-cache entry with `dvc push --run-cache <item>`
+and deletes the clone. Workers never write the driver's files.
+
+Items shared between cells: two cells whose item has the same command, the same values of the
+params it declares in dvc.yaml and the same upstream (e.g. the specialists of two override sets
+that change only `extract`) are one computation for DVC (one run-cache key). The driver submits
+it once and hands its result to both cells, so the remote never holds two different runs under
+one key (which would make the lock's restore ambiguous).
 
 The lock: when every task of a cell succeeded, the driver runs `dvc repro --pull` once in the
 cell's workspace. Every stage is restored from the remote's run-cache; `mapex` is shadowed by
@@ -32,9 +33,13 @@ a stub that fails, so nothing can be recomputed there. The resulting dvc.lock is
 Dead workers: Ray retries a task whose worker process or node died (`max_retries`); a stage that
 exits with an error raises `StageFailed`, which is not retried (`retry_exceptions=False`). A
 retry starts from a fresh clone and redoes only its own stage: upstream outputs come from the
-remote. A second sweep with nothing changed runs no stage: a cell whose workspace is at its cell
-commit with a dvc.lock that `dvc status` finds up to date submits no task, and a task whose run
-is in the remote's run-cache restores instead of computing.
+remote. A second sweep with nothing changed runs no stage: a cell whose workspace is at the
+commit with its params and a dvc.lock that `dvc status` finds up to date submits no task, and a
+task whose run is in the remote's run-cache restores instead of computing.
+
+Provenance: artifacts record the commit with `git_dirty: true`, as for any run whose
+params.yaml differs from the commit's; the code is exactly the commit (the driver refuses to
+start from uncommitted code changes).
 
 Ray is optional (`pip install -e .[sweep]`) and imported only by the driver functions.
 """
@@ -42,6 +47,8 @@ Ray is optional (`pip install -e .[sweep]`) and imported only by the driver func
 from __future__ import annotations
 
 import copy
+import hashlib
+import json
 import os
 import re
 import shutil
@@ -303,7 +310,7 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
                     cell_params["pderl_seeds"] = [s for s in cell_params["pderl_seeds"] or [] if s in grid.seeds]
             name = f"{env_name}.{set_name}" if set_name else env_name
             validate_params(cell_params, f"{grid_path}: cell {name}")
-            # No cell or grid name in the text: equal params must give an equal cell commit.
+            # No cell or grid name in the text, so that cells of equal params are equal checkouts.
             text = "# params of a `mapex sweep` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(cell_params, sort_keys=False)
             cells.append(Cell(name, cell_params, text))
     names = [c.name for c in cells]
@@ -314,45 +321,14 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
 
 
 # ----------------------------------------------------------------------------------------------
-# Cell commits and workspaces
+# Workspaces
 
 
-def cell_message(commit: str) -> str:
-    """The cell commit's message. It names no cell or grid: equal params on the same code give
-    the same commit, so their artifacts are byte-identical and shared through the run-cache."""
-    return f"mapex sweep: params.yaml of a grid cell\n\nEverything else as {commit} (dvc.lock removed).\n"
-
-
-def cell_commit(clone: Path, commit: str, params_text: str, message: str) -> str:
-    """Create (in `clone`'s object store only) the cell commit and return its hash.
-
-    Plumbing with a temporary index: no hooks, no signing, worktree and HEAD untouched, and the
-    author, committer and date fixed (the code commit's committer date), so every machine that
-    starts from `commit` gets the same hash.
-    """
-    date = _git(clone, "show", "-s", "--format=%ct %z", commit).strip()
-    fd, index = tempfile.mkstemp(prefix="mapex-sweep-index-")
-    os.close(fd)
-    os.unlink(index)  # git wants to create it
-    env = {
-        **os.environ,
-        "GIT_INDEX_FILE": index,
-        "GIT_AUTHOR_NAME": "mapex sweep", "GIT_AUTHOR_EMAIL": "sweep@mapex.invalid", "GIT_AUTHOR_DATE": date,
-        "GIT_COMMITTER_NAME": "mapex sweep", "GIT_COMMITTER_EMAIL": "sweep@mapex.invalid", "GIT_COMMITTER_DATE": date,
-    }
-    try:
-        _git(clone, "read-tree", commit, env=env)
-        blob = _git(clone, "hash-object", "-w", "--stdin", env=env, input=params_text).strip()
-        _git(clone, "update-index", "--add", "--cacheinfo", f"100644,{blob},params.yaml", env=env)
-        _git(clone, "update-index", "--force-remove", "dvc.lock", env=env)
-        tree = _git(clone, "write-tree", env=env).strip()
-        return _git(
-            clone, "-c", "i18n.commitEncoding=UTF-8", "commit-tree", "--no-gpg-sign", tree, "-p", commit,
-            "-m", message.rstrip("\n"), env=env,
-        ).strip()
-    finally:
-        if os.path.exists(index):
-            os.unlink(index)
+def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
+    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml, no dvc.lock."""
+    _git(clone, "checkout", "--quiet", "--force", "--detach", commit)
+    (clone / "params.yaml").write_text(params_text)
+    (clone / "dvc.lock").unlink(missing_ok=True)
 
 
 def _has_commit(clone: Path, commit: str) -> bool:
@@ -371,10 +347,6 @@ def _clone_at(source: str, commit: str, dest: Path) -> None:
     """`git clone` source into dest, with `commit` available there."""
     _git(dest.parent, "clone", "--quiet", "--no-checkout", source, str(dest))
     _fetch_commit(dest, source, commit)
-
-
-def _checkout(clone: Path, commit: str) -> None:
-    _git(clone, "checkout", "--quiet", "--force", "--detach", commit)
 
 
 def configure_remote(workspace: Path, remote: str) -> None:
@@ -406,15 +378,18 @@ class StageItem:
     stage: str  # dvc.yaml stage name, e.g. extract
     upstream: tuple[str, ...]  # direct upstream items
     pull: tuple[str, ...]  # upstream outputs inside a folder dep (pulled before `dvc repro --pull`)
+    signature: str  # what DVC's run-cache key depends on besides code: cmd, declared params, upstream
 
 
 def stage_items(workspace: Path, targets: list[str] | None = None) -> list[StageItem]:
     """The cell's stage items in a topological order, from DVC's own index (dvc.yaml + params):
     all of them, or `targets` (stage names or items, as `dvc repro` takes them) and their upstream."""
     import networkx as nx
+    from dvc.dependency.param import ParamsDependency
     from dvc.repo import Repo
 
     items = []
+    signatures: dict[str, str] = {}
     with Repo(str(workspace)) as repo:
         graph = repo.index.graph  # edges point from a stage to the stages it depends on
         root = repo.root_dir
@@ -443,7 +418,17 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
                     for out in up.outs:
                         if out.fs_path != dep.fs_path and out.fs.isin(out.fs_path, dep.fs_path):
                             pull.add(os.path.relpath(out.fs_path, root))
-            items.append(StageItem(stage.name, stage.name.split("@")[0], tuple(u.name for u in ups), tuple(sorted(pull))))
+            params = {
+                os.path.relpath(d.fs_path, root): d.read_params() for d in stage.deps if isinstance(d, ParamsDependency)
+            }
+            key = json.dumps(
+                {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
+                sort_keys=True, default=str,
+            )
+            signatures[stage.name] = hashlib.sha256(key.encode()).hexdigest()
+            items.append(StageItem(
+                stage.name, stage.name.split("@")[0], tuple(u.name for u in ups), tuple(sorted(pull)), signatures[stage.name],
+            ))
     return items
 
 
@@ -457,9 +442,7 @@ class StageTask:
     item: str
     source: str  # git URL or path the worker clones
     commit: str  # code commit
-    cell_commit: str
-    params_text: str
-    message: str
+    params_text: str  # the cell's params.yaml
     remote: str
     pull: tuple[str, ...]
     threads: int
@@ -561,16 +544,9 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
     try:
         try:
             _clone_at(task.source, task.commit, clone)
-            made = cell_commit(clone, task.commit, task.params_text, task.message)
+            checkout_cell(clone, task.commit, task.params_text)
         except SweepError as exc:
             raise StageFailed(task.cell, task.item, str(exc)) from None
-        if made != task.cell_commit:
-            raise StageFailed(
-                task.cell, task.item,
-                f"rebuilt cell commit {made[:12]} differs from the driver's {task.cell_commit[:12]} "
-                f"(different git version or source {task.source} not at {task.commit[:12]}?)",
-            )
-        _checkout(clone, made)
         phases["clone"] = time.monotonic() - start
         configure_remote(clone, task.remote)
         if upstream:
@@ -623,7 +599,6 @@ class CellResult:
 class CellPlan:
     cell: Cell
     workspace: Path
-    commit: str  # the cell commit
     up_to_date: bool
     items: list[StageItem] = field(default_factory=list)
 
@@ -641,29 +616,32 @@ def _check_clean(repo: Path, commit: str) -> None:
         )
 
 
-def prepare_workspace(plan_ws: Path, cell: Cell, source: str, commit: str, targets: list[str] | None = None) -> tuple[str, bool]:
-    """Make `plan_ws` a clone at the cell commit; return (cell commit, up to date).
+def prepare_workspace(ws: Path, cell: Cell, source: str, commit: str, targets: list[str] | None = None) -> bool:
+    """Make `ws` the cell's checkout (see checkout_cell); return whether it is up to date.
 
-    Up to date: it was already at that commit and its dvc.lock matches its files (`dvc status`
-    clean), i.e. an earlier sweep completed this cell. A workspace moved to a new cell commit
-    loses its data and dvc.lock (untracked files), keeping its DVC cache.
+    Up to date: it already was that checkout, with a dvc.lock that matches its files (`dvc
+    status` clean), i.e. an earlier sweep completed this cell. A workspace that changes commit
+    or params loses its outputs and dvc.lock (untracked files), keeping its DVC cache.
     """
-    message = cell_message(commit)
-    if plan_ws.exists():
-        if _git_config(plan_ws, CELL_KEY) != cell.name:
-            raise SweepError(f"{plan_ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir")
-        _fetch_commit(plan_ws, source, commit)
+    if ws.exists():
+        if _git_config(ws, CELL_KEY) != cell.name:
+            raise SweepError(f"{ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir")
+        _fetch_commit(ws, source, commit)
     else:
-        plan_ws.parent.mkdir(parents=True, exist_ok=True)
-        _clone_at(source, commit, plan_ws)
-        _git(plan_ws, "config", CELL_KEY, cell.name)
-    made = cell_commit(plan_ws, commit, cell.params_text, message)
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=plan_ws, capture_output=True, text=True).stdout.strip()
-    if head == made and (plan_ws / "dvc.lock").is_file() and _dvc_status_clean(plan_ws, targets):
-        return made, True
-    _checkout(plan_ws, made)
-    _git(plan_ws, "clean", "-ffdxq", "-e", "/.dvc/cache/", "-e", "/.dvc/tmp/")
-    return made, False
+        ws.parent.mkdir(parents=True, exist_ok=True)
+        _clone_at(source, commit, ws)
+        _git(ws, "config", CELL_KEY, cell.name)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ws, capture_output=True, text=True).stdout.strip()
+    params = ws / "params.yaml"
+    if (
+        head == commit and params.is_file() and params.read_text() == cell.params_text
+        and (ws / "dvc.lock").is_file() and _dvc_status_clean(ws, targets)
+    ):
+        return True
+    _git(ws, "checkout", "--quiet", "--force", "--detach", commit)
+    _git(ws, "clean", "-ffdxq", "-e", "/.dvc/cache/", "-e", "/.dvc/tmp/")
+    checkout_cell(ws, commit, cell.params_text)
+    return False
 
 
 def _git_config(ws: Path, key: str) -> str | None:
@@ -760,12 +738,12 @@ def run_sweep(
     results: dict[str, CellResult] = {}
     for cell in cells:
         ws = workdir / cell.name
-        made, fresh = prepare_workspace(ws, cell, source, commit, grid.targets)
-        plan = CellPlan(cell, ws, made, fresh)
+        fresh = prepare_workspace(ws, cell, source, commit, grid.targets)
+        plan = CellPlan(cell, ws, fresh)
         results[cell.name] = CellResult(cell.name, ws)
         if fresh:
             results[cell.name].status = "up to date"
-            log(f"  {cell.name}: up to date (commit {made[:12]}), nothing to run")
+            log(f"  {cell.name}: up to date, nothing to run")
         else:
             try:
                 plan.items = stage_items(ws, grid.targets)
@@ -775,7 +753,7 @@ def run_sweep(
             unknown = sorted(set(grid.resources) - known)
             if unknown:
                 raise GridError(f"{grid_path}: resources: {unknown} are not dvc.yaml stages (have {sorted({i.stage for i in plan.items})})")
-            log(f"  {cell.name}: {len(plan.items)} stage items (cell commit {made[:12]})")
+            log(f"  {cell.name}: {len(plan.items)} stage items")
         plans.append(plan)
     todo = [p for p in plans if not p.up_to_date]
     if dry_run:
@@ -800,45 +778,57 @@ def run_sweep(
         cluster = ray.cluster_resources()
         log(f"ray: {cluster.get('CPU', 0):g} CPU, {cluster.get('GPU', 0):g} GPU, {len(ray.nodes())} node(s)")
         remote_fn = ray.remote(run_stage_task)
-        pending: dict[Any, tuple[str, StageItem]] = {}
+        # one task per distinct computation: an item whose signature another cell already has
+        # shares that cell's task (DVC would give both the same run-cache key)
+        by_signature: dict[str, Any] = {}
+        pending: dict[Any, list[tuple[str, StageItem]]] = {}
         for p in todo:
             refs: dict[str, Any] = {}
             for it in p.items:
-                cpus, gpus, threads = _resources(grid, it.stage, cluster.get("GPU", 0))
-                task = StageTask(
-                    p.cell.name, it.name, source, commit, p.commit, p.cell.params_text,
-                    cell_message(commit), remote, it.pull, threads, gpus, scratch,
-                )
-                ref = remote_fn.options(
-                    num_cpus=cpus, num_gpus=gpus, max_retries=max_retries, retry_exceptions=False,
-                    name=f"{p.cell.name}:{it.name}",
-                ).remote(task, *[refs[u] for u in it.upstream])
+                if it.signature in by_signature:
+                    ref = by_signature[it.signature]
+                else:
+                    cpus, gpus, threads = _resources(grid, it.stage, cluster.get("GPU", 0))
+                    task = StageTask(
+                        p.cell.name, it.name, source, commit, p.cell.params_text, remote, it.pull, threads, gpus, scratch,
+                    )
+                    ref = remote_fn.options(
+                        num_cpus=cpus, num_gpus=gpus, max_retries=max_retries, retry_exceptions=False,
+                        name=f"{p.cell.name}:{it.name}",
+                    ).remote(task, *[refs[u] for u in it.upstream])
+                    by_signature[it.signature] = ref
                 refs[it.name] = ref
-                pending[ref] = (p.cell.name, it)
+                pending.setdefault(ref, []).append((p.cell.name, it))
         total, done = len(pending), 0
         t0 = time.monotonic()
         while pending:
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
-                cell_name, it = pending.pop(ref)
+                owners = pending.pop(ref)
+                (cell_name, it), others = owners[0], [c for c, _ in owners[1:]]
+                shared = f" (shared with {', '.join(others)})" if others else ""
                 done += 1
-                res = results[cell_name]
                 try:
                     r: StageResult = ray.get(ref)
                 except Exception as exc:  # noqa: BLE001 - RayTaskError, WorkerCrashedError, ...
                     cause = getattr(exc, "cause", None)
-                    if isinstance(cause, StageFailed) and (cause.cell, cause.item) != (cell_name, it.name):
-                        res.failed[it.name] = f"not run: upstream {cause.item} failed"
-                        log(f"[{done}/{total}] {cell_name} {it.name}: not run (upstream {cause.item} failed)")
+                    if isinstance(cause, StageFailed) and cause.item != it.name:
+                        msg = f"not run: upstream {cause.item} failed"
+                        log(f"[{done}/{total}] {cell_name} {it.name}{shared}: {msg}")
                     else:
                         msg = cause.detail if isinstance(cause, StageFailed) else f"{type(exc).__name__}: {exc}"
-                        res.failed[it.name] = msg
-                        log(f"[{done}/{total}] {cell_name} {it.name}: FAILED\n{msg}")
+                        log(f"[{done}/{total}] {cell_name} {it.name}{shared}: FAILED\n{msg}")
+                    for c, _ in owners:
+                        results[c].failed[it.name] = msg
                     continue
-                (res.executed if r.executed else res.restored).append(it.name)
+                for c, _ in owners:
+                    (results[c].executed if r.executed else results[c].restored).append(it.name)
                 how = "ran" if r.executed else "restored from the run-cache"
                 split = ", ".join(f"{k} {v:.1f}" for k, v in r.phases.items())
-                log(f"[{done}/{total}] {cell_name} {it.name}: {how} in {r.seconds:.1f} s on {r.host} ({split}); {time.monotonic() - t0:.0f} s elapsed")
+                log(
+                    f"[{done}/{total}] {cell_name} {it.name}{shared}: {how} in {r.seconds:.1f} s on {r.host} "
+                    f"({split}); {time.monotonic() - t0:.0f} s elapsed"
+                )
     finally:
         if started:
             ray.shutdown()

@@ -154,16 +154,11 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert result.exit_code == 0, result.output
     assert "mo-hopper-2obj-v5: planned" in result.output
     ws = tmp_path / "work" / "mo-hopper-2obj-v5"
-    # the workspace is a clean checkout of the cell commit: HEAD's code, the cell's params.yaml, no dvc.lock
-    head = git(source, "rev-parse", "HEAD")
-    assert git(ws, "rev-parse", "HEAD^") == head
-    assert git(ws, "diff", "--name-status", head, "HEAD").splitlines() == ["M\tparams.yaml"]
-    assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
+    # the workspace is a checkout of HEAD's code with the cell's params.yaml (and no dvc.lock)
+    assert git(ws, "rev-parse", "HEAD") == git(source, "rev-parse", "HEAD")
+    assert git(ws, "status", "--porcelain", "--untracked-files=no") == "M params.yaml"
     assert yaml.safe_load((ws / "params.yaml").read_text())["env"]["id"] == "mo-hopper-2obj-v5"
-    # the same params give the same commit anywhere (the workers rebuild and check it)
-    clone = tmp_path / "clone"
-    git(tmp_path, "clone", "-q", str(source), str(clone))
-    assert sw.cell_commit(clone, head, (ws / "params.yaml").read_text(), sw.cell_message(head)) == git(ws, "rev-parse", "HEAD")
+    assert not (ws / "dvc.lock").exists()
 
     items = {i.name: i for i in sw.stage_items(ws)}
     listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
@@ -179,6 +174,15 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert sorted(sub) == ["extract@0-mapex", "fit_critics@0-0", "fit_critics@0-1", "train_specialist@0"]
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         sw.stage_items(ws, ["nope"])
+
+    # signatures: what DVC's run-cache key depends on besides code. An extract param changes
+    # extract's and everything downstream, not the specialists' or their critics'.
+    params = yaml.safe_load((ws / "params.yaml").read_text())
+    params["extract"]["beta"] = 0.5
+    (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    changed = {i.name: i for i in sw.stage_items(ws)}
+    same = {n for n in items if changed[n].signature == items[n].signature}
+    assert same == {"train_specialist@0", "fit_critics@0-0", "fit_critics@0-1"} | {n for n in items if n.startswith("critic_fidelity")}
 
 
 def test_core_install_does_not_need_ray():
@@ -243,18 +247,19 @@ def swept(cluster, source, tmp_path_factory):
     return base, result
 
 
-def serial_lock(ws: Path, tmp: Path) -> bytes:
-    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the workspace's cell commit."""
+def serial_lock(ws: Path, source: Path, tmp: Path) -> bytes:
+    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the commit with the cell's params."""
     clone = tmp / f"serial-{ws.name}"
-    git(tmp, "clone", "-q", "--no-checkout", str(ws), str(clone))
+    git(tmp, "clone", "-q", str(source), str(clone))
     git(clone, "checkout", "-q", "--detach", git(ws, "rev-parse", "HEAD"))
+    shutil.copy(ws / "params.yaml", clone / "params.yaml")
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(clone), "MAPEX_TORCH_THREADS": "1"}
     r = subprocess.run([str(BIN / "dvc"), "repro"], cwd=clone, env=env, capture_output=True, text=True)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     return (clone / "dvc.lock").read_bytes()
 
 
-def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster, tmp_path):
+def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster, source, tmp_path):
     base, result = swept
     assert result.exit_code == 0, result.output
     assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
@@ -263,10 +268,9 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster,
     assert "mo-hopper-2obj-v5 extract@0-mapex: ran" in out  # by its retry
     assert "mo-hopper-2obj-v5: done (14 ran, 0 restored)" in out
     ws = base / "work" / "mo-hopper-2obj-v5"
-    assert git(ws, "status", "--porcelain", "--untracked-files=no") == ""
     assert (ws / "data" / "report" / "report.md").is_file()
-    # the lock equals a plain serial `dvc repro` of the cell's commit, byte for byte
-    assert serial_lock(ws, tmp_path) == (ws / "dvc.lock").read_bytes()
+    # the lock equals a plain serial `dvc repro` of the commit with the cell's params, byte for byte
+    assert serial_lock(ws, source, tmp_path) == (ws / "dvc.lock").read_bytes()
     # every clone is gone, the dead worker's too (its retry removed it)
     assert [p for p in (base / "scratch").rglob("*") if p.is_dir() and p.parent != base / "scratch"] == []
 
@@ -282,27 +286,38 @@ def test_a_second_sweep_runs_nothing(swept, source):
     assert (ws / "dvc.lock").read_bytes() == lock
 
 
-def test_a_grid_of_two_envs_restores_the_runs_it_shares(swept, source, tmp_path):
-    """Another grid: the hopper cell (another name, same params and code, so the same cell
-    commit) restores the four items it shares with the first sweep from the run-cache, in its
-    tasks, without computing them; the halfcheetah cell computes its four. Up to extract only."""
+def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
+    """Another grid, up to extract@0-mapex: 2 envs x 2 override sets (`b` changes extract.beta).
+    hopper.a has the first sweep's params (another cell name), so its tasks restore all four
+    items from the run-cache without computing them. Within an env, the two sets share one task
+    for the specialists and critics (the same DVC run) and compute extract each."""
     base, _ = swept
     grid = {
-        "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "halfcheetah", "id": "mo-halfcheetah-v5"}],
+        "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "cheetah", "id": "mo-halfcheetah-v5"}],
         "seeds": [0],
+        "overrides": {"a": {}, "b": {"extract": {"beta": 0.5}}},
         "targets": ["extract@0-mapex"],
     }
     path = write_grid(tmp_path / "two.yaml", grid)
     result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
     assert result.exit_code == 0, result.output
-    assert "hopper: done (0 ran, 4 restored)" in result.output
-    assert "halfcheetah: done (4 ran, 0 restored)" in result.output
-    shared = yaml.safe_load((tmp_path / "work" / "hopper" / "dvc.lock").read_text())["stages"]
-    first = yaml.safe_load((base / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
-    assert sorted(shared) == sorted(SHARED) and all(shared[k] == first[k] for k in SHARED)
-    cheetah = yaml.safe_load((tmp_path / "work" / "halfcheetah" / "dvc.lock").read_text())["stages"]
-    assert sorted(cheetah) == sorted(SHARED) and cheetah["extract@0-mapex"] != shared["extract@0-mapex"]
-    assert "mo-halfcheetah-v5" in (tmp_path / "work" / "halfcheetah" / "params.yaml").read_text()
+    out = result.output
+    assert "hopper.a: done (0 ran, 4 restored)" in out
+    assert "hopper.b: done (1 ran, 3 restored)" in out
+    assert "cheetah.a: done (4 ran, 0 restored)" in out and "cheetah.b: done (4 ran, 0 restored)" in out
+    assert len(re.findall(r"^\[\d+/10\] ", out, re.M)) == 10  # 16 items, 10 tasks
+    assert "cheetah.a train_specialist@0 (shared with cheetah.b): ran" in out
+
+    def lock(cell: Path) -> dict:
+        return yaml.safe_load((cell / "dvc.lock").read_text())["stages"]
+
+    work, first = tmp_path / "work", lock(base / "work" / "mo-hopper-2obj-v5")
+    ha, hb, ca, cb = lock(work / "hopper.a"), lock(work / "hopper.b"), lock(work / "cheetah.a"), lock(work / "cheetah.b")
+    assert all(sorted(x) == sorted(SHARED) for x in (ha, hb, ca, cb))
+    assert all(ha[k] == first[k] for k in SHARED)
+    for a, b in ((ha, hb), (ca, cb)):
+        assert all(a[k] == b[k] for k in SHARED[:3]) and a["extract@0-mapex"]["outs"] != b["extract@0-mapex"]["outs"]
+    assert ca["train_specialist@0"]["outs"] != ha["train_specialist@0"]["outs"]
 
 
 SHARED = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
