@@ -850,5 +850,5 @@ def run_sweep(
     failed = [r for r in results.values() if r.status == "failed"]
     if failed:
         lines = [f"{r.name}: {', '.join(sorted(r.failed))}" for r in failed]
-        raise SweepError("stages failed in " + "; ".join(lines) + " (rerun the sweep to retry them; completed stages are restored)", exit_code=1)
+        raise SweepError("stages failed in " + "; ".join(lines) + " (fix the cause and rerun the sweep: completed stages are restored, not recomputed)", exit_code=1)
     return list(results.values())

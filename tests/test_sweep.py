@@ -321,3 +321,18 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
 
 
 SHARED = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
+
+
+def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(cluster, source, tmp_path):
+    grid = write_grid(
+        tmp_path / "bad.yaml",
+        {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["fit_critics@0-0"]},
+    )
+    result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", tmp_path / "scratch")
+    assert result.exit_code == 1, result.output
+    out = result.output
+    assert "nope train_specialist@0: FAILED" in out and "mo-nope-v5" in out  # the stage's own error line
+    assert "nope fit_critics@0-0: not run: upstream train_specialist@0 failed" in out
+    assert "stages failed in nope: fit_critics@0-0, train_specialist@0 (fix the cause and rerun the sweep" in out
+    assert not (tmp_path / "work" / "nope" / "dvc.lock").exists()
+    assert list((tmp_path / "scratch" / "nope").iterdir()) == []  # its clone is cleaned up
