@@ -727,7 +727,7 @@ def run_sweep(
     _check_clean(repo, commit)
     cells = plan_cells(grid, grid_path, repo, commit)
     source = git_url or str(repo)
-    if "://" not in remote and not re.match(r"^[A-Za-z0-9+.-]+://", remote):
+    if "://" not in remote:  # a directory (a URL such as s3://... is passed to DVC as is)
         remote_path = Path(remote).expanduser().resolve()
         remote_path.mkdir(parents=True, exist_ok=True)
         remote = str(remote_path)
@@ -749,6 +749,8 @@ def run_sweep(
                 plan.items = stage_items(ws, grid.targets)
             except ValueError as exc:
                 raise GridError(f"{grid_path}: targets: {exc}") from None
+            except Exception as exc:  # noqa: BLE001 - DVC's own errors (dvc.yaml vs the cell's params)
+                raise SweepError(f"cell {cell.name}: DVC cannot read the pipeline in {ws}: {exc}") from None
             known = {i.stage for i in plan.items} | set(GPU_STAGES)
             unknown = sorted(set(grid.resources) - known)
             if unknown:
@@ -769,10 +771,13 @@ def run_sweep(
     ray = _import_ray()
     started = False
     if not ray.is_initialized():
-        if address:
-            ray.init(address=address, log_to_driver=False)
-        else:
-            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        try:
+            if address:
+                ray.init(address=address, log_to_driver=False)
+            else:
+                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        except Exception as exc:  # noqa: BLE001 - no cluster at that address, bad address, ...
+            raise SweepError(f"cannot start or reach Ray ({'address ' + address if address else 'local'}): {exc}") from None
         started = True
     try:
         cluster = ray.cluster_resources()

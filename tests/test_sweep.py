@@ -68,6 +68,8 @@ def source(tmp_path_factory) -> Path:
     (root / "presets").mkdir()
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
     (root / "params.yaml").write_text(yaml.safe_dump(TINY, sort_keys=False))
+    # valid params, but dvc.yaml's train_pderl matrix needs pderl_seeds
+    (root / "no_pderl.yaml").write_text(yaml.safe_dump({k: v for k, v in TINY.items() if k != "pderl_seeds"}, sort_keys=False))
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n/sweeps/\n")
     git(root, "init", "-q")
     git(root, "config", "user.email", "test@example.com")
@@ -185,6 +187,13 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert same == {"train_specialist@0", "fit_critics@0-0", "fit_critics@0-1"} | {n for n in items if n.startswith("critic_fidelity")}
 
 
+def test_a_cell_dvc_cannot_read_is_refused_before_anything_runs(tmp_path, source):
+    grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "base": "no_pderl.yaml"})
+    result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work")
+    assert result.exit_code == 2
+    assert "cell mo-hopper-2obj-v5: DVC cannot read the pipeline" in result.output and "pderl_seeds" in result.output
+
+
 def test_core_install_does_not_need_ray():
     code = (
         "import sys, builtins\n"
@@ -237,30 +246,33 @@ def cluster(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def swept(cluster, source, tmp_path_factory):
-    """The first sweep of GRID (the whole pipeline of one cell), through the command."""
+    """The first sweep of GRID (the whole pipeline of one cell), through the command, and, in
+    parallel with it (it uses one core), a plain serial `dvc repro` of the same cell: a fresh
+    clone of the commit with the cell's params. Returns (base, result, serial dvc.lock bytes)."""
     base = tmp_path_factory.mktemp("sweep")
     grid = write_grid(base / "grid.yaml", GRID)
-    result = run_cli(
-        grid, "--remote", base / "remote", "--repo", source, "--workdir", base / "work", "--max-retries", 2,
-        "--scratch", base / "scratch",
-    )
-    return base, result
+    commit = git(source, "rev-parse", "HEAD")
+    (cell,) = sw.plan_cells(sw.load_grid(grid), grid, source, commit)
+    serial = base / "serial"
+    git(base, "clone", "-q", str(source), str(serial))
+    sw.checkout_cell(serial, commit, cell.params_text)
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(serial), "MAPEX_TORCH_THREADS": "1"}
+    log = open(base / "serial.log", "w")
+    proc = subprocess.Popen([str(BIN / "dvc"), "repro"], cwd=serial, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        result = run_cli(
+            grid, "--remote", base / "remote", "--repo", source, "--workdir", base / "work", "--max-retries", 2,
+            "--scratch", base / "scratch",
+        )
+    finally:
+        rc = proc.wait()
+        log.close()
+    assert rc == 0, (base / "serial.log").read_text()[-3000:]
+    return base, result, (serial / "dvc.lock").read_bytes()
 
 
-def serial_lock(ws: Path, source: Path, tmp: Path) -> bytes:
-    """dvc.lock of a plain serial `dvc repro` in a fresh clone of the commit with the cell's params."""
-    clone = tmp / f"serial-{ws.name}"
-    git(tmp, "clone", "-q", str(source), str(clone))
-    git(clone, "checkout", "-q", "--detach", git(ws, "rev-parse", "HEAD"))
-    shutil.copy(ws / "params.yaml", clone / "params.yaml")
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(clone), "MAPEX_TORCH_THREADS": "1"}
-    r = subprocess.run([str(BIN / "dvc"), "repro"], cwd=clone, env=env, capture_output=True, text=True)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    return (clone / "dvc.lock").read_bytes()
-
-
-def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster, source, tmp_path):
-    base, result = swept
+def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster):
+    base, result, serial = swept
     assert result.exit_code == 0, result.output
     assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
     out = result.output
@@ -270,13 +282,14 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster,
     ws = base / "work" / "mo-hopper-2obj-v5"
     assert (ws / "data" / "report" / "report.md").is_file()
     # the lock equals a plain serial `dvc repro` of the commit with the cell's params, byte for byte
-    assert serial_lock(ws, source, tmp_path) == (ws / "dvc.lock").read_bytes()
+    assert (ws / "params.yaml").read_text() == (base / "serial" / "params.yaml").read_text()
+    assert (ws / "dvc.lock").read_bytes() == serial
     # every clone is gone, the dead worker's too (its retry removed it)
     assert [p for p in (base / "scratch").rglob("*") if p.is_dir() and p.parent != base / "scratch"] == []
 
 
 def test_a_second_sweep_runs_nothing(swept, source):
-    base, _ = swept
+    base, _, _ = swept
     ws = base / "work" / "mo-hopper-2obj-v5"
     lock = (ws / "dvc.lock").read_bytes()
     result = run_cli(base / "grid.yaml", "--remote", base / "remote", "--repo", source, "--workdir", base / "work")
@@ -287,26 +300,26 @@ def test_a_second_sweep_runs_nothing(swept, source):
 
 
 def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
-    """Another grid, up to extract@0-mapex: 2 envs x 2 override sets (`b` changes extract.beta).
-    hopper.a has the first sweep's params (another cell name), so its tasks restore all four
-    items from the run-cache without computing them. Within an env, the two sets share one task
-    for the specialists and critics (the same DVC run) and compute extract each."""
-    base, _ = swept
+    """Another grid, up to fit_critics@0-0: 2 envs x 2 override sets (`b` changes
+    fit_critics.steps). hopper.a has the first sweep's params (another cell name), so its tasks
+    restore both items from the run-cache without computing them. Within an env, the two sets
+    share one task for the specialists (the same DVC run) and fit their critics each."""
+    base, _, _ = swept
     grid = {
         "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "cheetah", "id": "mo-halfcheetah-v5"}],
         "seeds": [0],
-        "overrides": {"a": {}, "b": {"extract": {"beta": 0.5}}},
-        "targets": ["extract@0-mapex"],
+        "overrides": {"a": {}, "b": {"fit_critics": {"steps": 10}}},
+        "targets": ["fit_critics@0-0"],
     }
     path = write_grid(tmp_path / "two.yaml", grid)
     result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
     assert result.exit_code == 0, result.output
     out = result.output
-    assert "hopper.a: done (0 ran, 4 restored)" in out
-    assert "hopper.b: done (1 ran, 3 restored)" in out
-    assert "cheetah.a: done (4 ran, 0 restored)" in out and "cheetah.b: done (4 ran, 0 restored)" in out
-    assert len(re.findall(r"^\[\d+/10\] ", out, re.M)) == 10  # 16 items, 10 tasks
+    assert "hopper.a: done (0 ran, 2 restored)" in out and "hopper.b: done (1 ran, 1 restored)" in out
+    assert "cheetah.a: done (2 ran, 0 restored)" in out and "cheetah.b: done (2 ran, 0 restored)" in out
+    assert len(re.findall(r"^\[\d+/6\] ", out, re.M)) == 6  # 8 items, 6 tasks
     assert "cheetah.a train_specialist@0 (shared with cheetah.b): ran" in out
+    assert "hopper.a train_specialist@0 (shared with hopper.b): restored from the run-cache" in out
 
     def lock(cell: Path) -> dict:
         return yaml.safe_load((cell / "dvc.lock").read_text())["stages"]
@@ -316,11 +329,11 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
     assert all(sorted(x) == sorted(SHARED) for x in (ha, hb, ca, cb))
     assert all(ha[k] == first[k] for k in SHARED)
     for a, b in ((ha, hb), (ca, cb)):
-        assert all(a[k] == b[k] for k in SHARED[:3]) and a["extract@0-mapex"]["outs"] != b["extract@0-mapex"]["outs"]
+        assert a["train_specialist@0"] == b["train_specialist@0"] and a["fit_critics@0-0"]["outs"] != b["fit_critics@0-0"]["outs"]
     assert ca["train_specialist@0"]["outs"] != ha["train_specialist@0"]["outs"]
 
 
-SHARED = ("train_specialist@0", "fit_critics@0-0", "fit_critics@0-1", "extract@0-mapex")
+SHARED = ("train_specialist@0", "fit_critics@0-0")
 
 
 def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(cluster, source, tmp_path):
