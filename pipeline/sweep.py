@@ -715,11 +715,12 @@ def run_sweep(
     git_url: str | None = None,
     scratch: str | None = None,
     dry_run: bool = False,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = lambda line: None,
 ) -> list[CellResult]:
     """Run a grid: prepare one workspace per cell, run every stage item as a Ray task, write each
-    completed cell's dvc.lock. Returns one CellResult per cell; raises SweepError(exit_code=1)
-    after reporting when any stage failed."""
+    completed cell's dvc.lock. Progress lines go to `log` (the command passes typer.echo).
+    Returns one CellResult per cell; raises SweepError(exit_code=1) when any stage failed, after
+    the other cells completed."""
     grid_path = Path(grid_path)
     grid = load_grid(grid_path)
     repo = _repo_root(Path(repo).resolve())

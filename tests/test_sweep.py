@@ -176,6 +176,9 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert sorted(sub) == ["extract@0-mapex", "fit_critics@0-0", "fit_critics@0-1", "train_specialist@0"]
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         sw.stage_items(ws, ["nope"])
+    bad = write_grid(tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}})
+    result = run_cli(bad, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run")
+    assert result.exit_code == 2 and "resources: ['evaluation'] are not dvc.yaml stages" in result.output
 
     # signatures: what DVC's run-cache key depends on besides code. An extract param changes
     # extract's and everything downstream, not the specialists' or their critics'.
