@@ -14,6 +14,7 @@ from stages.train_specialist import train_specialist
 from stages.train_pderl import train_pderl
 from stages.evaluate import evaluate
 from stages.score import score
+from stages.sweep import sweep
 from stages.report import report
 
 app = typer.Typer(
@@ -45,6 +46,7 @@ app.command("extract")(extract)
 app.command("evaluate")(evaluate)
 app.command("score")(score)
 app.command("report")(report)
+app.command("sweep")(sweep)
 
 
 if __name__ == "__main__":
