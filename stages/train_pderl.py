@@ -11,8 +11,6 @@ import torch
 import typer
 
 from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
-from pipeline.buffer import save_buffer
-from pipeline.checkpoint import save_critics, save_policy
 from pipeline.codedeps import closure_files
 from pipeline.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
@@ -20,10 +18,10 @@ from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from pipeline.policyset import save_policy_set
-from pipeline.provenance import provenance
 from pipeline.resume import fingerprint
 from pipeline.seeding import select_device
 from stages.common import PARAMS_OPTION, progress, reports_errors
+from stages.train_specialist import save_rl_agent, specialist_meta
 
 CHECKPOINT = "pderl_state.pt"
 CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
@@ -168,40 +166,16 @@ def save_pderl(out: Path, result: PderlResult, spec: EnvSpec, env_p: EnvParams, 
     """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
     those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
     k = result.objective
-    meta = {
-        "env_id": spec.env_id,
-        "obs_dim": spec.obs_dim,
-        "act_dim": spec.act_dim,
-        "n_objectives": spec.n_objectives,
-        "max_episode_steps": spec.max_episode_steps,
-        "action_low": list(spec.action_low),
-        "action_high": list(spec.action_high),
-        "hidden_sizes": list(td3.hidden_sizes),
-        "seed": result.seed,
-        "params": {"env": env_p.model_dump(), "train_specialist": td3.model_dump(), "train_pderl": cfg.model_dump()},
-        "trainer": "pderl",
-        "env_frames": result.frames,
-        "provenance": provenance(device),
-    }
-    save_buffer(
-        out / "buffer.zarr",
-        result.buffer,
-        {key: meta[key] for key in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
-        | {"objective": k},
-    )
+    params = {"train_specialist": td3.model_dump(), "train_pderl": cfg.model_dump()}
+    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
+    meta |= {"trainer": "pderl", "env_frames": result.frames}
+    save_rl_agent(out, meta, k, result)
     save_policy_set(
         out / "policies.pt",
         [result.actor, *result.actors],
         ["rl", *(f"pop{i}" for i in range(len(result.actors)))],
         [result.rl_fitness, *result.fitness],
         meta | {"objective": k},
-    )
-    save_policy(out / "policy.pt", result.actor, meta | {"objective": k}, result.actor_target)
-    save_critics(
-        out / "critics.pt",
-        result.critic,
-        result.critic_target,
-        meta | {"buffer_objective": k, "objectives": result.objectives, "source": "joint"},
     )
     write_text_atomic(out / "fitness.csv", fitness_csv(result))
 

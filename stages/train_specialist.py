@@ -76,9 +76,9 @@ def train_specialist(
             save_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
 
 
-def save_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
-    """Write one specialist's four artifacts (each atomically) into `out`."""
-    meta = {
+def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) -> dict:
+    """Metadata every specialist artifact carries (TD3 and PDERL alike; extraction cross-checks it)."""
+    return {
         "env_id": spec.env_id,
         "obs_dim": spec.obs_dim,
         "act_dim": spec.act_dim,
@@ -86,25 +86,37 @@ def save_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: Train
         "max_episode_steps": spec.max_episode_steps,
         "action_low": list(spec.action_low),
         "action_high": list(spec.action_high),
-        "hidden_sizes": list(cfg.hidden_sizes),
-        "seed": result.seed,
-        "params": {"env": env_p.model_dump(), "train_specialist": cfg.model_dump()},
+        "hidden_sizes": list(hidden_sizes),
+        "seed": seed,
+        "params": {"env": env_p.model_dump(), **params},
         "provenance": provenance(device),
     }
-    k = result.objective
+
+
+def save_rl_agent(out: Path, meta: dict, objective: int, result) -> None:
+    """Write an RL agent's buffer.zarr, policy.pt and critics.pt (each atomically) into `out`.
+
+    `result` has buffer, actor, actor_target, critic, critic_target and objectives
+    (a SpecialistResult, or a PderlResult for PDERL's RL agent)."""
     save_buffer(
         out / "buffer.zarr",
         result.buffer,
         {key: meta[key] for key in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
-        | {"objective": k},
+        | {"objective": objective},
     )
-    save_policy(out / "policy.pt", result.actor, meta | {"objective": k}, result.actor_target)
+    save_policy(out / "policy.pt", result.actor, meta | {"objective": objective}, result.actor_target)
     save_critics(
         out / "critics.pt",
         result.critic,
         result.critic_target,
-        meta | {"buffer_objective": k, "objectives": result.objectives, "source": "joint"},
+        meta | {"buffer_objective": objective, "objectives": result.objectives, "source": "joint"},
     )
+
+
+def save_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
+    """Write one specialist's four artifacts (each atomically) into `out`."""
+    meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()}, device)
+    save_rl_agent(out, meta, result.objective, result)
     write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
 
 
