@@ -29,9 +29,10 @@ repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install
-	@# the optional Ray extra too, so tests/test_sweep.py runs instead of skipping its Ray tests
-	$(BIN)/pip install -q -e ".[dev,sweep]" >> $(VENV)/install.log 2>&1 \
-	  || { cat $(VENV)/install.log; echo "install of .[sweep] failed (log: $(VENV)/install.log)"; exit 1; }
+	@# the optional extras too (Ray, morl-baselines), so tests/test_sweep.py and tests/test_morld.py
+	@# run instead of skipping
+	$(BIN)/pip install -q -e ".[dev,sweep,baselines]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[sweep,baselines] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
 
 bench: install

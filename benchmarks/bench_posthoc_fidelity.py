@@ -4,7 +4,7 @@ Fits post-hoc critics on one specialist's buffer (as `mapex fit-critics` does, w
 stopping rule) and prints, every --check-every steps, each objective's normalised error,
 Pearson correlation and mean Q vs mean return, scored with the target actor.
 
-    python benchmarks/bench_posthoc_fidelity.py --specialist data/specialists/seed0/obj0 --objective 0
+    python benchmarks/bench_posthoc_fidelity.py --specialist data/specialists/td3/seed0/obj0 --objective 0
     python benchmarks/bench_posthoc_fidelity.py ... --tau 0.05 --target-update-freq 1 --steps 16000
 """
 

@@ -1,6 +1,6 @@
 """Compare extraction variants on the same specialists: final hypervolume and distinct front size.
 
-    python benchmarks/sweep_extract.py --specialists data/specialists/seed0 --params params.yaml \
+    python benchmarks/sweep_extract.py --specialists data/specialists/td3/seed0 --params params.yaml \
         "paper:" "warmup_only:epochs=0" "range:advantage_norm=objective_range" "zscore:advantage_norm=zscore"
 
 Each argument is NAME:KEY=VALUE,KEY=VALUE overriding the `extract` section. Every variant runs

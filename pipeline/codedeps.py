@@ -95,10 +95,10 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
             out.append(line)
             i += 1
             block: list[str] = []
-            while i < len(lines) and lines[i].startswith("      - "):
+            while i < len(lines) and lines[i].startswith(("      - ", "      #")):  # entries and comments
                 block.append(lines[i])
                 i += 1
-            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/"))]
+            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/"))]  # comments stay with the data deps
             code = sorted(set(module_closure(f"stages.{stage}")) | {"stages/cli.py"})
             new = data + [f"      - {c}\n" for c in code]
             if new != block:

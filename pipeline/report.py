@@ -1,7 +1,10 @@
 """The experiment report: figures and markdown tables from evaluated runs. No file paths here.
 
-A `Run` is one (variant, seed): the evaluate stage's re-evaluated returns plus the score
-stage's metrics, front, hypervolume history and provenance. Figures are matplotlib `Figure`s
+A `Run` is one (method, seed): the evaluate stage's re-evaluated returns plus the score
+stage's metrics, front, hypervolume history and provenance. A method is an extraction variant
+from one kind of specialists (mapex_pderl = the paper's MAPEX, mapex_posthoc_pderl =
+MAPEX-PostHoc, mapex_td3 = MAPEX-TD3, warmup_only_<kind> = the ablation) or a baseline
+(mopderl, morld); every method's population is scored by the same evaluator. Figures are matplotlib `Figure`s
 rendered with Agg (no pyplot, no global backend state); tables and the verdict are markdown
 strings computed from the numbers. Mean +- SEM across seeds as in the paper's Table 1.
 """
@@ -20,9 +23,27 @@ from matplotlib.ticker import MaxNLocator
 
 from pipeline.metrics import mean_sem
 
-VARIANT_ORDER = ("mapex", "warmup_only")
-LABELS = {"mapex": "MAPEX", "warmup_only": "warm-up only", "specialists": "specialists only"}
-COLOURS = {"mapex": "tab:blue", "warmup_only": "tab:orange"}
+VARIANT_ORDER = ("mapex_pderl", "mapex_posthoc_pderl", "warmup_only_pderl", "mapex_td3", "mapex_posthoc_td3",
+                 "warmup_only_td3", "mopderl", "morld")
+LABELS = {
+    "mapex_pderl": "MAPEX", "mapex_posthoc_pderl": "MAPEX-PostHoc", "warmup_only_pderl": "warm-up only (PDERL)",
+    "mapex_td3": "MAPEX-TD3", "mapex_posthoc_td3": "MAPEX-TD3-PostHoc", "warmup_only_td3": "warm-up only (TD3)",
+    "mopderl": "MOPDERL", "morld": "MORL/D",
+    "specialists_pderl": "PDERL specialists only", "specialists_td3": "TD3 specialists only",
+}
+COLOURS = {"mapex_pderl": "tab:blue", "mapex_posthoc_pderl": "tab:cyan", "warmup_only_pderl": "tab:gray",
+           "mapex_td3": "tab:green", "mapex_posthoc_td3": "tab:olive", "warmup_only_td3": "tab:orange",
+           "mopderl": "tab:red", "morld": "tab:purple"}
+# Comparisons the verdict section states when both methods of a pair were run: (a, b, what a is).
+VERDICT_PAIRS = (
+    ("mapex_pderl", "warmup_only_pderl", "the advantage-weighted phase (MAPEX)"),
+    ("mapex_td3", "warmup_only_td3", "the advantage-weighted phase (MAPEX-TD3)"),
+    ("mapex_posthoc_pderl", "mapex_pderl", "MAPEX-PostHoc (post-hoc critics)"),
+    ("mapex_posthoc_td3", "mapex_td3", "MAPEX-TD3-PostHoc (post-hoc critics)"),
+    ("mapex_pderl", "mapex_td3", "MAPEX (PDERL specialists)"),
+    ("mapex_pderl", "mopderl", "MAPEX"),
+    ("mapex_pderl", "morld", "MAPEX"),
+)
 SPECIALIST_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive")  # by the specialist's objective
 
 
@@ -52,6 +73,16 @@ class Run:
 
 def label(variant: str) -> str:
     return LABELS.get(variant, variant)
+
+
+def specialist_kind(method: str) -> str | None:
+    """The kind of specialists a method starts from: 'pderl' (MOPDERL's phase 2 too), 'td3', or
+    None (MORL/D starts from nothing)."""
+    if method == "mopderl" or method.endswith("_pderl"):
+        return "pderl"
+    if method.endswith("_td3"):
+        return "td3"
+    return None
 
 
 def variants_in(runs: list[Run]) -> list[str]:
@@ -96,34 +127,40 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
     variants' fronts dashed for comparison. Only objectives 0 and 1 are drawn.
     """
     variants = [v for v in variants_in(list(runs.values()))]
-    fig = _figure(width, width * 0.42 if len(variants) > 1 else width * 0.6)
-    axes = np.atleast_1d(fig.subplots(1, len(variants), sharex=True, sharey=True, squeeze=False)[0])
+    cols = min(len(variants), 3)
+    rows = -(-len(variants) // cols)
+    fig = _figure(width, (width / cols) * 0.95 * rows if len(variants) > 1 else width * 0.6)
+    grid = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)
+    for ax in grid.flat[len(variants):]:
+        ax.set_visible(False)
+    axes = grid.flat[: len(variants)]
     max_it = max(max(int(r.iteration.max()), 1) for r in runs.values())
     norm = Normalize(vmin=1, vmax=max_it)
     mappable = None
     for ax, v in zip(axes, variants):
         run = runs[v]
-        pts, child = run.returns[:, :2], run.origin == "child"
+        pts, child = run.returns[:, :2], run.origin != "specialist"  # whatever the method made
         for other in variants:
             if other != v:
                 _front_line(ax, runs[other].returns[runs[other].on_front, :2], color=COLOURS.get(other, "grey"),
                             ls="--", lw=1.2, alpha=0.8, label=f"{label(other)} front")
         _front_line(ax, pts[run.on_front], color="black", lw=1.2, label=f"{label(v)} front")
         if child.any():
-            mappable = ax.scatter(pts[child, 0], pts[child, 1], c=run.iteration[child], cmap="viridis", norm=norm,
-                                  s=22, alpha=0.85, label="children (colour: iteration)")
+            mappable = ax.scatter(pts[child, 0], pts[child, 1], c=np.maximum(run.iteration[child], 1), cmap="viridis", norm=norm,
+                                  s=22, alpha=0.85, label="made by the method (colour: iteration)")
         nd = child & run.on_front
         if nd.any():
             ax.scatter(pts[nd, 0], pts[nd, 1], s=70, facecolors="none", edgecolors="black", lw=1.2,
-                       label="non-dominated child")
+                       label="non-dominated")
         _starting_policies(ax, run, pts)
         ax.set_title(f"{label(v)} - {env_id}, seed {seed}")
         ax.set_xlabel(names[0])
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small", loc="best")
-    axes[0].set_ylabel(names[1])
+    for row in grid:
+        row[0].set_ylabel(names[1])
     if mappable is not None:
-        cbar = fig.colorbar(mappable, ax=list(axes), label="iteration", shrink=0.9)
+        cbar = fig.colorbar(mappable, ax=list(axes), label="iteration (MOPDERL: generation)", shrink=0.9)
         cbar.locator = MaxNLocator(integer=True)
         cbar.update_ticks()
     fig.suptitle(f"Re-evaluated fronts: {env_id}, seed {seed}")
@@ -181,12 +218,12 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
                   colour, name, len(rs), ls)
     ax_it.set_xlabel("iteration")
     ax_it.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax_s.set_xlabel("cumulative env samples (extraction evaluations)")
+    ax_s.set_xlabel("cumulative env frames after the specialists (MAPEX: evaluations; MOPDERL: all of phase 2)")
     ax_it.set_ylabel("hypervolume")
     for ax in (ax_it, ax_s):
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small", loc="best")
-    fig.suptitle(f"Hypervolume of the population during extraction: {env_id}")
+    fig.suptitle(f"Hypervolume of the population as each method runs: {env_id}")
     return fig
 
 
@@ -212,12 +249,20 @@ def fmt_mean_sem(values: list[float | None]) -> str:
     return text if len(v) == len(values) else f"{text} ({len(v)} of {len(values)} seeds)"
 
 
-def specialist_metrics(runs: list[Run]) -> list[dict]:
-    """The specialists' metrics once per seed (every variant of a seed re-evaluates the same specialists)."""
+def specialist_metrics(runs: list[Run], kind: str | None = None) -> list[dict]:
+    """The specialists' metrics once per seed (every method of a seed from one kind of
+    specialists re-evaluates the same ones): of the runs starting from `kind` (all when None)."""
     by_seed: dict[int, dict] = {}
-    for r in sorted(runs, key=lambda r: (r.seed, VARIANT_ORDER.index(r.variant) if r.variant in VARIANT_ORDER else 9)):
-        by_seed.setdefault(r.seed, r.metrics["specialists"])
+    for r in sorted(runs, key=lambda r: (r.seed, VARIANT_ORDER.index(r.variant) if r.variant in VARIANT_ORDER else 99)):
+        if kind is None or specialist_kind(r.variant) == kind:
+            by_seed.setdefault(r.seed, r.metrics["specialists"])
     return [by_seed[s] for s in sorted(by_seed)]
+
+
+def specialist_groups(runs: list[Run]) -> list[str]:
+    """'specialists_pderl', 'specialists_td3': one per kind of specialists the runs start from."""
+    kinds = {specialist_kind(r.variant) for r in runs} - {None}
+    return [f"specialists_{k}" for k in ("pderl", "td3") if k in kinds]
 
 
 TABLE_METRICS = (("hypervolume", "Hypervolume (↑)"), ("sparsity", "Sparsity (↓)"),
@@ -227,12 +272,13 @@ TABLE_METRICS = (("hypervolume", "Hypervolume (↑)"), ("sparsity", "Sparsity (�
 def paper_table(runs: list[Run], env_id: str) -> str:
     """The paper's Table 1 layout (one row per env, a column group per metric) for every variant
     and the specialists: its two metrics (hypervolume, sparsity) plus two it does not report."""
-    groups = [*variants_in(runs), "specialists"]
+    groups = [*variants_in(runs), *specialist_groups(runs)]
     header = ["Environment"] + [f"{title} {label(g)}" for _, title in TABLE_METRICS for g in groups]
     cells = [env_id]
     for key, _ in TABLE_METRICS:
         for g in groups:
-            ms = specialist_metrics(runs) if g == "specialists" else [r.metrics["front"] for r in runs if r.variant == g]
+            ms = (specialist_metrics(runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
+                  else [r.metrics["front"] for r in runs if r.variant == g])
             cells.append(fmt_mean_sem([m[key] for m in ms]))
     return _md_table(header, [cells])
 
@@ -242,15 +288,16 @@ def _count(runs: list[Run], origin: str) -> str:
 
 
 def details_table(runs: list[Run]) -> str:
-    """Per variant: starting policies and children (members of each kind), HV ratio vs
-    specialists, HV fraction, PGMORL sparsity, cardinality, extraction-time HV, budget."""
-    header = ["Variant", "seeds", "starting policies", "children", "HV / HV(specialists)", "HV fraction of [ref, ideal] box",
-              "sparsity (PGMORL)", "cardinality", "extraction-time HV", "iterations", "env samples (extraction)"]
+    """Per method: starting policies and members it made, HV ratio vs its specialists, HV
+    fraction, PGMORL sparsity, cardinality, training-time HV, iterations and env frames."""
+    header = ["Method", "seeds", "starting policies", "made by the method", "HV / HV(specialists)", "HV fraction of [ref, ideal] box",
+              "sparsity (PGMORL)", "cardinality", "extraction/training-time HV", "iterations", "env frames (after specialists)"]
     rows = []
     for v in variants_in(runs):
         rs = [r for r in runs if r.variant == v]
         m = [r.metrics for r in rs]
-        rows.append([label(v), str(len(rs)), _count(rs, "specialist"), _count(rs, "child"),
+        made = fmt_mean_sem([float((r.origin != "specialist").sum()) for r in rs])
+        rows.append([label(v), str(len(rs)), _count(rs, "specialist"), made,
                      fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
                      fmt_mean_sem([x["front"]["hv_fraction"] for x in m]),
                      fmt_mean_sem([x["front"]["sparsity_pgmorl"] for x in m]),
@@ -258,11 +305,14 @@ def details_table(runs: list[Run]) -> str:
                      fmt_mean_sem([x["extraction_hypervolume"] for x in m]),
                      fmt_mean_sem([x["iterations"] for x in m]),
                      fmt_mean_sem([x["env_samples_extraction"] for x in m])])
-    sm = specialist_metrics(runs)
-    one_per_seed = list({r.seed: r for r in runs}.values())  # every variant of a seed starts from the same policies
-    # the specialists' HV fraction depends on which variant's box it was measured in: not shown
-    rows.append([label("specialists"), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
-                 fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
+    for g in specialist_groups(runs):
+        kind = g.removeprefix("specialists_")
+        sm = specialist_metrics(runs, kind)
+        # every method of a seed from this kind starts from the same policies
+        one_per_seed = list({r.seed: r for r in runs if specialist_kind(r.variant) == kind}.values())
+        # the specialists' HV fraction depends on which method's box it was measured in: not shown
+        rows.append([label(g), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
+                     fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
     return _md_table(header, rows)
 
 
@@ -303,45 +353,94 @@ def _percent(diff: float, base: float) -> str:
     return f"{diff / abs(base) * 100:+.1f}%" if base != 0 else "n/a"
 
 
-def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> Verdict:
-    """Did the advantage-weighted phase (mapex) beat warm-up only on re-evaluated hypervolume?
+def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0, a: str = "mapex_td3",
+               b: str = "warmup_only_td3", what: str | None = None) -> Verdict:
+    """Did method `a` beat method `b` on re-evaluated hypervolume? (Default: MAPEX-TD3 vs its
+    warm-up only ablation, i.e. did the advantage-weighted phase help.)
 
-    Paired over the seeds that have both variants; the rule is `verdict_outcome`'s, and the
-    sentence states it with the numbers: each variant's mean ± SEM over those seeds, the mean
-    paired difference ± its SEM (also relative to warm-up only's mean), and in how many seeds
-    MAPEX was higher and lower. With one seed it says there is no noise estimate.
+    Paired over the seeds that have both methods; the rule is `verdict_outcome`'s, and the
+    sentence states it with the numbers: each method's mean ± SEM over those seeds, the mean
+    paired difference ± its SEM (also relative to b's mean), and in how many seeds a was higher
+    and lower. With one seed it says there is no noise estimate. `what` names a in the sentence.
     """
+    la, lb = label(a), label(b)
+    what = what or next((w for x, y, w in VERDICT_PAIRS if (x, y) == (a, b)), la)
     hv = {(r.variant, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
-    seeds = sorted(s for (v, s) in hv if v == "mapex" and ("warmup_only", s) in hv)
+    seeds = sorted(s for (v, s) in hv if v == a and (b, s) in hv)
     if not seeds:
-        return Verdict("unknown", "Cannot say whether the advantage-weighted phase (MAPEX) beat warm-up only on "
-                                  "hypervolume: no seed has evaluated results for both variants.")
-    a = np.array([hv[("mapex", s)] for s in seeds], dtype=float)
-    b = np.array([hv[("warmup_only", s)] for s in seeds], dtype=float)
-    d = a - b
+        return Verdict("unknown", f"Cannot say whether {what} beat {lb} on hypervolume: no seed has evaluated "
+                                  f"results for both.")
+    x = np.array([hv[(a, s)] for s in seeds], dtype=float)
+    y = np.array([hv[(b, s)] for s in seeds], dtype=float)
+    d = x - y
     n = len(seeds)
-    outcome = verdict_outcome(d, b, min_difference, noise_sems)
-    iters = max(int(r.metrics["iterations"]) for r in runs)
-    tally = f"MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}"
+    outcome = verdict_outcome(d, y, min_difference, noise_sems)
+    iters = max(int(r.metrics["iterations"]) for r in runs if r.variant in (a, b))
+    tally = f"{la} was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}"
     if n > 1:
-        (am, asem), (bm, bsem), (dm, dsem) = mean_sem(a), mean_sem(b), mean_sem(d)
+        (am, asem), (bm, bsem), (dm, dsem) = mean_sem(x), mean_sem(y), mean_sem(d)
         z = f"{abs(dm) / dsem:.1f} SEM from zero" if dsem > 0 else "every seed's difference the same"
-        numbers = (f"Mean ± SEM over seeds {', '.join(map(str, seeds))}: MAPEX {fmt_num(am)} ± {fmt_num(asem)}, "
-                   f"warm-up only {fmt_num(bm)} ± {fmt_num(bsem)}. Paired by seed, MAPEX - warm-up only = "
-                   f"{fmt_num(dm)} ± {fmt_num(dsem)} (SEM; {_percent(dm, bm)} of warm-up only's mean, {z}); {tally}.")
+        numbers = (f"Mean ± SEM over seeds {', '.join(map(str, seeds))}: {la} {fmt_num(am)} ± {fmt_num(asem)}, "
+                   f"{lb} {fmt_num(bm)} ± {fmt_num(bsem)}. Paired by seed, {la} - {lb} = "
+                   f"{fmt_num(dm)} ± {fmt_num(dsem)} (SEM; {_percent(dm, bm)} of {lb}'s mean, {z}); {tally}.")
         rule = (f"Rule: 'beat' or 'lost to' needs the mean paired difference beyond {noise_sems:g} SEM of the "
                 f"paired differences (report.noise_sems) and the same sign in more than half of the seeds; "
                 f"otherwise 'tied with': inside the seed noise.")
     else:
-        numbers = (f"One seed only ({seeds[0]}), so no estimate of seed noise: MAPEX {fmt_num(float(a[0]))}, "
-                   f"warm-up only {fmt_num(float(b[0]))}, difference {fmt_num(float(d[0]))} "
-                   f"({_percent(float(d[0]), float(b[0]))}); {tally}.")
-        rule = (f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of warm-up only's hypervolume "
+        numbers = (f"One seed only ({seeds[0]}), so no estimate of seed noise: {la} {fmt_num(float(x[0]))}, "
+                   f"{lb} {fmt_num(float(y[0]))}, difference {fmt_num(float(d[0]))} "
+                   f"({_percent(float(d[0]), float(y[0]))}); {tally}.")
+        rule = (f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of {lb}'s hypervolume "
                 f"(report.min_difference) counts as a tie.")
     verb = {"beat": "beat", "lost": "lost to", "tied": "tied with"}[outcome]
-    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} extraction iterations), the "
-            f"advantage-weighted phase (MAPEX) {verb} warm-up only on re-evaluated hypervolume. {numbers} {rule}")
+    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} iterations), {what} {verb} {lb} on "
+            f"re-evaluated hypervolume. {numbers} {rule}")
     return Verdict(outcome, text)
+
+
+def verdicts(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> list[Verdict]:
+    """One verdict per pair of VERDICT_PAIRS whose two methods were both run (paired by seed)."""
+    present = {r.variant for r in runs}
+    return [hv_verdict(runs, min_difference, noise_sems, a, b, what) for a, b, what in VERDICT_PAIRS
+            if a in present and b in present]
+
+
+def frames_to_reach(runs: list[Run], a: str, b: str, fractions: tuple[float, ...] = (0.5, 0.9, 1.0)) -> dict[float, list[float | None]]:
+    """Per fraction f: for each seed with both methods, the cumulative env frames after which
+    method a's population (re-evaluated hypervolume history) first reaches f x method b's final
+    re-evaluated hypervolume; None where it never does."""
+    by = {(r.variant, r.seed): r for r in runs}
+    seeds = sorted(s for (v, s) in by if v == a and (b, s) in by)
+    out: dict[float, list[float | None]] = {f: [] for f in fractions}
+    for s in seeds:
+        ra, target = by[(a, s)], by[(b, s)].metrics["front"]["hypervolume"]
+        hv, frames = ra.history["hypervolume"], ra.history["env_samples"]
+        for f in fractions:
+            hit = np.flatnonzero(hv >= f * target)
+            out[f].append(float(frames[hit[0]]) if len(hit) else None)
+    return out
+
+
+def sample_efficiency_table(runs: list[Run], pairs: tuple[tuple[str, str], ...] = (("mapex_pderl", "mopderl"),
+                            ("mopderl", "mapex_pderl"), ("mapex_posthoc_pderl", "mopderl"), ("mopderl", "mapex_posthoc_pderl"))) -> str:
+    """Env frames each method needs to reach 50%, 90% and 100% of the other's final re-evaluated
+    hypervolume, from the same specialists (mean ± SEM over the seeds that reached it); '' when
+    no pair was run."""
+    rows = []
+    present = {r.variant for r in runs}
+    for a, b in pairs:
+        if a not in present or b not in present:
+            continue
+        reach = frames_to_reach(runs, a, b)
+        cells = []
+        for f, vals in reach.items():
+            got = [v for v in vals if v is not None]
+            cell = fmt_mean_sem(got) if got else "never"
+            cells.append(cell if len(got) == len(vals) else f"{cell} (reached in {len(got)} of {len(vals)} seeds)")
+        rows.append([label(a), label(b), *cells])
+    if not rows:
+        return ""
+    return _md_table(["method", "target: final HV of", "frames to 50%", "frames to 90%", "frames to 100%"], rows)
 
 
 PROVENANCE_STAGES = ("extract", "evaluate", "score")
@@ -397,15 +496,16 @@ def report_markdown(
     lines = [
         f"# MAPEX report: {env_id}",
         "",
-        f"- variants: {', '.join(label(v) for v in variants_in(runs))}",
+        f"- methods: {', '.join(f'{label(v)} ({v})' for v in variants_in(runs))}",
         f"- seeds: {', '.join(map(str, seeds))}",
         f"- objectives: {', '.join(f'{i}: {n}' for i, n in enumerate(names))}",
         f"- hypervolume reference point: {ref}",
         *(f"- {k}: {v}" for k, v in context.items()),
         "",
-        "## Verdict",
+        "## Verdicts",
         "",
-        hv_verdict(runs, min_difference, noise_sems).sentence,
+        *(line for v in verdicts(runs, min_difference, noise_sems) for line in (f"- {v.sentence}",)),
+        *(["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."] if not verdicts(runs) else []),
         "",
         "## Metrics of the re-evaluated final fronts",
         "",
@@ -413,10 +513,16 @@ def report_markdown(
         "Table 1 (one row per environment, a column group per metric); the paper reports hypervolume and "
         "sparsity only, expected utility and distinct points are added here. 'specialists only' is the front "
         "of the specialists alone: every starting policy (all of each specialist's policy set, one policy for a "
-        "TD3 specialist), before any child. 'starting policies' and 'children' count the population's members.",
+        "TD3 specialist), before any child. 'starting policies' and 'made by the method' count the population's "
+        "members (MAPEX: its children; MOPDERL: the phase-2 individuals that entered its archive; MORL/D: its policies).",
         "",
         paper_table(runs, env_id),
         details_table(runs),
+        *(["## Sample efficiency: extraction vs distillation from the same specialists", "",
+           "Cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: every "
+           "phase-2 frame) until a method's population first reaches a fraction of the other's final "
+           "re-evaluated hypervolume, on the re-evaluated hypervolume history.", "", eff]
+          if (eff := sample_efficiency_table(runs)) else []),
         "## Figures",
         "",
     ]

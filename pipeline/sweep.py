@@ -8,7 +8,7 @@ set): its params.yaml is the base params (or the env's preset) with the env's an
 set's values merged in and the grid's seeds. dvc.yaml already fans a params.yaml out over seeds,
 objectives and variants, so a cell is one ordinary DVC workspace (a clone of the project's HEAD
 commit with the cell's params.yaml, dvc.lock removed) and its stage items (`train_specialist@0`,
-`extract@0-mapex`, ..., `report`) are exactly what `dvc repro` would run there.
+`extract@0-td3-mapex`, ..., `report`) are exactly what `dvc repro` would run there.
 
 Tasks: one Ray task per stage item, from DVC's own DAG (`Repo.index.graph` of the cell
 workspace). A task's arguments are the results of its direct upstream tasks, so Ray runs it only
@@ -245,24 +245,13 @@ def _yaml_at(repo: Path, commit: str, path: str, where: str) -> dict[str, Any]:
 
 def validate_params(params: dict[str, Any], where: str) -> None:
     """Check a cell's params with the stages' own pydantic models, before anything runs."""
-    from pipeline.params import EnvParams, RunParams, section
-    from pipeline.params.critic_fidelity import CriticFidelityParams
-    from pipeline.params.evaluate import EvaluateParams
-    from pipeline.params.extract import ExtractParams
-    from pipeline.params.fit_critics import FitCriticsParams
-    from pipeline.params.report import ReportParams
-    from pipeline.params.score import ScoreParams
-    from pipeline.params.train_pderl import TrainPderlParams
-    from pipeline.params.train_specialist import TrainSpecialistParams
+    from pipeline.params import section
+    from pipeline.params.registry import section_models
 
     unknown = sorted(set(params) - set(KNOWN_SECTIONS))
     if unknown:
         raise GridError(f"{where}: unknown top-level params key(s) {unknown}; expected some of {list(KNOWN_SECTIONS)}")
-    models = {
-        "env": EnvParams, "": RunParams, "train_specialist": TrainSpecialistParams, "train_pderl": TrainPderlParams,
-        "fit_critics": FitCriticsParams, "critic_fidelity": CriticFidelityParams, "extract": ExtractParams,
-        "evaluate": EvaluateParams, "score": ScoreParams, "report": ReportParams,
-    }
+    models = section_models()
     for name, model in models.items():
         try:
             section(params, name, model, where)
@@ -306,8 +295,9 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
             cell_params = merge(params, over or {})
             if grid.seeds is not None:
                 cell_params["seeds"] = list(grid.seeds)
-                if "pderl_seeds" in cell_params:  # PDERL only for the grid's seeds the preset trains it for
-                    cell_params["pderl_seeds"] = [s for s in cell_params["pderl_seeds"] or [] if s in grid.seeds]
+                for key in ("pderl_seeds", "mopderl_seeds", "morld_seeds"):  # [] or every seed (RunParams)
+                    if cell_params.get(key):
+                        cell_params[key] = list(grid.seeds)
             name = f"{env_name}.{set_name}" if set_name else env_name
             validate_params(cell_params, f"{grid_path}: cell {name}")
             # No cell or grid name in the text, so that cells of equal params are equal checkouts.
@@ -374,7 +364,7 @@ def _run_dvc(cwd: Path, env: dict[str, str], *args: str) -> str:
 class StageItem:
     """One stage item of a cell's DAG, as DVC sees it."""
 
-    name: str  # dvc addressing, e.g. extract@0-mapex
+    name: str  # dvc addressing, e.g. extract@0-td3-mapex
     stage: str  # dvc.yaml stage name, e.g. extract
     upstream: tuple[str, ...]  # direct upstream items
     pull: tuple[str, ...]  # upstream outputs inside a folder dep (pulled before `dvc repro --pull`)

@@ -14,6 +14,7 @@ from stages.train_specialist import train_specialist
 from stages.train_pderl import train_pderl
 from stages.evaluate import evaluate
 from stages.score import score
+from stages.morld import morld
 from stages.sweep import sweep
 from stages.report import report
 
@@ -46,6 +47,7 @@ app.command("extract")(extract)
 app.command("evaluate")(evaluate)
 app.command("score")(score)
 app.command("report")(report)
+app.command("morld")(morld)
 app.command("sweep")(sweep)
 
 

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from pipeline.artifacts import ArtifactError
 from pipeline.envs import EnvError
-from pipeline.params import EnvParams, ParamsError, load_params, section
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 
 F = TypeVar("F", bound=Callable[..., Any])
 M = TypeVar("M", bound=BaseModel)
@@ -36,8 +36,10 @@ def reports_errors(fn: F) -> F:
 
 
 def read_params(path: Path, name: str, model: type[M]) -> tuple[dict[str, Any], EnvParams, M]:
-    """Load params.yaml and validate the `env` section and stage section `name`."""
+    """Load params.yaml and validate the `env` section, the top-level lists (RunParams: they must
+    agree with each other) and stage section `name`."""
     raw = load_params(path)
+    section(raw, "", RunParams, path)
     return raw, section(raw, "env", EnvParams, path), section(raw, name, model, path)
 
 

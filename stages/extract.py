@@ -22,6 +22,7 @@ from pipeline.extraction import AdvantageConfig, ChildConfig, ChildSeeds, make_c
 from pipeline.nets import Actor
 from pipeline.pareto import hypervolume, pareto_mask
 from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.common import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
 from pipeline.params.extract import ExtractParams
 from pipeline.policyset import load_policy_set
 from pipeline.population import Member, actor_state, member_actor, save_population
@@ -62,14 +63,15 @@ def check_slot(k: int, seed: int, spec_meta: dict, policy: Claim, buffer: Claim,
 
 
 def check_critics(crit_path: Path, cmeta: dict, buf_path: Path, attrs: dict, mode: str, n_objectives: int) -> None:
-    """The critics are of the kind extract.critics asks for, cover every objective and, if
+    """The critics are of the kind the variant reads (mapex_posthoc: posthoc, else joint), cover every objective and, if
     fitted post hoc, were fitted on exactly this buffer (their recorded buffer checksums)."""
     if cmeta.get("source") != mode:
-        raise ArtifactError(f"{crit_path}: critics of source {cmeta.get('source')!r} beside {buf_path}, but extract.critics = {mode!r}")
+        raise ArtifactError(f"{crit_path}: critics of source {cmeta.get('source')!r} beside {buf_path}, but the variant "
+                            f"reads {mode!r} critics (mapex_posthoc: posthoc; the others: joint)")
     if cmeta["objectives"] != list(range(n_objectives)):
         raise ArtifactError(
             f"{crit_path}: critics covering objectives {cmeta['objectives']}; expected all of {list(range(n_objectives))} "
-            f"for {buf_path} (train with train_specialist.secondary_critics: true, or use extract.critics: posthoc)"
+            f"for {buf_path} (train with train_specialist.secondary_critics: true, or use --variant mapex_posthoc)"
         )
     if mode != "posthoc":
         return
@@ -98,10 +100,20 @@ def policies_path(spec_root: Path, k: int) -> Path:
     return slot / "policies.pt" if (slot / "policies.pt").exists() else slot / "policy.pt"
 
 
-def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int], spec_meta: dict, seed: int, critics_mode: str):
+def specialist_kind(meta: dict) -> str | None:
+    """'pderl' or 'td3' from a specialist artifact's recorded params; None if it records none."""
+    params = meta.get("params")
+    if not isinstance(params, dict):
+        return None
+    return "pderl" if "train_pderl" in params else "td3" if "train_specialist" in params else None
+
+
+def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int], spec_meta: dict, seed: int, critics_mode: str,
+                     kind: str | None = None):
     """Starting policies, buffers and critics of specialists 0..m-1, each slot cross-checked
-    (see check_slot). Returns (starting policies, slot by slot in each set's order, buffers,
-    critics, the files read)."""
+    (see check_slot; and, given `kind`, that the policies are of that kind where their metadata
+    says). Returns (starting policies, slot by slot in each set's order, buffers, critics, the
+    files read)."""
     starts, buffers, critics, files = [], [], [], []
     for k in objectives:
         pol_path, buf_path = policies_path(spec_root, k), spec_root / f"obj{k}" / "buffer.zarr"
@@ -111,6 +123,9 @@ def load_specialists(spec_root: Path, critics_root: Path, objectives: list[int],
         online, _, cmeta = load_critics(crit_path)
         check_slot(k, seed, spec_meta, (pol_path, pset.meta, "objective"), (buf_path, attrs, "objective"), (crit_path, cmeta, "buffer_objective"))
         check_critics(crit_path, cmeta, buf_path, attrs, critics_mode, spec_meta["n_objectives"])
+        found = specialist_kind(pset.meta)
+        if kind is not None and found is not None and found != kind:
+            raise ArtifactError(f"{pol_path}: a {found} specialist, but --kind is {kind!r}")
         starts += [StartingPolicy(k, name, actor, list(pset.meta["hidden_sizes"])) for name, actor in zip(pset.names, pset.actors)]
         buffers.append(data)
         critics.append(online)
@@ -148,10 +163,12 @@ def normalised_hypervolume(returns: np.ndarray) -> float:
 @reports_errors
 def extract(
     seed: int = typer.Option(0, help="run seed (selects the specialists of this seed and seeds every draw)"),
-    variant: str = typer.Option("mapex", help="'mapex' (Algorithm 1) or 'warmup_only' (ablation: epochs = 0)"),
+    variant: str = typer.Option("mapex", help="'mapex' (Algorithm 1 with the specialists' joint critics), 'mapex_posthoc' "
+                                              "(with critics fitted post hoc, --posthoc) or 'warmup_only' (ablation: epochs = 0)"),
+    kind: str = typer.Option("td3", help="the kind of specialists: 'td3' or 'pderl'; the run is method VARIANT_KIND (mapex_td3, ...)"),
     specialists: Path = typer.Option(..., help="directory with, per objective K, obj{K}/policies.pt (a policy set, e.g. PDERL's) "
                                           "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt"),
-    posthoc: Path = typer.Option(None, help="directory with obj{K}/critics.pt fitted post hoc (used if extract.critics = posthoc)"),
+    posthoc: Path = typer.Option(None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
     resume_dir: Path = typer.Option(Path("data/resume"), help="where progress is checkpointed after every iteration"),
     params: Path = PARAMS_OPTION,
@@ -176,8 +193,12 @@ def extract(
     """
     raw, env_p, cfg = read_params(params, "extract", ExtractParams)
     run = section(raw, "", RunParams, params)
-    if variant not in ("mapex", "warmup_only"):
-        raise ParamsError(f"--variant {variant!r}: expected 'mapex' or 'warmup_only'")
+    if variant not in EXTRACT_VARIANTS:
+        raise ParamsError(f"--variant {variant!r}: expected one of {list(EXTRACT_VARIANTS)}")
+    if kind not in SPECIALIST_KINDS:
+        raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
+    method = method_name(variant, kind)
+    critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
     try:
         cfg = cfg.resolved(env_p.id)
     except ValueError as exc:
@@ -194,13 +215,13 @@ def extract(
         )
     if sorted(run.objectives) != list(range(spec.n_objectives)):
         raise ParamsError(f"{params}: objectives = {run.objectives}: extraction needs one specialist per objective 0..{spec.n_objectives - 1}")
-    if cfg.critics == "posthoc" and posthoc is None:
-        raise ParamsError("extract.critics = 'posthoc' but no --posthoc directory was given")
+    if critics_mode == "posthoc" and posthoc is None:
+        raise ParamsError("--variant mapex_posthoc reads post-hoc critics, but no --posthoc directory was given")
     spec_meta = {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives}
     bounds = {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
-    critics_root = posthoc if cfg.critics == "posthoc" else specialists
+    critics_root = posthoc if critics_mode == "posthoc" else specialists
     starts, buffers, critics, files = load_specialists(
-        specialists, critics_root, list(range(spec.n_objectives)), spec_meta, seed, cfg.critics
+        specialists, critics_root, list(range(spec.n_objectives)), spec_meta, seed, critics_mode, kind
     )
 
     device = select_device(cfg.device)
@@ -209,9 +230,10 @@ def extract(
     # Everything that can change the artifacts: params, inputs, every code file the stage
     # runs, and the device and thread count (which can change the last bits of results).
     # env.reference_point is not among them: it does not change what extraction computes.
-    config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant}
+    config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant,
+              "kind": kind, "critics": critics_mode}
     fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + closure_files("stages.extract"))
-    progress_dir = resume_dir / "extract" / variant / f"seed{seed}"
+    progress_dir = resume_dir / "extract" / method / f"seed{seed}"
     n_start = len(starts)  # the starting policies: member ids 0 .. n_start - 1
     saved = load_progress(progress_dir, fp)
     if saved is not None and (len(saved[0]) < n_start or (len(saved[0]) - n_start) % k_children):
@@ -243,7 +265,7 @@ def extract(
         AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute, cfg.advantage_norm),
     )
 
-    bar = progress(cfg.iterations * k_children, f"extract {variant} seed {seed}", unit="child")
+    bar = progress(cfg.iterations * k_children, f"extract {method} seed {seed}", unit="child")
     bar.update(done * k_children)
     with bar:
         for it in range(done + 1, cfg.iterations + 1):
@@ -265,7 +287,7 @@ def extract(
             bar.set_postfix_str(f"front {history[-1]['front_size']} HV(norm) {normalised_hypervolume(returns):.3f} child {fmt_vec(results[-1].mean)}", refresh=False)
             bar.update(k_children)
 
-    meta = {**spec_meta, **bounds, "seed": seed, "variant": variant, "params": config, "provenance": provenance(device)}
+    meta = {**spec_meta, **bounds, "seed": seed, "variant": method, "params": config, "provenance": provenance(device)}
     save_population(out / "population.pt", members, meta)
     write_text_atomic(out / "history.csv", history_csv(history))
     clear_progress(progress_dir)

@@ -26,29 +26,33 @@ HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolu
 
 @reports_errors
 def report(
-    evaluated: Path = typer.Option(..., help="root of the evaluate outputs, holding VARIANT/seedS/evaluated.csv"),
-    scored: Path = typer.Option(..., help="root of the score outputs, scanned for VARIANT/seedS/metrics.json"),
+    evaluated: Path = typer.Option(..., help="root of the evaluate outputs, holding METHOD/seedS/evaluated.csv"),
+    scored: Path = typer.Option(..., help="root of the score outputs, scanned for METHOD/seedS/metrics.json"),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
     params: Path = PARAMS_OPTION,
 ) -> None:
-    """Write the experiment report: verdict, metrics table, fronts, hypervolume curves, provenance.
+    """Write the experiment report: verdicts, metrics table, fronts, hypervolume curves, provenance.
 
-    Params: sections `env` (id, objective names), `seeds` and `report`. Reads every
-    SCORED/VARIANT/seedS (metrics.json, front.csv, hypervolume.csv, provenance.json from
-    `score`) of the seeds params.yaml lists, and EVALUATED/VARIANT/seedS/evaluated.csv (from
-    `evaluate`). Writes OUT/report.md with a verdict on MAPEX vs warm-up only (beyond the seed
-    noise or tied; report.noise_sems, report.min_difference), a Table-1-shaped metrics table
-    (mean ± SEM across seeds) and a details table (with the counts of starting policies and of
-    children), one front figure per seed (front_seedS.png: starting policies apart from the
-    children), the hypervolume history (hypervolume.png) and each run's provenance. The folder
-    is built beside OUT and renamed into place when complete.
+    Params: sections `env` (id, objective names), `seeds`, `methods` and `report`. Reads every
+    SCORED/METHOD/seedS (metrics.json, front.csv, hypervolume.csv, provenance.json from
+    `score`) of the seeds and methods params.yaml lists, and EVALUATED/METHOD/seedS/evaluated.csv
+    (from `evaluate`). Writes OUT/report.md with a verdict for each pair of comparable methods
+    that was run (MAPEX vs its warm-up only ablation, vs MAPEX-TD3, vs MOPDERL and MORL/D:
+    beyond the seed noise or tied; report.noise_sems, report.min_difference), a
+    Table-1-shaped metrics table (mean ± SEM across seeds) and a details table (counts of
+    starting policies and of the members each method made), the frames MAPEX and MOPDERL need
+    to reach each other's hypervolume (when both ran), one front figure per seed
+    (front_seedS.png: starting policies apart from the rest), the hypervolume history
+    (hypervolume.png) and each run's provenance. The folder is built beside OUT and renamed
+    into place when complete.
     """
     raw, env_p, cfg = read_params(params, "report", ReportParams)
-    seeds = section(raw, "", RunParams, params).seeds
-    # Only the seeds params.yaml names: folders of seeds dropped from the list may linger.
-    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds]
+    run_p = section(raw, "", RunParams, params)
+    seeds, methods = run_p.seeds, run_p.methods
+    # Only the seeds and methods params.yaml names: folders of ones dropped from the lists may linger.
+    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds and r.variant in methods]
     if not runs:
-        raise ArtifactError(f"{scored}: no scored run for seeds {seeds}")
+        raise ArtifactError(f"{scored}: no scored run for seeds {seeds} and methods {methods}")
     check_comparable(scored, runs, env_p.id)
     names = objective_names(env_p.id, runs[0].returns.shape[1], env_p.objective_names)
 
@@ -58,12 +62,12 @@ def report(
         by_variant = {r.variant: r for r in runs if r.seed == seed}
         figures[f"front_seed{seed}"] = front_figure(by_variant, names, env_p.id, seed, cfg.figure_width)
         captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member, starting policies "
-                                             f"as stars (one colour per specialist), children coloured by iteration; "
+                                             f"as stars (one colour per specialist), what each method made coloured by iteration; "
                                              f"{' vs '.join(label(v) for v in variants_in(list(by_variant.values())))} side by side.")
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
-    captions["hypervolume.png"] = ("Hypervolume of the population after each iteration, vs iteration and vs cumulative "
-                                   "extraction env samples: extraction-time returns (solid) and the same members "
-                                   "re-evaluated (dashed).")
+    captions["hypervolume.png"] = ("Hypervolume of the population after each iteration (MOPDERL: generation), vs "
+                                   "iteration and vs cumulative env frames after the specialists: returns measured while "
+                                   "the method ran (solid) and the same members re-evaluated (dashed).")
     context = {"evaluation episodes per member": str(runs[0].metrics["episodes"]),
                "starting policies per specialist": starting_policies_line(runs)}
     text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference, cfg.noise_sems)

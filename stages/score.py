@@ -42,7 +42,7 @@ EVALUATION_KEYS = ("env_id", "variant", "seed", "episodes", "population", "env_s
 
 @reports_errors
 def score(
-    population: Path = typer.Option(..., help="population.pt written by the extract stage"),
+    population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
     out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv, provenance.json)"),
     params: Path = PARAMS_OPTION,
@@ -79,7 +79,8 @@ def score(
     metrics = {
         "env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "episodes": record["episodes"],
         "population": len(members), "starting_policies": sum(m.origin == "specialist" for m in members),
-        "children": sum(m.origin == "child" for m in members),
+        # every member the method made: MAPEX's children, MOPDERL's offspring, MORL/D's policies
+        "children": sum(m.origin != "specialist" for m in members),
         "iterations": int(iteration.max()),
         "env_samples_extraction": max(m.env_samples for m in members),
         "env_samples_evaluation": record["env_samples_evaluation"],

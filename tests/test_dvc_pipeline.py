@@ -26,6 +26,11 @@ TINY = {
     "seeds": [0],
     "objectives": [0, 1],
     "pderl_seeds": [],
+    "extract_from": ["td3"],
+    "extract_variants": ["mapex", "warmup_only"],
+    "mopderl_seeds": [],
+    "morld_seeds": [],
+    "methods": ["mapex_td3", "warmup_only_td3"],
     "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
     "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
     "critic_fidelity": {"episodes": 2},
@@ -85,7 +90,7 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     first = run([dvc, "repro"], repo)
     assert ran(first) == {"train_specialist", "fit_critics", "critic_fidelity", "extract", "evaluate", "score", "report"}
     report = (repo / "data" / "report" / "report.md").read_text()
-    metrics_before = (repo / "data" / "score" / "mapex" / "seed0" / "metrics.json").read_text()
+    metrics_before = (repo / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text()
 
     # nothing changed: nothing runs
     assert ran(run([dvc, "repro"], repo)) == set()
@@ -100,7 +105,7 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     restored = run([dvc, "repro"], repo)
     assert ran(restored) == set()
     assert "run-cache" in restored or "is cached" in restored
-    assert (repo / "data" / "score" / "mapex" / "seed0" / "metrics.json").read_text() == metrics_before
+    assert (repo / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text() == metrics_before
     assert (repo / "data" / "report" / "report.md").read_text() == report
 
     # a scoring setting reruns no episode: only score and report

@@ -22,7 +22,8 @@ from pipeline.evaluation import eval_seeds, evaluate_policy
 from pipeline.metrics import hypervolume, mean_sem
 from pipeline.nets import Actor
 from pipeline.population import Member, actor_state, load_population, member_actor, save_population
-from pipeline.report import Run, fmt_num, hv_verdict, provenance_table, verdict_outcome
+from pipeline.report import (Run, fmt_num, frames_to_reach, hv_verdict, provenance_table, sample_efficiency_table,
+                             specialist_groups, specialist_kind, specialist_metrics, verdict_outcome, verdicts)
 from stages.evaluate import evaluate
 from stages.report import report
 from stages.score import score
@@ -32,7 +33,7 @@ REF = [-100.0, -4500.0]
 CAP = 50
 EPISODES = 2
 SEEDS = (0, 1)
-VARIANTS = ("mapex", "warmup_only")
+VARIANTS = ("mapex_td3", "warmup_only_td3")
 PROVENANCE = {"git_commit": "0123456789abcdef", "git_dirty": False, "device": "cpu: test", "torch_threads": 1,
               "versions": {"torch": "2.13.0", "numpy": "2.4", "mujoco": "4.0", "gymnasium": "1.4", "mo-gymnasium": "1.3.2"}}
 
@@ -58,7 +59,7 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
     members = []
     for i in range(5):
         specialist = i < 2
-        torch.manual_seed(1000 * seed + i + (0 if specialist or variant == "mapex" else 100))
+        torch.manual_seed(1000 * seed + i + (0 if specialist or variant == "mapex_td3" else 100))
         actor = Actor(17, 6, [16, 16], low, high)
         members.append(Member(
             origin="specialist" if specialist else "child", objective=i if specialist else None,
@@ -128,13 +129,13 @@ def runs(tmp_path_factory) -> Path:
 
 
 def test_evaluated_csv_rows_and_columns(runs):
-    rows = read_csv(runs / "evaluate" / "mapex" / "seed0" / "evaluated.csv")
+    rows = read_csv(runs / "evaluate" / "mapex_td3" / "seed0" / "evaluated.csv")
     assert list(rows[0]) == ["id", "origin", "objective", "policy_name", "iteration", "parents", "env_samples",
                              "obj0_extract", "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
     assert [r["id"] for r in rows] == ["0", "1", "2", "3", "4"]
     assert [r["origin"] for r in rows] == ["specialist"] * 2 + ["child"] * 3
     assert [r["policy_name"] for r in rows] == ["policy"] * 2 + [""] * 3
-    members, _ = load_population(runs / "extract" / "mapex" / "seed0" / "population.pt")
+    members, _ = load_population(runs / "extract" / "mapex_td3" / "seed0" / "population.pt")
     for r, m in zip(rows, members):  # extraction-time record carried over unchanged
         assert [float(r["obj0_extract"]), float(r["obj1_extract"])] == m.returns
         assert (int(r["iteration"]), int(r["env_samples"]), r["parents"]) == (m.iteration, m.env_samples,
@@ -143,8 +144,8 @@ def test_evaluated_csv_rows_and_columns(runs):
 
 
 def test_evaluation_json(runs):
-    record = json.loads((runs / "evaluate" / "mapex" / "seed0" / "evaluation.json").read_text())
-    assert (record["env_id"], record["variant"], record["seed"], record["population"]) == (ENV_ID, "mapex", 0, 5)
+    record = json.loads((runs / "evaluate" / "mapex_td3" / "seed0" / "evaluation.json").read_text())
+    assert (record["env_id"], record["variant"], record["seed"], record["population"]) == (ENV_ID, "mapex_td3", 0, 5)
     assert (record["episodes"], record["seed_stream"], record["max_episode_steps"]) == (EPISODES, 1, CAP)
     assert record["env_samples_evaluation"] == 5 * EPISODES * CAP  # HalfCheetah never terminates
     prov = record["provenance"]
@@ -154,22 +155,22 @@ def test_evaluation_json(runs):
 
 def test_reevaluation_uses_the_fresh_seed_stream(runs):
     """Member 2 re-evaluated by hand on stream 1 reproduces the CSV; stream 0 (extraction's) does not."""
-    members, meta = load_population(runs / "extract" / "mapex" / "seed1" / "population.pt")
+    members, meta = load_population(runs / "extract" / "mapex_td3" / "seed1" / "population.pt")
     envs = [make_env(ENV_ID, CAP) for _ in range(EPISODES)]
     fresh = evaluate_policy(member_actor(members[2], meta), envs, eval_seeds(1, 1, 2, EPISODES)).mean
     old = evaluate_policy(member_actor(members[2], meta), envs, eval_seeds(1, 0, 2, EPISODES)).mean
-    row = read_csv(runs / "evaluate" / "mapex" / "seed1" / "evaluated.csv")[2]
+    row = read_csv(runs / "evaluate" / "mapex_td3" / "seed1" / "evaluated.csv")[2]
     np.testing.assert_allclose([float(row["obj0"]), float(row["obj1"])], fresh, rtol=1e-6)
     assert not np.allclose(fresh, old)
 
 
 def test_evaluate_is_deterministic_and_needs_no_reference_point(runs, tmp_path):
     params = write_params(tmp_path, env={"reference_point": None})
-    code, out = invoke("evaluate", "--population", runs / "extract" / "mapex" / "seed0" / "population.pt",
+    code, out = invoke("evaluate", "--population", runs / "extract" / "mapex_td3" / "seed0" / "population.pt",
                        "--out", tmp_path / "again", "--seed", 0, "--params", params)
     assert code == 0, out
     for name in ("evaluated.csv", "evaluation.json"):
-        assert (tmp_path / "again" / name).read_text() == (runs / "evaluate" / "mapex" / "seed0" / name).read_text()
+        assert (tmp_path / "again" / name).read_text() == (runs / "evaluate" / "mapex_td3" / "seed0" / name).read_text()
 
 
 def _evaluate_fails(tmp_path: Path, population: Path, params: Path, seed: int = 0) -> str:
@@ -188,7 +189,7 @@ def test_evaluate_missing_population(tmp_path):
 
 def test_evaluate_truncated_population(tmp_path):
     good = tmp_path / "good.pt"
-    make_population(good, 0, "mapex")
+    make_population(good, 0, "mapex_td3")
     bad = tmp_path / "truncated.pt"
     bad.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
     out = _evaluate_fails(tmp_path, bad, write_params(tmp_path))
@@ -198,28 +199,28 @@ def test_evaluate_truncated_population(tmp_path):
 @pytest.mark.parametrize("key", ["variant", "seed", "action_low", "n_objectives"])
 def test_evaluate_population_metadata_key_missing(tmp_path, key):
     pop = tmp_path / "pop.pt"
-    make_population(pop, 0, "mapex", drop=(key,))
+    make_population(pop, 0, "mapex_td3", drop=(key,))
     out = _evaluate_fails(tmp_path, pop, write_params(tmp_path))
     assert "pop.pt" in out and f"'{key}'" in out and len(out.strip().splitlines()) == 1
 
 
 def test_evaluate_env_mismatch(tmp_path):
     pop = tmp_path / "swimmer.pt"
-    make_population(pop, 0, "mapex", env_id="mo-swimmer-v5")
+    make_population(pop, 0, "mapex_td3", env_id="mo-swimmer-v5")
     out = _evaluate_fails(tmp_path, pop, write_params(tmp_path))
     assert "swimmer.pt" in out and "mo-swimmer-v5" in out and ENV_ID in out
 
 
 def test_evaluate_seed_mismatch(tmp_path):
     pop = tmp_path / "pop.pt"
-    make_population(pop, 0, "mapex")
+    make_population(pop, 0, "mapex_td3")
     out = _evaluate_fails(tmp_path, pop, write_params(tmp_path), seed=3)
     assert "pop.pt" in out and "seed" in out
 
 
 def test_evaluate_rejects_extraction_stream(tmp_path):
     pop = tmp_path / "pop.pt"
-    make_population(pop, 0, "mapex")
+    make_population(pop, 0, "mapex_td3")
     out = _evaluate_fails(tmp_path, pop, write_params(tmp_path, evaluate={"seed_stream": 0}))
     assert "evaluate.seed_stream" in out
 
@@ -227,7 +228,7 @@ def test_evaluate_rejects_extraction_stream(tmp_path):
 def test_evaluate_rejects_scoring_params(tmp_path):
     """distinct_tol and utility_weights moved to the `score` section."""
     pop = tmp_path / "pop.pt"
-    make_population(pop, 0, "mapex")
+    make_population(pop, 0, "mapex_td3")
     out = _evaluate_fails(tmp_path, pop, write_params(tmp_path, evaluate={"distinct_tol": 0.02}))
     assert "evaluate.distinct_tol" in out and "unknown key" in out
 
@@ -236,25 +237,25 @@ def test_evaluate_rejects_scoring_params(tmp_path):
 
 
 def test_score_consistent_with_evaluated_csv(runs):
-    metrics = json.loads((runs / "score" / "mapex" / "seed0" / "metrics.json").read_text())
-    rows = read_csv(runs / "evaluate" / "mapex" / "seed0" / "evaluated.csv")
+    metrics = json.loads((runs / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())
+    rows = read_csv(runs / "evaluate" / "mapex_td3" / "seed0" / "evaluated.csv")
     means = np.array([[float(r["obj0"]), float(r["obj1"])] for r in rows])
-    front_ids = [int(r["id"]) for r in read_csv(runs / "score" / "mapex" / "seed0" / "front.csv")]
+    front_ids = [int(r["id"]) for r in read_csv(runs / "score" / "mapex_td3" / "seed0" / "front.csv")]
     assert metrics["front"]["hypervolume"] == pytest.approx(hypervolume(means, REF))
     assert metrics["front"]["hypervolume"] == pytest.approx(hypervolume(means[front_ids], REF))
     assert metrics["specialists"]["hypervolume"] == pytest.approx(hypervolume(means[:2], REF))
     extract = np.array([[float(r["obj0_extract"]), float(r["obj1_extract"])] for r in rows])
     assert metrics["extraction_hypervolume"] == pytest.approx(hypervolume(extract, REF))
     assert metrics["env_samples_evaluation"] == 5 * EPISODES * CAP and metrics["episodes"] == EPISODES
-    history = read_csv(runs / "score" / "mapex" / "seed0" / "hypervolume.csv")
+    history = read_csv(runs / "score" / "mapex_td3" / "seed0" / "hypervolume.csv")
     assert float(history[-1]["hypervolume"]) == pytest.approx(metrics["front"]["hypervolume"])
     assert float(history[-1]["hypervolume_extract"]) == pytest.approx(metrics["extraction_hypervolume"])
     assert all(isinstance(x, (int, float)) and math.isfinite(x) for x in metrics["front"].values())
 
 
 def test_specialists_score_the_same_in_both_variants(runs):
-    a = json.loads((runs / "score" / "mapex" / "seed0" / "metrics.json").read_text())
-    b = json.loads((runs / "score" / "warmup_only" / "seed0" / "metrics.json").read_text())
+    a = json.loads((runs / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())
+    b = json.loads((runs / "score" / "warmup_only_td3" / "seed0" / "metrics.json").read_text())
     # hv_fraction and distinct_count are relative to each run's own [reference, ideal] box
     for key in ("hypervolume", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality"):
         assert a["specialists"][key] == b["specialists"][key]
@@ -262,11 +263,11 @@ def test_specialists_score_the_same_in_both_variants(runs):
 
 
 def test_provenance_travels_from_population_to_score(runs):
-    chain = json.loads((runs / "score" / "mapex" / "seed0" / "provenance.json").read_text())
+    chain = json.loads((runs / "score" / "mapex_td3" / "seed0" / "provenance.json").read_text())
     assert chain["extract"] == PROVENANCE
-    evaluation = json.loads((runs / "evaluate" / "mapex" / "seed0" / "evaluation.json").read_text())
+    evaluation = json.loads((runs / "evaluate" / "mapex_td3" / "seed0" / "evaluation.json").read_text())
     assert chain["evaluate"] == evaluation["provenance"]
-    assert json.loads((runs / "score" / "mapex" / "seed1" / "provenance.json").read_text())["extract"] is None
+    assert json.loads((runs / "score" / "mapex_td3" / "seed1" / "provenance.json").read_text())["extract"] is None
 
 
 # ---------------------------------------------------------------- report
@@ -308,17 +309,17 @@ def test_report_table_rows(report_dir):
     header = tables[0].split("|")[1:-1]
     assert header[0].strip() == "Environment" and len(header) == 1 + 4 * 3
     assert any("Hypervolume" in h and "specialists only" in h for h in header)
-    assert any("Sparsity (↓) MAPEX" in h for h in header)
+    assert any("Sparsity (↓) MAPEX-TD3" in h for h in header)
     env_rows = [t for t in tables if t.startswith(f"| {ENV_ID} |")]
     assert len(env_rows) == 1
     assert all("±" in c for c in env_rows[0].split("|")[2:5])  # two seeds: mean ± SEM
-    for variant in ("| MAPEX |", "| warm-up only |", "| specialists only |"):
+    for variant in ("| MAPEX-TD3 |", "| warm-up only (TD3) |", "| TD3 specialists only |"):
         assert sum(t.startswith(variant) for t in tables) == 1
     assert "the paper reports hypervolume and sparsity" in text  # the added columns are not claimed as the paper's
 
 
 def test_report_table_sparsity_is_the_papers(runs, report_dir):
-    values = [json.loads((runs / "score" / "mapex" / f"seed{s}" / "metrics.json").read_text())["front"]["sparsity"]
+    values = [json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["sparsity"]
               for s in SEEDS]
     mean, sem = mean_sem(values)
     row = next(t for t in (report_dir / "report.md").read_text().splitlines() if t.startswith(f"| {ENV_ID} |"))
@@ -328,16 +329,16 @@ def test_report_table_sparsity_is_the_papers(runs, report_dir):
 def test_report_verdict_matches_numbers(runs, report_dir):
     hv = {v: [json.loads((runs / "score" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
               for s in SEEDS] for v in VARIANTS}
-    d = np.array(hv["mapex"]) - np.array(hv["warmup_only"])
+    d = np.array(hv["mapex_td3"]) - np.array(hv["warmup_only_td3"])
     margin = 2 * d.std(ddof=1) / np.sqrt(len(d))
     majority = {1: (d > 0).sum() > 1, -1: (d < 0).sum() > 1}
     verb = ("beat" if d.mean() > margin and majority[1] else "lost to" if d.mean() < -margin and majority[-1]
             else "tied with")
     text = (report_dir / "report.md").read_text()
-    assert f"(MAPEX) {verb} warm-up only" in text
+    assert f"(MAPEX-TD3) {verb} warm-up only (TD3)" in text
     assert f"higher in {int((d > 0).sum())} of 2" in text
     dm, dsem = mean_sem(d)
-    assert f"MAPEX - warm-up only = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in text
+    assert f"MAPEX-TD3 - warm-up only (TD3) = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in text
 
 
 def test_report_provenance_section(report_dir):
@@ -347,8 +348,8 @@ def test_report_provenance_section(report_dir):
     extract = [r for r in rows if r.startswith("| extract |")]
     # seed 0's populations record provenance, seed 1's do not: two rows, each naming its runs
     assert len(extract) == 2
-    assert "MAPEX seed 0; warm-up only seed 0" in extract[0] and "0123456789 |" in extract[0]
-    assert "MAPEX seed 1; warm-up only seed 1" in extract[1] and "not recorded" in extract[1]
+    assert "MAPEX-TD3 seed 0; warm-up only (TD3) seed 0" in extract[0] and "0123456789 |" in extract[0]
+    assert "MAPEX-TD3 seed 1; warm-up only (TD3) seed 1" in extract[1] and "not recorded" in extract[1]
     # evaluate and score ran in this process for every run: one row each
     assert sum(r.startswith("| evaluate |") for r in rows) == 1 and sum(r.startswith("| score |") for r in rows) == 1
     assert torch.__version__ in section
@@ -361,7 +362,7 @@ def _run(variant: str, seed: int, hv: float, provenance: dict | None = None) -> 
 
 
 def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
-    return [_run("mapex", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only", s, h) for s, h in enumerate(warm_hv)]
+    return [_run("mapex_td3", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only_td3", s, h) for s, h in enumerate(warm_hv)]
 
 
 @pytest.mark.parametrize(
@@ -384,20 +385,20 @@ def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
 def test_hv_verdict_with_a_tolerance(mapex_hv, warm_hv, outcome):
     verdict = hv_verdict(_runs(mapex_hv, warm_hv))
     assert verdict.outcome == outcome
-    verb = {"beat": "(MAPEX) beat", "lost": "(MAPEX) lost to", "tied": "(MAPEX) tied with"}[outcome]
+    verb = {"beat": "(MAPEX-TD3) beat", "lost": "(MAPEX-TD3) lost to", "tied": "(MAPEX-TD3) tied with"}[outcome]
     assert verb in verdict.sentence
     n = len(mapex_hv)
     assert f"({n} seed{'s' if n > 1 else ''}," in verdict.sentence
     d = np.array(mapex_hv) - np.array(warm_hv)
-    assert f"MAPEX was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}" in verdict.sentence
+    assert f"MAPEX-TD3 was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}" in verdict.sentence
     if n > 1:  # mean ± SEM of each variant and of the paired differences, and the rule
         (am, asem), (bm, bsem), (dm, dsem) = mean_sem(mapex_hv), mean_sem(warm_hv), mean_sem(d)
-        assert f"MAPEX {fmt_num(am)} ± {fmt_num(asem)}, warm-up only {fmt_num(bm)} ± {fmt_num(bsem)}" in verdict.sentence
-        assert f"MAPEX - warm-up only = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in verdict.sentence
+        assert f"MAPEX-TD3 {fmt_num(am)} ± {fmt_num(asem)}, warm-up only (TD3) {fmt_num(bm)} ± {fmt_num(bsem)}" in verdict.sentence
+        assert f"MAPEX-TD3 - warm-up only (TD3) = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in verdict.sentence
         assert "beyond 2 SEM" in verdict.sentence and "more than half of the seeds" in verdict.sentence
     else:
         assert "One seed only" in verdict.sentence
-        assert "within ±5% of warm-up only's hypervolume (report.min_difference)" in verdict.sentence
+        assert "within ±5% of warm-up only (TD3)'s hypervolume (report.min_difference)" in verdict.sentence
         assert f"{d[0] / warm_hv[0] * 100:+.1f}%" in verdict.sentence
 
 
@@ -423,19 +424,19 @@ def test_verdict_needs_a_majority_of_seeds():
 
 
 def test_hv_verdict_without_pairs():
-    verdict = hv_verdict([_run("mapex", 0, 1.0), _run("warmup_only", 1, 2.0)])
+    verdict = hv_verdict([_run("mapex_td3", 0, 1.0), _run("warmup_only_td3", 1, 2.0)])
     assert verdict.outcome == "unknown" and "Cannot say" in verdict.sentence
 
 
 def test_provenance_table_groups_identical_rows():
     newer = {**PROVENANCE, "versions": {**PROVENANCE["versions"], "torch": "2.14.0"}, "git_dirty": True}
-    runs = [_run("mapex", 0, 1.0, {"extract": PROVENANCE}), _run("mapex", 1, 1.0, {"extract": PROVENANCE}),
-            _run("warmup_only", 0, 1.0, {"extract": newer}), _run("warmup_only", 1, 1.0, None)]
+    runs = [_run("mapex_td3", 0, 1.0, {"extract": PROVENANCE}), _run("mapex_td3", 1, 1.0, {"extract": PROVENANCE}),
+            _run("warmup_only_td3", 0, 1.0, {"extract": newer}), _run("warmup_only_td3", 1, 1.0, None)]
     rows = [r for r in provenance_table(runs).splitlines() if r.startswith("| extract |")]
     assert rows == [
-        "| extract | MAPEX seeds 0, 1 | 0123456789 | 2.13.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
-        "| extract | warm-up only seed 0 | 0123456789 (dirty) | 2.14.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
-        "| extract | warm-up only seed 1 |" + " not recorded |" * 8,
+        "| extract | MAPEX-TD3 seeds 0, 1 | 0123456789 | 2.13.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
+        "| extract | warm-up only (TD3) seed 0 | 0123456789 (dirty) | 2.14.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
+        "| extract | warm-up only (TD3) seed 1 |" + " not recorded |" * 8,
     ]
 
 
@@ -480,15 +481,15 @@ def test_report_without_evaluated_csv(runs, tmp_path):
 @pytest.mark.parametrize("name", ["provenance.json", "front.csv", "hypervolume.csv"])
 def test_report_missing_score_file(runs, tmp_path, name):
     scored = _copy_scored(runs, tmp_path)
-    (scored / "mapex" / "seed1" / name).unlink()
+    (scored / "mapex_td3" / "seed1" / name).unlink()
     out = _report_fails(runs, tmp_path, scored=scored)
-    assert str(scored / "mapex" / "seed1" / name) in out and "not found" in out
+    assert str(scored / "mapex_td3" / "seed1" / name) in out and "not found" in out
 
 
 @pytest.mark.parametrize("key", ["episodes", "reference_point", "front.sparsity_pgmorl"])
 def test_report_metrics_key_missing(runs, tmp_path, key):
     scored = _copy_scored(runs, tmp_path)
-    path = scored / "warmup_only" / "seed0" / "metrics.json"
+    path = scored / "warmup_only_td3" / "seed0" / "metrics.json"
     metrics = json.loads(path.read_text())
     group, _, leaf = key.rpartition(".")
     del (metrics[group] if group else metrics)[leaf]
@@ -499,7 +500,7 @@ def test_report_metrics_key_missing(runs, tmp_path, key):
 
 def test_report_history_column_missing(runs, tmp_path):
     scored = _copy_scored(runs, tmp_path)
-    path = scored / "mapex" / "seed0" / "hypervolume.csv"
+    path = scored / "mapex_td3" / "seed0" / "hypervolume.csv"
     path.write_text("\n".join(",".join(line.split(",")[:-1]) for line in path.read_text().splitlines()) + "\n")
     out = _report_fails(runs, tmp_path, scored=scored)
     assert str(path) in out and "missing column(s) ['hypervolume']" in out
@@ -507,25 +508,25 @@ def test_report_history_column_missing(runs, tmp_path):
 
 def test_report_refuses_mixed_reference_points(runs, tmp_path):
     scored = _copy_scored(runs, tmp_path)
-    path = scored / "mapex" / "seed1" / "metrics.json"
+    path = scored / "mapex_td3" / "seed1" / "metrics.json"
     path.write_text(json.dumps(json.loads(path.read_text()) | {"reference_point": [0.0, 0.0]}))
     assert "different reference points" in _report_fails(runs, tmp_path, scored=scored)
 
 
 def test_report_refuses_a_run_in_the_wrong_folder(runs, tmp_path):
     scored = _copy_scored(runs, tmp_path)
-    path = scored / "mapex" / "seed1" / "metrics.json"
+    path = scored / "mapex_td3" / "seed1" / "metrics.json"
     path.write_text(json.dumps(json.loads(path.read_text()) | {"seed": 0}))
     out = _report_fails(runs, tmp_path, scored=scored)
     assert str(path) in out and "seed1" in out
 
 
 def test_report_with_one_variant_one_seed(runs, tmp_path):
-    shutil.copytree(runs / "score" / "mapex" / "seed1", tmp_path / "sc" / "mapex" / "seed1")
+    shutil.copytree(runs / "score" / "mapex_td3" / "seed1", tmp_path / "sc" / "mapex_td3" / "seed1")
     code, out = invoke(*report_args(runs, tmp_path / "rep", scored=tmp_path / "sc"))
     assert code == 0, out
     text = (tmp_path / "rep" / "report.md").read_text()
-    assert "Cannot say whether" in text and "(one seed: no SEM)" in text
+    assert "No pair of comparable methods was run" in text and "(one seed: no SEM)" in text
     assert sorted(p.name for p in (tmp_path / "rep").iterdir()) == ["front_seed1.png", "hypervolume.png", "report.md"]
 
 
@@ -565,3 +566,41 @@ def test_halfcheetah_energy_bound_is_attained_by_saturated_actions():
     assert total == pytest.approx(-60.0)
     env.reset(seed=0)
     assert sum(env.step(np.full(6, 0.5))[1][1] for _ in range(10)) == pytest.approx(-15.0)
+
+
+def _hist_run(method: str, seed: int, frames: list[float], hvs: list[float]) -> Run:
+    """A run whose re-evaluated hypervolume history is `hvs` at cumulative `frames`; final HV = hvs[-1]."""
+    r = _run(method, seed, hvs[-1])
+    r.history = {"env_samples": np.asarray(frames, float), "hypervolume": np.asarray(hvs, float)}
+    return r
+
+
+def test_frames_to_reach_the_other_methods_final_hypervolume():
+    # seed 0: MAPEX reaches MOPDERL's final 10 at 300 frames (50% = 5 at 200, 90% = 9 at 300)
+    # seed 1: MAPEX never reaches MOPDERL's final 20 (tops out at 15: 50% at 100, 90% never)
+    runs = [_hist_run("mapex_pderl", 0, [100, 200, 300], [1, 6, 12]), _hist_run("mopderl", 0, [500, 1000], [4, 10]),
+            _hist_run("mapex_pderl", 1, [100, 200], [11, 15]), _hist_run("mopderl", 1, [500], [20])]
+    reach = frames_to_reach(runs, "mapex_pderl", "mopderl")
+    assert reach == {0.5: [200.0, 100.0], 0.9: [300.0, None], 1.0: [300.0, None]}
+    back = frames_to_reach(runs, "mopderl", "mapex_pderl")  # MOPDERL vs MAPEX's final 12 and 15
+    assert back == {0.5: [1000.0, 500.0], 0.9: [None, 500.0], 1.0: [None, 500.0]}
+    table = sample_efficiency_table(runs)
+    row = next(line for line in table.splitlines() if line.startswith("| MAPEX | MOPDERL |"))
+    assert f"| {fmt_num(150.0)} ± {fmt_num(50.0)} |" in row  # 50%: mean of 200 and 100, SEM 50
+    assert "300 (reached in 1 of 2 seeds)" in row
+    assert sample_efficiency_table([_hist_run("mapex_td3", 0, [1], [1])]) == ""  # no MOPDERL: no table
+
+
+def test_verdicts_cover_every_pair_that_ran_and_specialists_per_kind():
+    runs = [_run(m, s, hv) for s in range(3) for m, hv in
+            (("mapex_pderl", 10.0 + s), ("warmup_only_pderl", 5.0 + s), ("mapex_td3", 7.0), ("mopderl", 10.0 + s))]
+    found = [v.sentence.split(" on re-evaluated")[0].split("), ")[1] for v in verdicts(runs)]
+    assert found == ["the advantage-weighted phase (MAPEX) beat warm-up only (PDERL)",
+                     "MAPEX (PDERL specialists) beat MAPEX-TD3", "MAPEX tied with MOPDERL"]
+    assert specialist_kind("mopderl") == "pderl" and specialist_kind("morld") is None
+    assert specialist_kind("mapex_posthoc_td3") == "td3"
+    for r in runs:
+        r.metrics["specialists"] = {"hypervolume": {"pderl": 1.0, "td3": 2.0}[specialist_kind(r.variant)]}
+    assert specialist_groups(runs + [_run("morld", 0, 1.0)]) == ["specialists_pderl", "specialists_td3"]
+    assert [m["hypervolume"] for m in specialist_metrics(runs, "td3")] == [2.0, 2.0, 2.0]
+    assert [m["hypervolume"] for m in specialist_metrics(runs, "pderl")] == [1.0, 1.0, 1.0]

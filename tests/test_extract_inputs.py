@@ -46,10 +46,11 @@ def specs(trained, tmp_path) -> Path:
     return Path(shutil.copytree(trained, tmp_path / "specs"))
 
 
-def extract(mapex, write_params, tmp_path: Path, specs: Path, name: str = "out", seed: int = 0, posthoc: Path | None = None, **updates):
+def extract(mapex, write_params, tmp_path: Path, specs: Path, name: str = "out", seed: int = 0, posthoc: Path | None = None,
+            variant: str = "mapex", **updates):
     params = write_params(tmp_path, {"extract": {**EXTRACT, **updates}}, name=f"{name}.yaml")
     extra = ["--posthoc", posthoc] if posthoc is not None else []
-    return mapex("extract", "--seed", seed, "--specialists", specs, "--out", tmp_path / name,
+    return mapex("extract", "--seed", seed, "--variant", variant, "--specialists", specs, "--out", tmp_path / name,
                  "--resume-dir", tmp_path / f"resume_{name}", "--params", params, *extra, cwd=tmp_path)
 
 
@@ -133,20 +134,20 @@ def write_posthoc(specs: Path, root: Path, checksums: bool = True, reinit: bool 
 
 
 def test_posthoc_critics_end_to_end(specs, tmp_path, mapex, write_params):
-    """extract.critics = posthoc reads the --posthoc critics: with the joint critics' weights
+    """--variant mapex_posthoc reads the --posthoc critics: with the joint critics' weights
     it makes exactly the joint run's children, with other weights other children."""
     joint = extract(mapex, write_params, tmp_path, specs, name="joint")
     assert joint.returncode == 0, joint.stderr
     same = write_posthoc(specs, tmp_path / "posthoc_same")
-    r = extract(mapex, write_params, tmp_path, specs, name="same", posthoc=same, critics="posthoc")
+    r = extract(mapex, write_params, tmp_path, specs, name="same", posthoc=same, variant="mapex_posthoc")
     assert r.returncode == 0, r.stderr
     other = write_posthoc(specs, tmp_path / "posthoc_other", reinit=True)
-    r = extract(mapex, write_params, tmp_path, specs, name="other", posthoc=other, critics="posthoc")
+    r = extract(mapex, write_params, tmp_path, specs, name="other", posthoc=other, variant="mapex_posthoc")
     assert r.returncode == 0, r.stderr
     mj, _ = load_population(tmp_path / "joint" / "population.pt")
     ms, meta = load_population(tmp_path / "same" / "population.pt")
     mo, _ = load_population(tmp_path / "other" / "population.pt")
-    assert meta["params"]["extract"]["critics"] == "posthoc" and len(ms) == len(mj) == 4
+    assert meta["params"]["critics"] == "posthoc" and meta["variant"] == "mapex_posthoc_td3" and len(ms) == len(mj) == 4
     for a, b in zip(mj[2:], ms[2:]):
         assert all(torch.equal(a.actor[k], b.actor[k]) for k in a.actor) and a.returns == b.returns
     assert not torch.equal(mj[-1].actor["net.0.weight"], mo[-1].actor["net.0.weight"])
@@ -155,19 +156,19 @@ def test_posthoc_critics_end_to_end(specs, tmp_path, mapex, write_params):
 def test_posthoc_critics_of_another_buffer_are_refused(specs, tmp_path, mapex, write_params):
     posthoc = write_posthoc(specs, tmp_path / "posthoc")
     rewrite_meta(posthoc / "obj1" / "critics.pt", buffer_checksums={"obs": "00000000"})
-    r = extract(mapex, write_params, tmp_path, specs, posthoc=posthoc, critics="posthoc")
+    r = extract(mapex, write_params, tmp_path, specs, posthoc=posthoc, variant="mapex_posthoc")
     assert_refused(r, tmp_path, "obj1/critics.pt was fitted on another buffer than", "obj1/buffer.zarr", "'obs'")
 
 
 def test_posthoc_critics_without_buffer_checksums_are_refused(specs, tmp_path, mapex, write_params):
     posthoc = write_posthoc(specs, tmp_path / "posthoc", checksums=False)
-    r = extract(mapex, write_params, tmp_path, specs, posthoc=posthoc, critics="posthoc")
+    r = extract(mapex, write_params, tmp_path, specs, posthoc=posthoc, variant="mapex_posthoc")
     assert_refused(r, tmp_path, "obj0/critics.pt: the post-hoc critics do not record which buffer", "obj0/buffer.zarr")
 
 
 def test_joint_critics_given_as_posthoc_are_refused(specs, tmp_path, mapex, write_params):
-    r = extract(mapex, write_params, tmp_path, specs, posthoc=specs, critics="posthoc")
-    assert_refused(r, tmp_path, "obj0/critics.pt: critics of source 'joint'", "obj0/buffer.zarr", "extract.critics = 'posthoc'")
+    r = extract(mapex, write_params, tmp_path, specs, posthoc=specs, variant="mapex_posthoc")
+    assert_refused(r, tmp_path, "obj0/critics.pt: critics of source 'joint'", "obj0/buffer.zarr", "the variant reads 'posthoc' critics")
 
 
 # ---------------------------------------------------------------- advantage options

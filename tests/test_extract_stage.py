@@ -83,7 +83,7 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     assert lines[0] == "iteration,population,front_size,env_samples"  # no hypervolume: no reference point here
     assert len(lines) == 1 + 4
     assert [int(line.split(",")[1]) for line in lines[1:]] == [2, 3, 4, 5]
-    assert not (tmp_path / "resume" / "extract" / "mapex" / "seed0").exists()  # cleaned up when done
+    assert not (tmp_path / "resume" / "extract" / "mapex_td3" / "seed0").exists()  # cleaned up when done
     prov = meta["provenance"]
     assert prov["device"].startswith("cpu") and prov["versions"]["torch"] == torch.__version__
     assert "reference_point" not in meta and "reference_point" not in meta["params"]["env"]
@@ -129,7 +129,7 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     assert r.returncode == 0, r.stderr
     # run again, SIGKILL it as soon as its first iteration is checkpointed
     resume = tmp_path / "resume"
-    state_file = resume / "extract" / "mapex" / "seed0" / "state.pt"
+    state_file = resume / "extract" / "mapex_td3" / "seed0" / "state.pt"
     cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, resume)]
     proc = subprocess.Popen(cmd, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
@@ -176,7 +176,7 @@ def test_changed_params_start_over_instead_of_resuming(specialists, tmp_path):
     r = mapex(*extract_cmd(specialists, tmp_path / "a", params_a, tmp_path / "resume_a"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     members_a, _ = load_population(tmp_path / "a" / "population.pt")
-    planted = tmp_path / "resume_b" / "extract" / "mapex" / "seed0"
+    planted = tmp_path / "resume_b" / "extract" / "mapex_td3" / "seed0"
     save_progress(planted, "stale", [asdict(m) for m in members_a], 0, {"history": []})
     params_b = write_params(tmp_path / "b.yaml", beta=0.3)
     r = mapex(*extract_cmd(specialists, tmp_path / "b", params_b, tmp_path / "resume_b"), cwd=tmp_path)
@@ -193,7 +193,7 @@ def test_warmup_only_variant_and_bad_inputs(specialists, tmp_path):
     r = mapex(*extract_cmd(specialists, tmp_path / "w", params, tmp_path / "r", variant="warmup_only"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     _, meta = load_population(tmp_path / "w" / "population.pt")
-    assert meta["params"]["extract"]["epochs"] == 0 and meta["variant"] == "warmup_only"
+    assert meta["params"]["extract"]["epochs"] == 0 and meta["variant"] == "warmup_only_td3"
     # missing specialist directory: the file is named, nothing is written
     r = mapex(*extract_cmd(tmp_path / "nowhere", tmp_path / "x", params, tmp_path / "r"), cwd=tmp_path)
     assert r.returncode == 2
@@ -215,7 +215,7 @@ def test_reference_point_is_not_an_input_of_extraction(specialists, tmp_path):
     blocked.write_text("")
     r = mapex(*extract_cmd(specialists, blocked, params_a, resume), cwd=tmp_path)
     assert r.returncode != 0
-    progress = resume / "extract" / "mapex" / "seed0"
+    progress = resume / "extract" / "mapex_td3" / "seed0"
     assert torch.load(progress / "state.pt", weights_only=True)["n_items"] == 2 + 3
     # mark the first child's saved record (returns_std steers nothing) to tell a resumed run from a fresh one
     item = torch.load(progress / "item_00002.pt", weights_only=True)

@@ -127,12 +127,12 @@ def test_initial_population_is_every_policy_of_every_set(specs, tmp_path, mapex,
     lines = (tmp_path / "out" / "history.csv").read_text().splitlines()
     assert [line.split(",")[1] for line in lines[1:]] == ["6", "7", "8"]
     assert lines[1].split(",")[3] == str(6 * CAP)
-    assert not (tmp_path / "resume_out" / "extract" / "mapex" / "seed0").exists()  # progress removed when done
+    assert not (tmp_path / "resume_out" / "extract" / "mapex_td3" / "seed0").exists()  # progress removed when done
 
     # evaluate, score and report: every starting policy re-evaluated and shown apart from the children
     params = write_params(tmp_path, {"env": {"reference_point": [-100.0, -4500.0]}, "evaluate": {"episodes": 1},
                                      "report": {"dpi": 50, "formats": ["png"]}}, name="post.yaml")
-    ev, sc = tmp_path / "evaluate" / "mapex" / "seed0", tmp_path / "score" / "mapex" / "seed0"
+    ev, sc = tmp_path / "evaluate" / "mapex_td3" / "seed0", tmp_path / "score" / "mapex_td3" / "seed0"
     r = mapex("evaluate", "--population", tmp_path / "out" / "population.pt", "--out", ev, "--seed", 0,
               "--params", params, cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -150,9 +150,9 @@ def test_initial_population_is_every_policy_of_every_set(specs, tmp_path, mapex,
     assert r.returncode == 0, r.stderr
     text = (tmp_path / "report" / "report.md").read_text()
     assert "- starting policies per specialist: specialist 0: 3, specialist 1: 3" in text
-    table = [line for line in text.splitlines() if line.startswith("| Variant")][0].split("|")
-    mapex_row = [line for line in text.splitlines() if line.startswith("| MAPEX |")][0].split("|")
-    spec_row = [line for line in text.splitlines() if line.startswith("| specialists only |")][0].split("|")
+    table = [line for line in text.splitlines() if line.startswith("| Method")][0].split("|")
+    mapex_row = [line for line in text.splitlines() if line.startswith("| MAPEX-TD3 |")][0].split("|")
+    spec_row = [line for line in text.splitlines() if line.startswith("| TD3 specialists only |")][0].split("|")
     col = [c.strip() for c in table].index("starting policies")
     assert (mapex_row[col].strip(), mapex_row[col + 1].strip()) == ("6", "2")
     assert (spec_row[col].strip(), spec_row[col + 1].strip()) == ("6", "0")
@@ -190,7 +190,7 @@ def test_resume_with_policy_sets(trained, specs, tmp_path, mapex, write_params):
     blocked.write_text("")  # OUT is a plain file: the run fails writing its outputs, after its last checkpoint
     r = extract(mapex, write_params, tmp_path, specs, name="sets", out=blocked, children_per_iteration=2)
     assert r.returncode != 0
-    progress = tmp_path / "resume_sets" / "extract" / "mapex" / "seed0"
+    progress = tmp_path / "resume_sets" / "extract" / "mapex_td3" / "seed0"
     assert torch.load(progress / "state.pt", weights_only=True)["n_items"] == 6 + 2 * 2
     item = torch.load(progress / "item_00006.pt", weights_only=True)  # the first child
     item["item"]["returns_std"] = [-1.0, -1.0]  # steers nothing: tells a resumed run from a fresh one
@@ -205,7 +205,7 @@ def test_resume_with_policy_sets(trained, specs, tmp_path, mapex, write_params):
     td3 = Path(shutil.copytree(trained, tmp_path / "td3specs"))
     r = extract(mapex, write_params, tmp_path, td3, name="grow", out=blocked)
     assert r.returncode != 0
-    assert torch.load(tmp_path / "resume_grow" / "extract" / "mapex" / "seed0" / "state.pt", weights_only=True)["n_items"] == 4
+    assert torch.load(tmp_path / "resume_grow" / "extract" / "mapex_td3" / "seed0" / "state.pt", weights_only=True)["n_items"] == 4
     for k in (0, 1):
         write_set(td3 / f"obj{k}")
     r = extract(mapex, write_params, tmp_path, td3, name="grow")

@@ -6,38 +6,26 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.params import EnvParams, RunParams, load_params, section
-from pipeline.params.critic_fidelity import CriticFidelityParams
-from pipeline.params.evaluate import EvaluateParams
+from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
+from pipeline.params.registry import section_models
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
-from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.params.report import ReportParams
-from pipeline.params.score import ScoreParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.params.train_pderl import TrainPderlParams
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
-MODELS = {
-    "train_specialist": TrainSpecialistParams,
-    "train_pderl": TrainPderlParams,
-    "fit_critics": FitCriticsParams,
-    "critic_fidelity": CriticFidelityParams,
-    "extract": ExtractParams,
-    "evaluate": EvaluateParams,
-    "score": ScoreParams,
-    "report": ReportParams,
-}
 
 
 @pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS], ids=lambda p: p.name)
 def test_params_file_validates(path):
     raw = load_params(path)
     env = section(raw, "env", EnvParams, path)
-    section(raw, "", RunParams, path)
-    for name, model in MODELS.items():
+    for name, model in section_models().items():
         section(raw, name, model, path)
     assert env.reference_point is not None and len(env.reference_point) == 2
+
+
+def test_every_known_section_has_a_model():
+    assert set(KNOWN_SECTIONS) == (set(section_models()) - {""}) | set(RUN_KEYS)
 
 
 def test_paper_presets_cover_the_five_envs_with_the_paper_settings():

@@ -33,6 +33,11 @@ TINY = {
     "seeds": [0],
     "objectives": [0, 1],
     "pderl_seeds": [],
+    "extract_from": ["td3"],
+    "extract_variants": ["mapex", "warmup_only"],
+    "mopderl_seeds": [],
+    "morld_seeds": [],
+    "methods": ["mapex_td3", "warmup_only_td3"],
     "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
     "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
     "critic_fidelity": {"episodes": 2},
@@ -46,7 +51,7 @@ TINY = {
 }
 # The first sweep the Ray tests run: the whole pipeline (14 stage items) of one cell.
 GRID = {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]}
-DIES = "mo-hopper-2obj-v5/extract@0-mapex"  # this task's worker dies once, after its stage ran
+DIES = "mo-hopper-2obj-v5/extract@0-td3-mapex"  # this task's worker dies once, after its stage ran
 
 
 def git(cwd: Path, *args: str) -> str:
@@ -137,14 +142,14 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
     grid = {
         "envs": [{"name": "cheetah", "id": "mo-halfcheetah-v5", "params": {"extract": {"iterations": 3}}}, "mo-hopper-2obj-v5"],
         "seeds": [1, 2],
-        "overrides": {"joint": {}, "posthoc": {"extract": {"critics": "posthoc"}}},
+        "overrides": {"joint": {}, "posthoc": {"extract_variants": ["mapex_posthoc"], "methods": ["mapex_posthoc_td3"]}},
     }
     path = write_grid(tmp_path / "grid.yaml", grid)
     cells = {c.name: c.params for c in sw.plan_cells(sw.load_grid(path), path, source, commit)}
     assert list(cells) == ["cheetah.joint", "cheetah.posthoc", "mo-hopper-2obj-v5.joint", "mo-hopper-2obj-v5.posthoc"]
     assert cells["cheetah.joint"]["extract"]["iterations"] == 3
     assert cells["cheetah.joint"]["extract"]["beta"] == TINY["extract"]["beta"]  # the rest of the base stays
-    assert cells["cheetah.posthoc"]["extract"]["critics"] == "posthoc"
+    assert cells["cheetah.posthoc"]["methods"] == ["mapex_posthoc_td3"] and cells["cheetah.joint"]["methods"] == TINY["methods"]
     assert cells["mo-hopper-2obj-v5.joint"]["env"]["reference_point"] == [-100.0, -3390.0]  # presets/reference_points.yaml
     assert cells["mo-hopper-2obj-v5.joint"]["extract"]["iterations"] == TINY["extract"]["iterations"]
     assert all(c["seeds"] == [1, 2] for c in cells.values())
@@ -165,15 +170,15 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     items = {i.name: i for i in sw.stage_items(ws)}
     listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
     assert set(items) == set(listed.stdout.split())
-    assert items["fit_critics@0-1"].upstream == ("train_specialist@0",)
-    assert items["fit_critics@0-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
-    assert items["report"].upstream == ("evaluate@0-mapex", "evaluate@0-warmup_only", "score@0-mapex", "score@0-warmup_only")
-    assert "data/evaluate/mapex/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
-    assert "data/score/warmup_only/seed0/metrics.json" in items["report"].pull
+    assert items["fit_critics@0-td3-1"].upstream == ("train_specialist@0",)
+    assert items["fit_critics@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
+    assert items["report"].upstream == ("evaluate@0-mapex_td3", "evaluate@0-warmup_only_td3", "score@0-mapex_td3", "score@0-warmup_only_td3")
+    assert "data/evaluate/mapex_td3/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
+    assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
     order = list(items)
     assert all(order.index(u) < order.index(n) for n, i in items.items() for u in i.upstream)
-    sub = [i.name for i in sw.stage_items(ws, ["extract@0-mapex"])]
-    assert sorted(sub) == ["extract@0-mapex", "fit_critics@0-0", "fit_critics@0-1", "train_specialist@0"]
+    sub = [i.name for i in sw.stage_items(ws, ["extract@0-td3-mapex"])]
+    assert sorted(sub) == ["extract@0-td3-mapex", "fit_critics@0-td3-0", "fit_critics@0-td3-1", "train_specialist@0"]
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         sw.stage_items(ws, ["nope"])
     bad = write_grid(tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}})
@@ -187,7 +192,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     changed = {i.name: i for i in sw.stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
-    assert same == {"train_specialist@0", "fit_critics@0-0", "fit_critics@0-1"} | {n for n in items if n.startswith("critic_fidelity")}
+    assert same == {"train_specialist@0", "fit_critics@0-td3-0", "fit_critics@0-td3-1"} | {n for n in items if n.startswith("critic_fidelity")}
 
 
 def test_a_cell_dvc_cannot_read_is_refused_before_anything_runs(tmp_path, source):
@@ -280,7 +285,7 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster)
     assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
     out = result.output
     assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
-    assert "mo-hopper-2obj-v5 extract@0-mapex: ran" in out  # by its retry
+    assert "mo-hopper-2obj-v5 extract@0-td3-mapex: ran" in out  # by its retry
     assert "mo-hopper-2obj-v5: done (14 ran, 0 restored)" in out
     ws = base / "work" / "mo-hopper-2obj-v5"
     assert (ws / "data" / "report" / "report.md").is_file()
@@ -303,7 +308,7 @@ def test_a_second_sweep_runs_nothing(swept, source):
 
 
 def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
-    """Another grid, up to fit_critics@0-0: 2 envs x 2 override sets (`b` changes
+    """Another grid, up to fit_critics@0-td3-0: 2 envs x 2 override sets (`b` changes
     fit_critics.steps). hopper.a has the first sweep's params (another cell name), so its tasks
     restore both items from the run-cache without computing them. Within an env, the two sets
     share one task for the specialists (the same DVC run) and fit their critics each."""
@@ -312,7 +317,7 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
         "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "cheetah", "id": "mo-halfcheetah-v5"}],
         "seeds": [0],
         "overrides": {"a": {}, "b": {"fit_critics": {"steps": 10}}},
-        "targets": ["fit_critics@0-0"],
+        "targets": ["fit_critics@0-td3-0"],
     }
     path = write_grid(tmp_path / "two.yaml", grid)
     result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
@@ -332,23 +337,23 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
     assert all(sorted(x) == sorted(SHARED) for x in (ha, hb, ca, cb))
     assert all(ha[k] == first[k] for k in SHARED)
     for a, b in ((ha, hb), (ca, cb)):
-        assert a["train_specialist@0"] == b["train_specialist@0"] and a["fit_critics@0-0"]["outs"] != b["fit_critics@0-0"]["outs"]
+        assert a["train_specialist@0"] == b["train_specialist@0"] and a["fit_critics@0-td3-0"]["outs"] != b["fit_critics@0-td3-0"]["outs"]
     assert ca["train_specialist@0"]["outs"] != ha["train_specialist@0"]["outs"]
 
 
-SHARED = ("train_specialist@0", "fit_critics@0-0")
+SHARED = ("train_specialist@0", "fit_critics@0-td3-0")
 
 
 def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(cluster, source, tmp_path):
     grid = write_grid(
         tmp_path / "bad.yaml",
-        {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["fit_critics@0-0"]},
+        {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["fit_critics@0-td3-0"]},
     )
     result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", tmp_path / "scratch")
     assert result.exit_code == 1, result.output
     out = result.output
     assert "nope train_specialist@0: FAILED" in out and "mo-nope-v5" in out  # the stage's own error line
-    assert "nope fit_critics@0-0: not run: upstream train_specialist@0 failed" in out
-    assert "stages failed in nope: fit_critics@0-0, train_specialist@0 (fix the cause and rerun the sweep" in out
+    assert "nope fit_critics@0-td3-0: not run: upstream train_specialist@0 failed" in out
+    assert "stages failed in nope: fit_critics@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
     assert not (tmp_path / "work" / "nope" / "dvc.lock").exists()
     assert list((tmp_path / "scratch" / "nope").iterdir()) == []  # its clone is cleaned up

@@ -17,13 +17,18 @@ from pipeline.params.common import EnvParams, RunParams
 
 __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "KNOWN_SECTIONS"]
 
-# Top-level keys params.yaml may hold. Shared: env, seeds, objectives, pderl_seeds. The others are the
+# Top-level keys params.yaml may hold. Shared: env and the lists of RUN_KEYS. The others are the
 # stage sections, each named like its stage (dvc.yaml stage = stages/<name>.py = section).
 KNOWN_SECTIONS = (
     "env",
     "seeds",
     "objectives",
     "pderl_seeds",
+    "extract_from",
+    "extract_variants",
+    "mopderl_seeds",
+    "morld_seeds",
+    "methods",
     "train_specialist",
     "train_pderl",
     "fit_critics",
@@ -32,7 +37,11 @@ KNOWN_SECTIONS = (
     "evaluate",
     "score",
     "report",
+    "mopderl",
+    "morld",
 )
+
+RUN_KEYS = tuple(RunParams.model_fields)  # the top-level lists, validated together by RunParams
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -62,6 +71,8 @@ def load_params(path: str | Path) -> dict[str, Any]:
 
 def _describe(err: dict[str, Any], prefix: str) -> str:
     loc = ".".join(str(p) for p in (prefix, *err["loc"]) if p != "")
+    if not err["loc"]:  # a check across keys (a model validator): its message names the keys
+        return f"{prefix or 'top-level lists'}: {err['msg'].removeprefix('Value error, ')}"
     if err["type"] == "extra_forbidden":
         return f"{loc}: unknown key (value {err['input']!r})"
     if err["type"] == "missing":
@@ -76,7 +87,7 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     """
     data = raw.get(name, {})
     if model is RunParams:
-        data = {k: raw[k] for k in ("seeds", "objectives", "pderl_seeds") if k in raw}
+        data = {k: raw[k] for k in RUN_KEYS if k in raw}
         name = ""
     if data is None:
         data = {}
@@ -85,3 +96,4 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     except ValidationError as exc:
         lines = [_describe(e, name) for e in exc.errors()]
         raise ParamsError(f"{path}: invalid params:\n  " + "\n  ".join(lines)) from None
+

@@ -1,8 +1,10 @@
-"""Shared params sections: the environment and the run's seeds/objectives lists."""
+"""Shared params sections: the environment and the top-level lists (seeds, methods, ...)."""
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 
 class Strict(BaseModel):
@@ -22,16 +24,49 @@ class EnvParams(Strict):
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
 
-class RunParams(Strict):
-    """Top-level `seeds`, `objectives` and `pderl_seeds`: the lists dvc.yaml fans stages out over."""
+# Extraction variants (stage extract --variant): what each changes in section `extract`.
+EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
+# Kinds of specialists extraction can start from: td3 (stage train_specialist) and pderl
+# (stage train_pderl), under data/specialists/<kind>/seedS.
+SPECIALIST_KINDS = ("td3", "pderl")
+BASELINES = ("mopderl", "morld")
 
-    seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run")
+
+def method_name(variant: str, kind: str) -> str:
+    """The method an extraction variant from one kind of specialists is: mapex_td3, mapex_posthoc_pderl, ..."""
+    return f"{variant}_{kind}"
+
+
+class RunParams(Strict):
+    """The top-level lists dvc.yaml fans stages out over, checked to agree with each other.
+
+    DVC cannot filter a matrix, so each producing stage has its own list, and `methods` (what
+    evaluate, score and report compare) must be exactly what those lists produce: every
+    extraction variant from every kind in `extract_from` (named variant_kind), plus each
+    baseline whose seed list is not empty. The check names the list to change.
+    """
+
+    seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run of every method")
     objectives: list[int] = Field([0, 1], min_length=1, description="objective indices, one specialist each")
     pderl_seeds: list[int] = Field(
-        [], description="seeds that also train PDERL specialists (stage train_pderl; empty: none, as in the quickstart)"
+        [], description="seeds of stage train_pderl (PDERL specialists): [] or the same list as `seeds`"
+    )
+    extract_from: list[Literal["td3", "pderl"]] = Field(
+        ["td3"], min_length=1, description="kinds of specialists the extract stage starts from (td3, pderl)"
+    )
+    extract_variants: list[Literal["mapex", "mapex_posthoc", "warmup_only"]] = Field(
+        ["mapex", "warmup_only"], description="extraction variants run from each kind in extract_from: mapex (joint critics), "
+        "mapex_posthoc (critics fitted post hoc), warmup_only (the ablation: no advantage-weighted phase)"
+    )
+    mopderl_seeds: list[int] = Field([], description="seeds of the MOPDERL baseline (stage mopderl): [] or `seeds`")
+    morld_seeds: list[int] = Field([], description="seeds of the MORL/D baseline (stage morld): [] or `seeds`")
+    methods: list[str] = Field(
+        ["mapex_td3", "warmup_only_td3"], min_length=1,
+        description="what evaluate, score and report compare, one data/fronts/<method>/seedS each: <variant>_<kind> for "
+        "each extraction variant and kind, plus mopderl and morld when their seed lists are set",
     )
 
-    @field_validator("seeds", "objectives", "pderl_seeds")
+    @field_validator("seeds", "objectives", "pderl_seeds", "mopderl_seeds", "morld_seeds")
     @classmethod
     def _unique_non_negative(cls, v: list[int]) -> list[int]:
         if len(set(v)) != len(v):
@@ -39,3 +74,31 @@ class RunParams(Strict):
         if any(x < 0 for x in v):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
+
+    @field_validator("extract_from", "extract_variants", "methods")
+    @classmethod
+    def _unique(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"entries must be unique, got {v}")
+        return v
+
+    def produced_methods(self) -> list[str]:
+        """The methods the producer lists make, in report order."""
+        out = [method_name(v, k) for k in self.extract_from for v in self.extract_variants]
+        return out + [b for b, seeds in (("mopderl", self.mopderl_seeds), ("morld", self.morld_seeds)) if seeds]
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "RunParams":
+        for key in ("pderl_seeds", "mopderl_seeds", "morld_seeds"):
+            v = getattr(self, key)
+            if v and sorted(v) != sorted(self.seeds):
+                raise ValueError(f"{key} = {v}: must be [] or the same seeds as `seeds` ({self.seeds}), since every method "
+                                 f"is evaluated on every seed")
+        needs_pderl = [m for m in ("pderl" in self.extract_from and "extract_from: pderl", self.mopderl_seeds and "mopderl_seeds") if m]
+        if needs_pderl and not self.pderl_seeds:
+            raise ValueError(f"{' and '.join(needs_pderl)}: PDERL specialists are needed; set pderl_seeds to {self.seeds}")
+        produced = self.produced_methods()
+        if sorted(self.methods) != sorted(produced):
+            raise ValueError(f"methods = {self.methods}, but extract_from x extract_variants and the baselines' seed lists "
+                             f"produce {produced}: set methods to that list (or change those lists)")
+        return self

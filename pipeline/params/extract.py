@@ -59,7 +59,6 @@ class ExtractParams(Strict):
         "paper, whose returns are raw too, nor consistent units; the default only because every measurement so far used "
         "it); objective_range: each A_m divided by objective m's population range (the units of w); zscore of A_mixed (precursor)",
     )
-    critics: Literal["joint", "posthoc"] = Field("joint", description="critics trained with the specialists, or fitted offline")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
 
     def resolved(self, env_id: str) -> "ExtractParams":
