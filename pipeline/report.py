@@ -309,7 +309,9 @@ def details_table(runs: list[Run]) -> str:
         kind = g.removeprefix("specialists_")
         sm = specialist_metrics(runs, kind)
         # every method of a seed from this kind starts from the same policies
-        one_per_seed = list({r.seed: r for r in runs if specialist_kind(r.variant) == kind}.values())
+        # (the extraction runs first: they start from every policy of the sets, MOPDERL from the populations)
+        ordered = sorted(runs, key=lambda r: VARIANT_ORDER.index(r.variant) if r.variant in VARIANT_ORDER else 99, reverse=True)
+        one_per_seed = list({r.seed: r for r in ordered if specialist_kind(r.variant) == kind}.values())
         # the specialists' HV fraction depends on which method's box it was measured in: not shown
         rows.append([label(g), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
                      fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
@@ -435,8 +437,11 @@ def sample_efficiency_table(runs: list[Run], pairs: tuple[tuple[str, str], ...] 
         cells = []
         for f, vals in reach.items():
             got = [v for v in vals if v is not None]
-            cell = fmt_mean_sem(got) if got else "never"
-            cells.append(cell if len(got) == len(vals) else f"{cell} (reached in {len(got)} of {len(vals)} seeds)")
+            if not got:
+                cells.append("never")
+            else:
+                cell = fmt_mean_sem(got)
+                cells.append(cell if len(got) == len(vals) else f"{cell} (reached in {len(got)} of {len(vals)} seeds)")
         rows.append([label(a), label(b), *cells])
     if not rows:
         return ""

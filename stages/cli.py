@@ -15,6 +15,7 @@ from stages.train_pderl import train_pderl
 from stages.evaluate import evaluate
 from stages.score import score
 from stages.morld import morld
+from stages.mopderl import mopderl
 from stages.sweep import sweep
 from stages.report import report
 
@@ -47,6 +48,7 @@ app.command("extract")(extract)
 app.command("evaluate")(evaluate)
 app.command("score")(score)
 app.command("report")(report)
+app.command("mopderl")(mopderl)
 app.command("morld")(morld)
 app.command("sweep")(sweep)
 

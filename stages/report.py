@@ -86,7 +86,7 @@ def starting_policies_line(runs: list[Run]) -> str:
     """'specialist 0: 3, specialist 1: 3' (the policies of each specialist's policy set that
     started the population), or each run's where they differ."""
     def text(r: Run) -> str:
-        return ", ".join(f"specialist {k}: {n}" if k >= 0 else f"{n}" for k, n in r.starting_counts().items())
+        return ", ".join(f"specialist {k}: {n}" if k >= 0 else f"{n}" for k, n in r.starting_counts().items()) or "none"
 
     lines = {text(r) for r in runs}
     if len(lines) == 1:

@@ -8,6 +8,7 @@ the reference point reruns only score and report; a fidelity setting only critic
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -120,3 +121,59 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     # a fidelity setting reruns only the joint critics' fidelity check, not the post-hoc fits
     set_key(repo, "critic_fidelity", "episodes", 3)
     assert ran(run([dvc, "repro"], repo)) == {"critic_fidelity"}
+
+
+# Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the
+# extraction variants from both, and the baselines (MORL/D when its optional extra is installed).
+PDERL_TINY = {
+    "total_frames": 240, "population_size": 3, "mini_buffer_size": 200, "crossover_transitions": 64,
+    "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32, "device": "cpu",
+}
+MOPDERL_TINY = {
+    "total_frames": 400, "population_size": 4, "children": 3, "eval_episodes": 1, "mini_buffer_size": 200,
+    "crossover_transitions": 64, "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32,
+    "rl_updates_per_frame": 0.1, "device": "cpu",
+}
+MORLD_TINY = {
+    "total_frames": 160, "exchange_every": 80, "pop_size": 2, "hidden_sizes": [16, 16], "batch_size": 32,
+    "learning_starts": 40, "buffer_size": 1000, "update_passes": 1, "front_eval_episodes": 1, "eval_episodes": 1,
+    "device": "cpu",
+}
+
+
+def test_every_method_is_scored_by_one_chain(tmp_path_factory):
+    try:
+        import morl_baselines  # noqa: F401
+        baselines = ["mopderl", "morld"]
+    except ImportError:  # the optional extra is not installed: the chain without MORL/D
+        baselines = ["mopderl"]
+    root = tmp_path_factory.mktemp("methods")
+    for name in ("pipeline", "stages"):
+        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
+    methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
+    params = {**TINY, "pderl_seeds": [0], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex", "mapex_posthoc"],
+              "mopderl_seeds": [0], "morld_seeds": [0] if "morld" in baselines else [], "methods": methods,
+              "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+              "train_pderl": PDERL_TINY, "mopderl": MOPDERL_TINY, "morld": MORLD_TINY,
+              "extract": {**TINY["extract"], "iterations": 1}, "evaluate": {"episodes": 1}}
+    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
+    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@example.com"], ["git", "config", "user.name", "t"],
+                [str(BIN / "dvc"), "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "methods"]):
+        run(cmd, root)
+    out = run([str(BIN / "dvc"), "repro"], root)
+    assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
+    for m in methods:
+        metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
+        assert metrics["variant"] == m and metrics["front"]["cardinality"] >= 1
+    # PDERL's policy sets start the PDERL methods (population + RL actor per objective); TD3 one each
+    assert json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())["starting_policies"] == 8
+    assert json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"] == 2
+    report = (root / "data" / "report" / "report.md").read_text()
+    for name in ("| MAPEX |", "| MAPEX-PostHoc |", "| MAPEX-TD3 |", "| MOPDERL |", "| PDERL specialists only |",
+                 "| TD3 specialists only |", "MAPEX (PDERL specialists)", "Sample efficiency", "| MAPEX | MOPDERL |"):
+        assert name in report, name
+    if "morld" in baselines:
+        assert "| MORL/D |" in report
+    assert ran(run([str(BIN / "dvc"), "repro"], root)) == set()
