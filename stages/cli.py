@@ -17,6 +17,7 @@ from stages.score import score
 from stages.morld import morld
 from stages.mopderl import mopderl
 from stages.sweep import sweep
+from stages.grid_report import grid_report
 from stages.report import report
 
 app = typer.Typer(
@@ -51,6 +52,7 @@ app.command("report")(report)
 app.command("mopderl")(mopderl)
 app.command("morld")(morld)
 app.command("sweep")(sweep)
+app.command("grid-report")(grid_report)
 
 
 if __name__ == "__main__":

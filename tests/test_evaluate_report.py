@@ -24,6 +24,7 @@ from pipeline.nets import Actor
 from pipeline.population import Member, actor_state, load_population, member_actor, save_population
 from pipeline.report import (Run, fmt_num, frames_to_reach, hv_verdict, provenance_table, sample_efficiency_table,
                              specialist_groups, specialist_kind, specialist_metrics, verdict_outcome, verdicts)
+from stages.grid_report import grid_report
 from stages.evaluate import evaluate
 from stages.report import report
 from stages.score import score
@@ -74,14 +75,14 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
 
 
 def _app() -> typer.Typer:
-    """The three stage commands as `mapex` runs them (stages.cli registers them; score lazily)."""
+    """The scoring commands as `mapex` runs them (stages.cli registers them)."""
     app = typer.Typer()
 
     @app.callback()
     def main() -> None:
         torch.set_num_threads(1)  # what `mapex` does with MAPEX_TORCH_THREADS unset
 
-    for name, fn in (("evaluate", evaluate), ("score", score), ("report", report)):
+    for name, fn in (("evaluate", evaluate), ("score", score), ("report", report), ("grid-report", grid_report)):
         app.command(name)(fn)
     return app
 
@@ -604,3 +605,35 @@ def test_verdicts_cover_every_pair_that_ran_and_specialists_per_kind():
     assert specialist_groups(runs + [_run("morld", 0, 1.0)]) == ["specialists_pderl", "specialists_td3"]
     assert [m["hypervolume"] for m in specialist_metrics(runs, "td3")] == [2.0, 2.0, 2.0]
     assert [m["hypervolume"] for m in specialist_metrics(runs, "pderl")] == [1.0, 1.0, 1.0]
+
+
+def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
+    """Two cell workspaces (as `mapex sweep` leaves them) -> one Table 1 row each, figures, provenance;
+    a cell without scores is skipped and said so."""
+    work = tmp_path / "sweeps" / "grid"
+    for cell, seeds in (("cheetah.a", [0, 1]), ("cheetah.b", [1])):
+        ws = work / cell
+        (ws / "data").mkdir(parents=True)
+        shutil.copytree(runs / "score", ws / "data" / "score")
+        shutil.copytree(runs / "evaluate", ws / "data" / "evaluate")
+        params = yaml.safe_load((runs / "params.yaml").read_text()) | {"seeds": seeds}
+        (ws / "params.yaml").write_text(yaml.safe_dump(params))
+    (work / "unscored").mkdir()
+    (work / "unscored" / "params.yaml").write_text((runs / "params.yaml").read_text())
+    code, out = invoke("grid-report", work, "--out", tmp_path / "grid_report", "--dpi", "40")
+    assert code == 0, out
+    assert "skipped unscored: no data/score" in out
+    text = (tmp_path / "grid_report" / "report.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith("| cheetah.")]
+    table = [r for r in rows if "(mo-halfcheetah-v5)" in r]
+    assert [r.split("|")[1].strip() for r in table] == ["cheetah.a (mo-halfcheetah-v5)", "cheetah.b (mo-halfcheetah-v5)"]
+    hv = {s: json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
+          for s in (0, 1)}
+    mean, sem = mean_sem([hv[0], hv[1]])
+    assert table[0].split("|")[2].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"  # Hypervolume MAPEX-TD3, both seeds
+    assert table[1].split("|")[2].strip() == fmt_num(hv[1])  # cell b: seed 1 only
+    assert "| cheetah.b | MAPEX-TD3 | 1 |" in text  # the seeds behind each cell
+    assert sum(line.startswith("| cheetah.a | extract |") for line in text.splitlines()) >= 1
+    assert all((tmp_path / "grid_report" / f).stat().st_size > 5000 for f in ("fronts.png", "hypervolume.png"))
+    code, out = invoke("grid-report", tmp_path / "nothing_here", "--out", tmp_path / "x")
+    assert code == 2 and "nothing_here: not a directory" in out

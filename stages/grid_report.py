@@ -1,0 +1,68 @@
+"""`mapex grid-report`: one report across the cells of a sweep (docs/sweeps.md).
+
+Not a DVC stage: it reads the workspaces `mapex sweep` leaves behind (one per grid cell, each
+with its params.yaml and its restored data/score and data/evaluate) and writes one folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from pipeline.artifacts import ArtifactError, atomic_path
+from pipeline.params import EnvParams, RunParams, load_params, section
+from pipeline.report import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
+from stages.common import reports_errors
+from stages.report import check_comparable, load_runs
+
+
+def load_cell(ws: Path) -> Cell:
+    """One cell workspace: its params (env, seeds, methods) and the runs scored there."""
+    raw = load_params(ws / "params.yaml")
+    env_p, run_p = section(raw, "env", EnvParams, ws / "params.yaml"), section(raw, "", RunParams, ws / "params.yaml")
+    runs = [r for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
+            if r.seed in run_p.seeds and r.variant in run_p.methods]
+    if not runs:
+        raise ArtifactError(f"{ws / 'data' / 'score'}: no scored run for seeds {run_p.seeds} and methods {run_p.methods}")
+    check_comparable(ws / "data" / "score", runs, env_p.id)
+    return Cell(ws.name, env_p.id, runs)
+
+
+@reports_errors
+def grid_report(
+    workdir: Path = typer.Argument(..., help="a sweep's work directory: one workspace per grid cell (default of "
+                                             "`mapex sweep`: sweeps/<grid file name>)"),
+    out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
+    width: float = typer.Option(13.0, min=4, help="figure width in inches"),
+    dpi: int = typer.Option(110, min=30, help="figure resolution"),
+) -> None:
+    """Write one report across a sweep's grid: Table 1 with a row per cell (env), fronts and
+    hypervolume-vs-frames per cell, and the provenance of every cell's runs.
+
+    Reads every WORKDIR/<cell>/ holding a params.yaml and a data/score folder (cells without
+    scores, e.g. a sweep run only up to some targets, are listed and skipped). Writes OUT/report.md,
+    OUT/fronts.png and OUT/hypervolume.png; the folder is built beside OUT and renamed into place.
+    """
+    if not workdir.is_dir():
+        raise ArtifactError(f"{workdir}: not a directory (expected a sweep's work directory)")
+    spaces = sorted(d for d in workdir.iterdir() if (d / "params.yaml").is_file())
+    scored = [d for d in spaces if (d / "data" / "score").is_dir()]
+    for d in sorted(set(spaces) - set(scored)):
+        typer.echo(f"skipped {d.name}: no data/score (the sweep did not score this cell)", err=True)
+    if not scored:
+        raise ArtifactError(f"{workdir}: no cell workspace with params.yaml and data/score")
+    cells = [load_cell(d) for d in scored]
+    figures = {"fronts": grid_fronts_figure(cells, width), "hypervolume": grid_history_figure(cells, width)}
+    captions = {"fronts.png": "Re-evaluated fronts of every method, one panel per cell, one line per seed.",
+                "hypervolume.png": "Re-evaluated hypervolume against cumulative env frames after the specialists "
+                                   "(mean ± SEM over seeds), one panel per cell."}
+    text = grid_markdown(cells, captions)
+    if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
+        raise ArtifactError(f"{out}: exists and is not a report folder; refusing to replace it")
+    with atomic_path(out) as tmp:
+        tmp.mkdir()
+        for name, fig in figures.items():
+            fig.savefig(tmp / f"{name}.png", dpi=dpi)
+        (tmp / "report.md").write_text(text)
+    typer.echo(f"grid report of {len(cells)} cell(s): {out / 'report.md'}")
