@@ -18,11 +18,16 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Any
 
 from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+
+# Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
+# to one directory per stage item, so a retry on another node resumes where a dead one stopped.
+RESUME_ROOT_ENV = "MAPEX_RESUME_ROOT"
 
 FORMAT = "mapex.resume"
 ITEM_FORMAT = "mapex.resume_item"
@@ -78,3 +83,17 @@ def save_progress(directory: str | Path, fp: str, new_items: list[dict[str, Any]
 
 def clear_progress(directory: str | Path) -> None:
     shutil.rmtree(directory, ignore_errors=True)
+
+
+def resume_root(default: str | Path) -> Path:
+    """The root a stage keeps its resume progress under: $MAPEX_RESUME_ROOT when set, else `default`."""
+    root = os.environ.get(RESUME_ROOT_ENV)
+    return Path(root) if root else Path(default)
+
+
+def checkpoint_dir(out: str | Path) -> Path:
+    """Where a stage that checkpoints beside its outputs (OUT/<name>_state.pt) keeps that file:
+    OUT itself, or $MAPEX_RESUME_ROOT/<OUT's name> when set (shared storage)."""
+    root = os.environ.get(RESUME_ROOT_ENV)
+    return Path(root) / Path(out).name if root else Path(out)
+

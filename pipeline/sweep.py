@@ -65,6 +65,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.params import KNOWN_SECTIONS, ParamsError
+from pipeline.resume import RESUME_ROOT_ENV
 
 # Stages that get a GPU when the cluster has one (resources gpus: auto); the others run on CPU.
 GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract")
@@ -339,10 +340,12 @@ def _clone_at(source: str, commit: str, dest: Path) -> None:
     _fetch_commit(dest, source, commit)
 
 
-def configure_remote(workspace: Path, remote: str) -> None:
-    """Point the workspace's DVC at the shared remote (.dvc/config.local, which git ignores)."""
+def configure_remote(workspace: Path, remote: str, options: tuple[tuple[str, str], ...] = ()) -> None:
+    """Point the workspace's DVC at the shared remote (.dvc/config.local, which git ignores), with
+    the remote's extra settings (e.g. endpointurl, access_key_id for an S3-compatible server)."""
+    extra = "".join(f"    {k} = {v}\n" for k, v in options)
     (workspace / ".dvc" / "config.local").write_text(
-        f"[core]\n    remote = mapex-sweep\n['remote \"mapex-sweep\"']\n    url = {remote}\n"
+        f"[core]\n    remote = mapex-sweep\n['remote \"mapex-sweep\"']\n    url = {remote}\n{extra}"
     )
 
 
@@ -438,6 +441,8 @@ class StageTask:
     threads: int
     gpus: float
     scratch: str | None = None
+    remote_options: tuple[tuple[str, str], ...] = ()  # DVC remote settings besides its url
+    resume_root: str | None = None  # shared storage for the stages' resume progress (MAPEX_RESUME_ROOT)
 
 
 @dataclass(frozen=True)
@@ -521,6 +526,15 @@ def stage_env(clone: Path, threads: int, gpus: float) -> dict[str, str]:
     return env
 
 
+def task_resume_dir(task: StageTask) -> Path | None:
+    """The task's own directory under --resume-root (None without one): long stages (specialist
+    and PDERL training, extraction, the baselines) checkpoint there instead of in the worker's
+    clone, so the retry of a task whose node died resumes instead of starting over."""
+    if not task.resume_root:
+        return None
+    return Path(task.resume_root) / _safe(task.cell) / _safe(task.item)
+
+
 def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
     """Run one stage item in a fresh clone: the Ray task body. Upstream results are its args."""
     start = time.monotonic()
@@ -538,11 +552,14 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
         except SweepError as exc:
             raise StageFailed(task.cell, task.item, str(exc)) from None
         phases["clone"] = time.monotonic() - start
-        configure_remote(clone, task.remote)
+        configure_remote(clone, task.remote, task.remote_options)
         if upstream:
             lock = {"schema": "2.0", "stages": {u.item: u.lock for u in upstream}}
             (clone / "dvc.lock").write_text(yaml.safe_dump(lock, sort_keys=False))
         env = stage_env(clone, task.threads, task.gpus)
+        progress = task_resume_dir(task)
+        if progress is not None:  # a retry, on any node, resumes the stage from here
+            env[RESUME_ROOT_ENV] = str(progress)
         try:
             t = time.monotonic()
             if task.pull:
@@ -566,6 +583,8 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
             phases["push"] = time.monotonic() - t
         except RuntimeError as exc:
             raise StageFailed(task.cell, task.item, str(exc)) from None
+        if progress is not None:  # published: its progress is of no more use
+            shutil.rmtree(progress, ignore_errors=True)
         return StageResult(task.cell, task.item, entry, executed, time.monotonic() - start, host, phases)
     finally:
         shutil.rmtree(clone, ignore_errors=True)
@@ -651,10 +670,10 @@ def _dvc_status_clean(ws: Path, targets: list[str] | None = None) -> bool:
         return False
 
 
-def write_lock(ws: Path, remote: str, targets: list[str] | None = None) -> str:
+def write_lock(ws: Path, remote: str, targets: list[str] | None = None, remote_options: tuple[tuple[str, str], ...] = ()) -> str:
     """`dvc repro --pull` in the cell workspace: every stage restored from the remote's run-cache,
     dvc.lock written once. `mapex` is shadowed by a failing stub, so nothing is recomputed here."""
-    configure_remote(ws, remote)
+    configure_remote(ws, remote, remote_options)
     (ws / "dvc.lock").unlink(missing_ok=True)
     stub_dir = Path(tempfile.mkdtemp(prefix="mapex-sweep-stub-"))
     try:
@@ -705,6 +724,8 @@ def run_sweep(
     git_url: str | None = None,
     scratch: str | None = None,
     dry_run: bool = False,
+    remote_options: dict[str, str] | None = None,
+    resume_root: Path | None = None,
     log: Callable[[str], None] = lambda line: None,
 ) -> list[CellResult]:
     """Run a grid: prepare one workspace per cell, run every stage item as a Ray task, write each
@@ -713,6 +734,10 @@ def run_sweep(
     the other cells completed."""
     grid_path = Path(grid_path)
     grid = load_grid(grid_path)
+    options = tuple(sorted((remote_options or {}).items()))
+    bad = [k for k, _ in options if not re.fullmatch(r"[a-z_]+", k)]
+    if bad:
+        raise SweepError(f"--remote-option: {bad} are not DVC remote setting names (e.g. endpointurl, access_key_id)", 2)
     repo = _repo_root(Path(repo).resolve())
     commit = _git(repo, "rev-parse", "HEAD").strip()
     _check_clean(repo, commit)
@@ -787,6 +812,7 @@ def run_sweep(
                     cpus, gpus, threads = _resources(grid, it.stage, cluster.get("GPU", 0))
                     task = StageTask(
                         p.cell.name, it.name, source, commit, p.cell.params_text, remote, it.pull, threads, gpus, scratch,
+                        options, str(Path(resume_root).resolve()) if resume_root else None,
                     )
                     ref = remote_fn.options(
                         num_cpus=cpus, num_gpus=gpus, max_retries=max_retries, retry_exceptions=False,
@@ -835,7 +861,7 @@ def run_sweep(
             res.status = "failed"
             continue
         try:
-            write_lock(p.workspace, remote, grid.targets)
+            write_lock(p.workspace, remote, grid.targets, options)
         except RuntimeError as exc:
             res.status = "failed"
             res.failed["dvc.lock"] = str(exc)

@@ -27,7 +27,7 @@ from pipeline.params.extract import ExtractParams
 from pipeline.policyset import load_policy_set
 from pipeline.population import Member, actor_state, member_actor, save_population
 from pipeline.provenance import provenance
-from pipeline.resume import clear_progress, fingerprint, load_progress, save_progress
+from pipeline.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
 from pipeline.seeding import derive_seeds, select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -170,7 +170,8 @@ def extract(
                                           "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt"),
     posthoc: Path = typer.Option(None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
-    resume_dir: Path = typer.Option(Path("data/resume"), help="where progress is checkpointed after every iteration"),
+    resume_dir: Path = typer.Option(None, help="where progress is checkpointed after every iteration; default "
+                                               "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume"),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Extract a Pareto front from single-objective specialists (MAPEX, Algorithm 1).
@@ -233,7 +234,7 @@ def extract(
     config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed, "variant": variant,
               "kind": kind, "critics": critics_mode}
     fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()}, files + closure_files("stages.extract"))
-    progress_dir = resume_dir / "extract" / method / f"seed{seed}"
+    progress_dir = (resume_dir or resume_root("data/resume")) / "extract" / method / f"seed{seed}"
     n_start = len(starts)  # the starting policies: member ids 0 .. n_start - 1
     saved = load_progress(progress_dir, fp)
     if saved is not None and (len(saved[0]) < n_start or (len(saved[0]) - n_start) % k_children):
@@ -259,6 +260,8 @@ def extract(
         samples = members[-1].env_samples
         written = len(members)
     done = (len(members) - n_start) // k_children
+    if saved is not None:
+        typer.echo(f"resuming from iteration {done} of {cfg.iterations} ({progress_dir})", err=True)
     pop_actors = actors + [member_actor(m, {**spec_meta, **bounds}).to(device) for m in members[n_start:]]
     child_cfg = ChildConfig(
         tuple(cfg.hidden_sizes), cfg.child_buffer_size, cfg.weight_norm, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size,

@@ -23,7 +23,7 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.pderl import EpisodeResult
 from pipeline.population import Member, save_population
 from pipeline.provenance import provenance
-from pipeline.resume import clear_progress, fingerprint, load_progress, save_progress
+from pipeline.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
 from pipeline.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 from stages.extract import SPEC_KEYS, load_specialists, normalised_hypervolume
@@ -141,7 +141,8 @@ def mopderl(
         "and buffer.zarr (the RL replay buffer)",
     ),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
-    resume_dir: Path = typer.Option(Path("data/resume"), help="where progress is checkpointed (RESUME_DIR/mopderl/seedS)"),
+    resume_dir: Path = typer.Option(None, help="where progress is checkpointed (RESUME_DIR/mopderl/seedS); default "
+                                               "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume"),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """MOPDERL phase 2 (the baseline): evolve the merged PDERL populations towards a Pareto front.
@@ -200,7 +201,7 @@ def mopderl(
                   "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS), "seed": seed}
         fp = fingerprint({**config, "device": str(device), "threads": torch.get_num_threads()},
                          files + more + closure_files("stages.mopderl"))
-        progress_dir = resume_dir / "mopderl" / f"seed{seed}"
+        progress_dir = (resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}"
 
         run = MopderlRun(spec, td3, cfg, seed, population, agents, device)
         del agents

@@ -17,7 +17,7 @@ from pipeline.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_me
 from pipeline.params.morld import MorldParams
 from pipeline.population import save_population
 from pipeline.provenance import provenance
-from pipeline.resume import fingerprint
+from pipeline.resume import checkpoint_dir, fingerprint
 from pipeline.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -70,7 +70,7 @@ def morld(
     config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "morld": cfg.model_dump(), "seed": seed}
     fp = run_fingerprint(config, cfg, device)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt = out / CHECKPOINT
+    ckpt = checkpoint_dir(out) / CHECKPOINT  # beside the outputs, or on shared storage in a sweep
 
     run = MorldRun(spec, cfg, seed, device)
     state = load_checkpoint(ckpt, fp)

@@ -49,6 +49,16 @@ def sweep(
         "is not retried"
     ),
     dry_run: bool = typer.Option(False, "--dry-run", help="prepare the workspaces, print every cell's stage items and stop"),
+    resume_root: Optional[Path] = typer.Option(
+        None, "--resume-root", help="a directory every node can reach (shared filesystem) where long stages keep their "
+        "resume progress, one folder per stage item: a task retried after its node died resumes there instead of "
+        "starting over (default: progress lives in the worker's clone and dies with it)"
+    ),
+    remote_option: Optional[list[str]] = typer.Option(
+        None, "--remote-option", help="KEY=VALUE setting of the DVC remote besides its URL, repeatable; e.g. for an "
+        "S3-compatible server: endpointurl=http://host:9000 (credentials: access_key_id, secret_access_key, or the "
+        "usual AWS_* environment on every node). Written to each workspace's .dvc/config.local, never to git"
+    ),
 ) -> None:
     """Run a grid (envs x override sets, each with its seeds and dvc.yaml's variants) on Ray.
 
@@ -58,10 +68,18 @@ def sweep(
     cell's dvc.lock once, restoring every stage from the run-cache. Run it again to resume:
     completed stages are restored, not recomputed, and a completed cell runs nothing.
     """
+    options = {}
+    for item in remote_option or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            typer.echo(f"error: --remote-option {item!r}: expected KEY=VALUE", err=True)
+            raise typer.Exit(code=2)
+        options[key.strip()] = value.strip()
     try:
         results = run_sweep(
             grid, remote, repo=repo, workdir=workdir, address=address, workers=workers, max_retries=max_retries,
-            git_url=git_url, scratch=scratch, dry_run=dry_run, log=typer.echo,
+            git_url=git_url, scratch=scratch, dry_run=dry_run, remote_options=options, resume_root=resume_root,
+            log=typer.echo,
         )
     except SweepError as exc:
         typer.echo(f"error: {exc}", err=True)

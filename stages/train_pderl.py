@@ -18,7 +18,7 @@ from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from pipeline.policyset import save_policy_set
-from pipeline.resume import fingerprint
+from pipeline.resume import checkpoint_dir, fingerprint
 from pipeline.seeding import select_device
 from stages.common import PARAMS_OPTION, progress, reports_errors
 from stages.train_specialist import save_rl_agent, specialist_meta
@@ -127,7 +127,7 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
               cfg: TrainPderlParams, device: torch.device) -> None:
     """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts."""
     fp = run_fingerprint(seed, k, env_p, td3, cfg, device)
-    ckpt = out / CHECKPOINT
+    ckpt = checkpoint_dir(out) / CHECKPOINT  # beside the outputs, or on shared storage in a sweep
     state = load_checkpoint(ckpt, fp)
     run = PderlRun(spec, td3, cfg, k, seed, device)
     if state is not None:

@@ -40,8 +40,9 @@ TINY = {
 }
 
 
-def mapex(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=cwd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+def mapex(*args: str, cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=cwd, capture_output=True, text=True,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
 
 
 def write_params(path: Path, **extract_updates) -> Path:
@@ -60,9 +61,10 @@ def specialists(tmp_path_factory) -> Path:
     return root
 
 
-def extract_cmd(specialists: Path, out: Path, params: Path, resume: Path, variant: str = "mapex") -> list[str]:
+def extract_cmd(specialists: Path, out: Path, params: Path, resume: Path | None, variant: str = "mapex") -> list[str]:
+    """The extract command; resume None: no --resume-dir (progress goes to $MAPEX_RESUME_ROOT or data/resume)."""
     return ["extract", "--seed", "0", "--variant", variant, "--specialists", str(specialists), "--out", str(out),
-            "--resume-dir", str(resume), "--params", str(params)]
+            *(["--resume-dir", str(resume)] if resume is not None else []), "--params", str(params)]
 
 
 def test_extract_end_to_end_population_and_history(specialists, tmp_path):
@@ -123,6 +125,9 @@ def _population_equal(a: Path, b: Path) -> None:
 
 @pytest.mark.parametrize("k", [1, 2])
 def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k):
+    """k = 2 also stands for a sweep's retry on another node: no --resume-dir, progress on shared
+    storage ($MAPEX_RESUME_ROOT, as `mapex sweep --resume-root` sets it), and the rerun in
+    another working directory."""
     params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200, children_per_iteration=k)
     # uninterrupted reference run
     r = mapex(*extract_cmd(specialists, tmp_path / "ref", params, tmp_path / "resume_ref"), cwd=tmp_path)
@@ -130,8 +135,12 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     # run again, SIGKILL it as soon as its first iteration is checkpointed
     resume = tmp_path / "resume"
     state_file = resume / "extract" / "mapex_td3" / "seed0" / "state.pt"
-    cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, resume)]
-    proc = subprocess.Popen(cmd, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)}, stderr=subprocess.DEVNULL)
+    shared = {"MAPEX_RESUME_ROOT": str(resume)} if k == 2 else {}
+    node_a, node_b = (tmp_path / "node_a", tmp_path / "node_b") if k == 2 else (tmp_path, tmp_path)
+    node_a.mkdir(exist_ok=True)
+    node_b.mkdir(exist_ok=True)
+    cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, None if k == 2 else resume)]
+    proc = subprocess.Popen(cmd, cwd=node_a, env={**os.environ, "PYTHONPATH": str(ROOT), **shared}, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
 
     def children_saved() -> int:
@@ -154,8 +163,10 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     assert 1 <= done < 8 * k and done % k == 0  # whole iterations only
     assert not (tmp_path / "out" / "population.pt").exists()  # nothing final written by the killed run
     # rerun: resumes from the checkpoint and ends with the same artifacts
-    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, resume), cwd=tmp_path)
+    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, None if k == 2 else resume), cwd=node_b, env=shared)
     assert r.returncode == 0, r.stderr
+    assert f"resuming from iteration {done // k} of 8 ({state_file.parent})" in r.stderr  # it did resume
+    assert not (node_b / "data").exists()  # nothing went to the working directory's data/resume
     _population_equal(tmp_path / "ref" / "population.pt", tmp_path / "out" / "population.pt")
     assert (tmp_path / "ref" / "history.csv").read_text() == (tmp_path / "out" / "history.csv").read_text()
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -357,3 +358,59 @@ def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(clus
     assert "stages failed in nope: fit_critics@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
     assert not (tmp_path / "work" / "nope" / "dvc.lock").exists()
     assert list((tmp_path / "scratch" / "nope").iterdir()) == []  # its clone is cleaned up
+
+
+# ------------------------------------------------------------------------------------------
+# An S3 remote: moto's S3 server on 127.0.0.1 (dvc-s3 and moto are test-only installs)
+
+
+@pytest.fixture
+def s3_server():
+    pytest.importorskip("dvc_s3", reason="dvc-s3 is a test-only install (make test installs it)")
+    moto_server = pytest.importorskip("moto.server", reason="moto[server] is a test-only install (make test installs it)")
+    import boto3
+
+    with socket.socket() as sock:  # a free port
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    url = f"http://127.0.0.1:{port}"
+    s3 = boto3.client("s3", endpoint_url=url, aws_access_key_id="testing", aws_secret_access_key="testing",
+                      region_name="us-east-1")
+    s3.create_bucket(Bucket="mapex-sweep")
+    yield url, s3
+    server.stop()
+
+
+def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_path, s3_server):
+    """The first sweep's cell up to fit_critics@0-td3-0 again, with an S3-compatible remote: the
+    stages compute (the bucket's run-cache is empty), their lock entries equal the local-remote
+    sweep's, outputs and run-cache land in the bucket, and a second run restores everything."""
+    base, _, _ = swept
+    url, s3 = s3_server
+    grid = write_grid(tmp_path / "s3.yaml", {**GRID, "targets": ["fit_critics@0-td3-0"]})
+    args = [grid, "--remote", "s3://mapex-sweep/remote", "--repo", source, "--workdir", tmp_path / "work",
+            "--scratch", tmp_path / "scratch", "--remote-option", f"endpointurl={url}",
+            "--remote-option", "access_key_id=testing", "--remote-option", "secret_access_key=testing"]
+    result = run_cli(*args)
+    assert result.exit_code == 0, result.output
+    assert "mo-hopper-2obj-v5: done (2 ran, 0 restored)" in result.output
+    lock = yaml.safe_load((tmp_path / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
+    local = yaml.safe_load((base / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
+    assert sorted(lock) == sorted(SHARED) and all(lock[k] == local[k] for k in SHARED)
+    keys = [o["Key"] for page in s3.get_paginator("list_objects_v2").paginate(Bucket="mapex-sweep") for o in page.get("Contents", [])]
+    assert any(k.startswith("remote/files/md5/") for k in keys) and any(k.startswith("remote/runs/") for k in keys)
+    assert "endpointurl" not in subprocess.run(["git", "show", "HEAD:.dvc/config"], cwd=source, capture_output=True, text=True).stdout
+    again = run_cli(*args)
+    assert again.exit_code == 0 and "mo-hopper-2obj-v5: up to date" in again.output
+    bad = run_cli(*args[:-6], "--remote-option", "endpointurl")
+    assert bad.exit_code == 2 and "expected KEY=VALUE" in bad.output
+
+
+def test_resume_root_gives_each_task_its_own_shared_progress_dir(tmp_path):
+    task = sw.StageTask("hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    assert sw.task_resume_dir(task) == tmp_path / "hopper.a" / "extract_0-td3-mapex"
+    other = sw.StageTask("hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    assert sw.task_resume_dir(other) != sw.task_resume_dir(task)  # cells never share progress
+    assert sw.task_resume_dir(sw.StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
