@@ -14,13 +14,20 @@ live on the GPU, rows are drawn on the GPU from a per-specialist torch generator
 update runs as captured CUDA graphs (`train_specialist.cuda_graphs`); the only per-step host
 sync is reading the actions to step the envs. The two devices therefore draw different
 (each reproducible) minibatches.
+
+Checkpoints: `SpecialistsRun.state_dict` holds every piece of a run's state (networks,
+optimizers, replay buffers, RNG streams, counters, the episode history and each env's
+mid-episode state, `env_state`), so a run restored after any step goes on bitwise as the
+uninterrupted one on a CPU. Only MuJoCo envs (behind gymnasium's standard wrappers) can be
+saved mid-episode; `env_checkpoint_problem` says why another cannot. On CUDA the state is
+saved as CPU tensors and restored onto the device (untested here: no GPU).
 """
 
 from __future__ import annotations
 
 import copy
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -147,8 +154,15 @@ class _Updater:
         if self.on_cuda:
             self.row_gens = [torch_generator(x["cuda_rows"], device) for x in seeds]
             self.idx = torch.zeros(s, b, dtype=torch.long, device=device)
+        self.graphs = self.on_cuda and cfg.cuda_graphs
         self.graphed: GraphedUpdate | None = None
         self.args = dict(gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip)
+
+    def graph(self) -> GraphedUpdate:
+        """The captured update (CUDA graphs), captured on first use: it needs fresh optimizers."""
+        if self.graphed is None:
+            self.graphed = GraphedUpdate(self.state, self.buffer.gather, self.idx, self.noise, **self.args)
+        return self.graphed
 
     def __call__(self, update_actor: bool) -> None:
         for s, g in enumerate(self.noise_gens):
@@ -159,12 +173,274 @@ class _Updater:
             idx = self.idx
         else:
             idx = torch.from_numpy(np.stack([rng.integers(0, self.buffer.size, size=self.cfg.batch_size) for rng in self.rngs]))
-        if self.on_cuda and self.cfg.cuda_graphs:
-            if self.graphed is None:
-                self.graphed = GraphedUpdate(self.state, self.buffer.gather, self.idx, self.noise, **self.args)
-            self.graphed(update_actor)
+        if self.graphs:
+            self.graph()(update_actor)
         else:
             stacked_update(self.state, self.buffer.gather(idx), self.noise, update_actor, **self.args)
+
+
+STATE_FORMAT = "mapex.specialists_state"
+STATE_VERSION = 1
+
+
+def _cpu(obj: Any) -> Any:
+    """A copy of a (nested) state dict with every tensor detached and cloned on the CPU."""
+    if torch.is_tensor(obj):
+        return obj.detach().to("cpu", copy=True)
+    if isinstance(obj, dict):
+        return {k: _cpu(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_cpu(v) for v in obj)
+    return obj
+
+
+def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) -> None:
+    """Copy a saved optimizer state into `opt`'s existing state tensors, in place (captured
+    CUDA graphs read those very tensors, so load_state_dict, which replaces them, cannot be used)."""
+    params = [p for group in opt.param_groups for p in group["params"]]
+    if sorted(saved["state"]) != list(range(len(params))):
+        raise ValueError(f"optimizer state for {len(saved['state'])} parameters, the optimizer has {len(params)}")
+    with torch.no_grad():
+        for i, p in enumerate(params):
+            for key, value in saved["state"][i].items():
+                opt.state[p][key].copy_(value)
+
+
+class SpecialistsRun:
+    """S specialists jobs = [(seed, objective), ...] in training, in lockstep, specialist s on
+    envs[s]: every piece of their state and one env step at a time (`step`).
+
+    `state_dict` holds all of it (networks, optimizers, replay buffers, every RNG, the envs'
+    mid-episode state, counters and episode history), so a run restored from it after any
+    step (`load_state_dict`) goes on exactly as the uninterrupted run: bitwise on a CPU with
+    the same thread count and library versions.
+    """
+
+    def __init__(self, envs: Sequence[gym.Env], spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device):
+        for seed, objective in jobs:
+            if not 0 <= objective < spec.n_objectives:
+                raise ValueError(f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives")
+        if len(envs) != len(jobs):
+            raise ValueError(f"{len(jobs)} specialists need as many envs, got {len(envs)}")
+        self.envs, self.spec, self.cfg = list(envs), spec, cfg
+        self.jobs = [(int(seed), int(objective)) for seed, objective in jobs]
+        self.device = torch.device(device)
+        n = len(jobs)
+        self.seeds = [run_seeds(seed, objective) for seed, objective in self.jobs]
+        self.state = init_stacked(spec, cfg, self.jobs, self.device)
+        self.rngs = [np.random.default_rng(x["numpy"]) for x in self.seeds]
+        for env, x in zip(self.envs, self.seeds):
+            env.action_space.seed(x["space"])
+        self.buffer = StackedReplay(n, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
+        self.update = _Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
+        self.episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
+        self.obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(self.envs, self.seeds)]).astype(np.float32)
+        self.episode = np.zeros(n, np.int64)
+        self.ep_step = np.zeros(n, np.int64)
+        self.ep_return = np.zeros((n, spec.n_objectives))
+        # scratch rows, overwritten by every step
+        self._next_obs = np.zeros_like(self.obs)
+        self._reward = np.zeros((n, spec.n_objectives), np.float32)
+        self._terminated = np.zeros(n, bool)
+        self._truncated = np.zeros(n, bool)
+        self.t = 0  # env steps taken by each specialist
+        self.n_updates = 0
+
+    @property
+    def done(self) -> bool:
+        return self.t >= self.cfg.total_steps
+
+    def step(self) -> list[EpisodeRecord | None]:
+        """One env step of every specialist (and one update once learning has started);
+        returns, per specialist, the record of the episode this step ended, else None."""
+        cfg, envs, t = self.cfg, self.envs, self.t
+        if t < cfg.learning_starts:
+            actions = np.stack([np.asarray(env.action_space.sample(), dtype=np.float32) for env in envs])
+        else:
+            actions = exploration_actions(self.state.actor, self.obs, cfg.exploration_noise, self.rngs)
+        next_obs, reward, terminated, truncated = self._next_obs, self._reward, self._terminated, self._truncated
+        for s, env in enumerate(envs):
+            o, r, terminated[s], truncated[s], _ = env.step(actions[s])
+            next_obs[s], reward[s] = o, r
+        self.buffer.add(self.obs, actions, reward, next_obs, terminated, truncated, self.episode, self.ep_step)
+        self.ep_return += reward
+        self.ep_step += 1
+        self.obs = next_obs.copy()
+        records: list[EpisodeRecord | None] = [None] * len(envs)
+        for s in np.flatnonzero(terminated | truncated):
+            records[s] = EpisodeRecord(int(self.episode[s]), t + 1, int(self.ep_step[s]), self.ep_return[s].copy(), bool(terminated[s]))
+            self.episodes[s].append(records[s])
+            self.obs[s] = envs[s].reset()[0]
+            self.episode[s] += 1
+            self.ep_step[s] = 0
+            self.ep_return[s] = 0.0
+        if t >= cfg.learning_starts:
+            self.n_updates += 1
+            self.update(update_actor=self.n_updates % cfg.policy_freq == 0)
+        self.t = t + 1
+        return records
+
+    def results(self) -> list[SpecialistResult]:
+        state, n = self.state, len(self.jobs)
+        e = state.critic.n_members // n
+        return [
+            SpecialistResult(
+                seed=seed,
+                objective=objective,
+                actor=state.actor.unstack(s),
+                actor_target=state.actor_target.unstack(s),
+                critic=state.critic.subset(s * e, (s + 1) * e).cpu(),
+                critic_target=state.critic_target.subset(s * e, (s + 1) * e).cpu().requires_grad_(False),
+                objectives=state.reward_index[s].tolist(),
+                buffer=self.buffer.chronological(s),
+                episodes=self.episodes[s],
+            )
+            for s, (seed, objective) in enumerate(self.jobs)
+        ]
+
+    # -- checkpoints ----------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything the run depends on from here, as CPU tensors and plain Python values
+        (torch.load(weights_only=True) reads it back).
+
+        The buffer rows are not copied when a full ring already lies on the CPU: they are the
+        live ring, so save (or copy) the state before the next `step`."""
+        st, b = self.state, self.buffer
+        size = b.size
+        if size == b.capacity and b.rows.device.type == "cpu":
+            rows, host = b.rows.detach(), {k: torch.from_numpy(v) for k, v in b.host.items()}
+        else:  # the rows written so far, copied to the CPU
+            rows = b.rows[:, :size].to("cpu", copy=True)
+            host = {k: torch.from_numpy(v[:, :size].copy()) for k, v in b.host.items()}
+        cuda = self.device.type == "cuda"
+        return {
+            "format": STATE_FORMAT,
+            "format_version": STATE_VERSION,
+            "jobs": [list(j) for j in self.jobs],
+            "counters": {"t": self.t, "n_updates": self.n_updates},
+            "nets": _cpu({
+                "actor": st.actor.state_dict(), "actor_target": st.actor_target.state_dict(),
+                "critic": st.critic.state_dict(), "critic_target": st.critic_target.state_dict(),
+                "actor_opt": st.actor_opt.state_dict(), "critic_opt": st.critic_opt.state_dict(),
+            }),
+            "buffer": {"capacity": b.capacity, "ptr": b.ptr, "size": size, "rows": rows, **host},
+            "loop": {
+                "obs": torch.from_numpy(self.obs.copy()),
+                "episode": torch.from_numpy(self.episode.copy()),
+                "ep_step": torch.from_numpy(self.ep_step.copy()),
+                "ep_return": torch.from_numpy(self.ep_return.copy()),
+            },
+            "episodes": [
+                {
+                    "episode": torch.tensor([r.episode for r in eps], dtype=torch.int64),
+                    "end_step": torch.tensor([r.end_step for r in eps], dtype=torch.int64),
+                    "length": torch.tensor([r.length for r in eps], dtype=torch.int64),
+                    "terminated": torch.tensor([r.terminated for r in eps], dtype=torch.bool),
+                    "returns": torch.from_numpy(np.stack([r.returns for r in eps]) if eps else np.zeros((0, self.spec.n_objectives))),
+                }
+                for eps in self.episodes
+            ],
+            "rng": {
+                "numpy": [copy.deepcopy(r.bit_generator.state) for r in self.rngs],
+                "noise": [g.get_state() for g in self.update.noise_gens],
+                "rows": [g.get_state() for g in self.update.row_gens] if self.update.on_cuda else [],
+                "torch": torch.get_rng_state(),
+                "cuda": torch.cuda.get_rng_state(self.device) if cuda else None,
+            },
+            "envs": [env_state(env) for env in self.envs],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a `state_dict` of a run with the same envs, spec, params, jobs and device
+        (call it on a fresh run, before any `step`). Raises ValueError if the state cannot be
+        of this run; the run is then unusable (build a fresh one)."""
+        if state.get("format") != STATE_FORMAT or state.get("format_version") != STATE_VERSION:
+            raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
+        if [tuple(j) for j in state["jobs"]] != self.jobs:
+            raise ValueError(f"state of specialists {state['jobs']}; this run trains {[list(j) for j in self.jobs]}")
+        b, saved_b = self.buffer, state["buffer"]
+        if saved_b["capacity"] != b.capacity:
+            raise ValueError(f"state's buffer capacity {saved_b['capacity']} != {b.capacity}")
+        size = saved_b["size"]
+        if tuple(saved_b["rows"].shape) != (b.n, size, b.rows.shape[2]) or not 0 <= saved_b["ptr"] < b.capacity:
+            raise ValueError(f"state's buffer rows {tuple(saved_b['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})")
+        if self.t or self.n_updates:
+            raise ValueError("load_state_dict needs a fresh run")
+        st, nets = self.state, state["nets"]
+        try:
+            for name in ("actor", "actor_target", "critic", "critic_target"):
+                getattr(st, name).load_state_dict(nets[name])
+            with torch.no_grad():
+                b.rows[:, :size].copy_(saved_b["rows"])
+            for k, v in b.host.items():
+                v[:, :size] = saved_b[k].numpy()
+            b.ptr, b.size = int(saved_b["ptr"]), int(size)
+            if self.update.graphs and state["counters"]["n_updates"] > 0:
+                # The captured graphs read the optimizers' own state tensors: capture them now
+                # (on fresh optimizers, with the restored networks and buffer), then fill those
+                # tensors in place.
+                self.update.graph()
+                _copy_optimizer_state_(st.actor_opt, nets["actor_opt"])
+                _copy_optimizer_state_(st.critic_opt, nets["critic_opt"])
+            else:
+                st.actor_opt.load_state_dict(nets["actor_opt"])
+                st.critic_opt.load_state_dict(nets["critic_opt"])
+            for env, saved in zip(self.envs, state["envs"], strict=True):
+                restore_env_state(env, saved)
+            loop = state["loop"]
+            for name in ("obs", "episode", "ep_step", "ep_return"):
+                value = loop[name].numpy()
+                if value.shape != getattr(self, name).shape:
+                    raise ValueError(f"saved {name} has shape {value.shape}, expected {getattr(self, name).shape}")
+                setattr(self, name, value.astype(getattr(self, name).dtype, copy=True))
+            self.episodes = [
+                [
+                    EpisodeRecord(int(e), int(end), int(length), ret.copy(), bool(term))
+                    for e, end, length, term, ret in zip(
+                        eps["episode"].tolist(), eps["end_step"].tolist(), eps["length"].tolist(),
+                        eps["terminated"].tolist(), eps["returns"].numpy(), strict=True,
+                    )
+                ]
+                for eps in state["episodes"]
+            ]
+            rng = state["rng"]
+            for r, saved in zip(self.rngs, rng["numpy"], strict=True):
+                r.bit_generator.state = saved
+            for g, saved in zip(self.update.noise_gens, rng["noise"], strict=True):
+                g.set_state(saved)
+            if self.update.on_cuda:
+                for g, saved in zip(self.update.row_gens, rng["rows"], strict=True):
+                    g.set_state(saved)
+                if rng["cuda"] is not None:
+                    torch.cuda.set_rng_state(rng["cuda"], self.device)
+            torch.set_rng_state(rng["torch"])
+        except (RuntimeError, KeyError, TypeError) as exc:
+            raise ValueError(f"state does not fit this run ({type(exc).__name__}: {exc})") from None
+        if len(self.episodes) != len(self.jobs):
+            raise ValueError(f"state holds the episodes of {len(self.episodes)} specialists, the run trains {len(self.jobs)}")
+        c = state["counters"]
+        self.t, self.n_updates = int(c["t"]), int(c["n_updates"])
+
+
+def continue_training(
+    run: SpecialistsRun,
+    on_step: Callable[[int, list[EpisodeRecord | None]], None] | None = None,
+    on_checkpoint: Callable[[SpecialistsRun], None] | None = None,
+) -> list[SpecialistResult]:
+    """Step `run` (fresh or restored) to cfg.total_steps and return its results.
+
+    `on_step(t, records)` after every step; `on_checkpoint(run)` after every
+    cfg.checkpoint_every-th step but the last (none when it is 0): save `run.state_dict()`
+    there. An exception raised in a callback stops the run."""
+    every = run.cfg.checkpoint_every
+    while not run.done:
+        records = run.step()
+        if on_step is not None:
+            on_step(run.t, records)
+        if on_checkpoint is not None and every and run.t % every == 0 and not run.done:
+            on_checkpoint(run)
+    return run.results()
 
 
 def train_specialists(
@@ -174,80 +450,23 @@ def train_specialists(
     jobs: Sequence[tuple[int, int]],
     device: torch.device,
     on_step: Callable[[int, list[EpisodeRecord | None]], None] | None = None,
+    state: dict[str, Any] | None = None,
+    on_checkpoint: Callable[[SpecialistsRun], None] | None = None,
 ) -> list[SpecialistResult]:
     """Train specialists jobs = [(seed, objective), ...] with TD3 for cfg.total_steps env steps
-    each, in lockstep, specialist s on envs[s].
+    each, in lockstep, specialist s on envs[s]; resume from `state` (a
+    `SpecialistsRun.state_dict()`, ValueError if it does not fit) if given. The callbacks are
+    those of `continue_training`.
 
     Randomness: torch init, env resets, the start-up action sampler, exploration noise, batch
     rows and target smoothing noise are all seeded from (seed, objective) alone, so a
     specialist draws the same whatever else is stacked with it, and the same inputs give
     bitwise-identical results on a CPU (same thread count and library versions).
     """
-    for seed, objective in jobs:
-        if not 0 <= objective < spec.n_objectives:
-            raise ValueError(f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives")
-    if len(envs) != len(jobs):
-        raise ValueError(f"{len(jobs)} specialists need as many envs, got {len(envs)}")
-    n = len(jobs)
-    seeds = [run_seeds(seed, objective) for seed, objective in jobs]
-    state = init_stacked(spec, cfg, jobs, device)
-    rngs = [np.random.default_rng(x["numpy"]) for x in seeds]
-    for env, x in zip(envs, seeds):
-        env.action_space.seed(x["space"])
-    buffer = StackedReplay(n, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, device)
-    update = _Updater(state, buffer, cfg, seeds, rngs, device)
-    episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
-
-    obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(envs, seeds)]).astype(np.float32)
-    episode = np.zeros(n, np.int64)
-    ep_step = np.zeros(n, np.int64)
-    ep_return = np.zeros((n, spec.n_objectives))
-    next_obs = np.zeros_like(obs)
-    reward = np.zeros((n, spec.n_objectives), np.float32)
-    terminated = np.zeros(n, bool)
-    truncated = np.zeros(n, bool)
-    n_updates = 0
-    for t in range(cfg.total_steps):
-        if t < cfg.learning_starts:
-            actions = np.stack([np.asarray(env.action_space.sample(), dtype=np.float32) for env in envs])
-        else:
-            actions = exploration_actions(state.actor, obs, cfg.exploration_noise, rngs)
-        for s, env in enumerate(envs):
-            o, r, terminated[s], truncated[s], _ = env.step(actions[s])
-            next_obs[s], reward[s] = o, r
-        buffer.add(obs, actions, reward, next_obs, terminated, truncated, episode, ep_step)
-        ep_return += reward
-        ep_step += 1
-        obs = next_obs.copy()
-        records: list[EpisodeRecord | None] = [None] * n
-        for s in np.flatnonzero(terminated | truncated):
-            records[s] = EpisodeRecord(int(episode[s]), t + 1, int(ep_step[s]), ep_return[s].copy(), bool(terminated[s]))
-            episodes[s].append(records[s])
-            obs[s] = envs[s].reset()[0]
-            episode[s] += 1
-            ep_step[s] = 0
-            ep_return[s] = 0.0
-        if t >= cfg.learning_starts:
-            n_updates += 1
-            update(update_actor=n_updates % cfg.policy_freq == 0)
-        if on_step is not None:
-            on_step(t + 1, records)
-
-    e = state.critic.n_members // n
-    return [
-        SpecialistResult(
-            seed=seed,
-            objective=objective,
-            actor=state.actor.unstack(s),
-            actor_target=state.actor_target.unstack(s),
-            critic=state.critic.subset(s * e, (s + 1) * e).cpu(),
-            critic_target=state.critic_target.subset(s * e, (s + 1) * e).cpu().requires_grad_(False),
-            objectives=state.reward_index[s].tolist(),
-            buffer=buffer.chronological(s),
-            episodes=episodes[s],
-        )
-        for s, (seed, objective) in enumerate(jobs)
-    ]
+    run = SpecialistsRun(envs, spec, cfg, jobs, device)
+    if state is not None:
+        run.load_state_dict(state)
+    return continue_training(run, on_step, on_checkpoint)
 
 
 def train_specialist(
@@ -262,3 +481,122 @@ def train_specialist(
     """One specialist alone: `train_specialists` with S = 1."""
     step = None if on_step is None else (lambda t, records: on_step(t, records[0]))
     return train_specialists([env], spec, cfg, [(seed, objective)], device, step)[0]
+
+
+# --------------------------------------------------------------------------- env state
+
+
+class EnvStateError(ValueError):
+    """An env whose whole state cannot be saved and restored (so it cannot be checkpointed)."""
+
+
+# Wrappers the env state knows: TimeLimit (its step count is saved), OrderEnforcing (its
+# has-reset flag is saved) and PassiveEnvChecker (its flags only decide which one-off checks
+# run; they change nothing the env returns). Any other wrapper may hold state we cannot see.
+_KNOWN_WRAPPERS = (gym.wrappers.TimeLimit, gym.wrappers.OrderEnforcing, gym.wrappers.PassiveEnvChecker)
+
+# Quantities MuJoCo derives from the state during a step (positions, frames, velocities and
+# forces of bodies, geoms and sites). mj_step recomputes all of them before it uses them, so
+# they are not part of the integration state, but env code may read them before stepping:
+# Ant-v5 takes the torso's xpos before the step to compute its velocity, and after a step
+# xpos still belongs to the last substep's start, not to the current qpos. So they are saved
+# as they are, not recomputed on restore.
+_MJ_DERIVED = (
+    "xpos", "xquat", "xmat", "xipos", "ximat", "xanchor", "xaxis", "geom_xpos", "geom_xmat",
+    "site_xpos", "site_xmat", "subtree_com", "cinert", "cdof", "cvel", "cacc", "cfrc_int",
+    "cfrc_ext", "qacc", "qfrc_actuator", "actuator_force", "sensordata",
+)
+
+
+def _wrapper_chain(env: gym.Env) -> list[gym.Env]:
+    chain = []
+    while isinstance(env, gym.Wrapper):
+        chain.append(env)
+        env = env.env
+    return chain
+
+
+def env_checkpoint_problem(env: gym.Env) -> str | None:
+    """Why the mid-episode state of `env` cannot be saved, or None if `env_state` can save it."""
+    unknown = [type(w).__name__ for w in _wrapper_chain(env) if not isinstance(w, _KNOWN_WRAPPERS)]
+    if unknown:
+        return f"wrapper(s) {unknown} may hold state the checkpoint cannot see"
+    u = env.unwrapped
+    try:
+        import mujoco
+    except ImportError:  # pragma: no cover - mujoco comes with the MuJoCo envs
+        return "mujoco is not installed"
+    if not isinstance(getattr(u, "model", None), mujoco.MjModel) or not isinstance(getattr(u, "data", None), mujoco.MjData):
+        return f"{type(u).__name__} is not a MuJoCo env (only MuJoCo physics state is saved)"
+    return None
+
+
+def env_state(env: gym.Env) -> dict[str, Any]:
+    """The whole mid-episode state of a MuJoCo env built by `make_env`: the physics
+    (mjSTATE_INTEGRATION: time, qpos, qvel, act, warm start of the constraint solver, controls,
+    ...), the derived quantities env code may read before the next step (`_MJ_DERIVED`), the
+    wrappers' counters and the env's and its action space's RNG states.
+
+    qpos and qvel alone are not enough: without the solver's warm start a step with contacts
+    (Hopper, Walker2d, Ant) differs in the last bits. Raises EnvStateError if the env is not
+    one whose state this knows (see `env_checkpoint_problem`)."""
+    problem = env_checkpoint_problem(env)
+    if problem is not None:
+        raise EnvStateError(problem)
+    import mujoco
+
+    u = env.unwrapped
+    sig = mujoco.mjtState.mjSTATE_INTEGRATION
+    physics = np.empty(mujoco.mj_stateSize(u.model, sig), np.float64)
+    mujoco.mj_getState(u.model, u.data, physics, sig)
+    wrappers = []
+    for w in _wrapper_chain(env):
+        entry: dict[str, Any] = {"type": type(w).__name__}
+        if isinstance(w, gym.wrappers.TimeLimit):
+            entry["elapsed_steps"] = w._elapsed_steps
+        if isinstance(w, gym.wrappers.OrderEnforcing):
+            entry["has_reset"] = w._has_reset
+        wrappers.append(entry)
+    return {
+        "physics": torch.from_numpy(physics),
+        "derived": {k: torch.from_numpy(np.array(getattr(u.data, k))) for k in _MJ_DERIVED if hasattr(u.data, k)},
+        "wrappers": wrappers,
+        "np_random": copy.deepcopy(u.np_random.bit_generator.state),
+        "action_space": copy.deepcopy(env.action_space.np_random.bit_generator.state),
+    }
+
+
+def restore_env_state(env: gym.Env, state: dict[str, Any]) -> None:
+    """Put `env` (built like the one `state` was taken from) into `state` (an `env_state`):
+    its next steps and resets give exactly what the saved env's would have. ValueError if the
+    state does not fit the env."""
+    problem = env_checkpoint_problem(env)
+    if problem is not None:
+        raise EnvStateError(problem)
+    import mujoco
+
+    u = env.unwrapped
+    sig = mujoco.mjtState.mjSTATE_INTEGRATION
+    physics = state["physics"].numpy()
+    if physics.shape != (mujoco.mj_stateSize(u.model, sig),):
+        raise ValueError(f"physics state of shape {tuple(physics.shape)} does not fit this env's model")
+    chain = _wrapper_chain(env)
+    if [type(w).__name__ for w in chain] != [w["type"] for w in state["wrappers"]]:
+        raise ValueError(f"env wrappers {[w['type'] for w in state['wrappers']]} were saved, this env has {[type(w).__name__ for w in chain]}")
+    mujoco.mj_setState(u.model, u.data, physics, sig)
+    mujoco.mj_forward(u.model, u.data)  # derived quantities not saved: consistent with the state
+    for k, v in state["derived"].items():
+        target = getattr(u.data, k, None)
+        if target is None:
+            raise ValueError(f"saved mjData.{k}, which this MuJoCo version lacks")
+        if target.shape != tuple(v.shape):
+            raise ValueError(f"saved mjData.{k} has shape {tuple(v.shape)}, this env's {target.shape}")
+        target[...] = v.numpy()
+    mujoco.mj_setState(u.model, u.data, physics, sig)  # in case mj_forward touched any of it
+    for w, saved in zip(chain, state["wrappers"]):
+        if "elapsed_steps" in saved:
+            w._elapsed_steps = saved["elapsed_steps"]
+        if "has_reset" in saved:
+            w._has_reset = saved["has_reset"]
+    u.np_random.bit_generator.state = state["np_random"]
+    env.action_space.np_random.bit_generator.state = state["action_space"]

@@ -5,20 +5,27 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional, Sequence
 
+import torch
 import typer
 
-from pipeline.artifacts import write_text_atomic
+from pipeline.artifacts import TMP_SUFFIX, atomic_path, write_text_atomic
 from pipeline.buffer import save_buffer
 from pipeline.checkpoint import save_critics, save_policy
+from pipeline.codedeps import closure_files
 from pipeline.envs import env_spec, make_env, objective_names
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.provenance import provenance
+from pipeline.resume import checkpoint_dir, fingerprint
 from pipeline.seeding import select_device
-from pipeline.specialist import SpecialistResult, train_specialists
+from pipeline.specialist import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+
+CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"
+CHECKPOINT_VERSION = 1
+CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 
 
 @reports_errors
@@ -43,6 +50,13 @@ def train_specialist(
     vectors), policy.pt (actor and target actor), critics.pt (all critics, online and target)
     and returns.csv (the undiscounted return vector of every training episode, a learning
     curve for `dvc plots`).
+
+    Every train_specialist.checkpoint_every env steps the specialists trained together save
+    their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
+    OUT/specialist_state_obj{K}[-obj{L}...].pt, atomically; a rerun with the same params,
+    code, device and thread count resumes from it and writes the same artifacts, bit for bit
+    on a CPU, as an uninterrupted run. Anything else starts over. It is deleted once the
+    artifacts are written (it is not a DVC out).
     """
     raw, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
     objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
@@ -57,23 +71,119 @@ def train_specialist(
     device = select_device(cfg.device)
     groups = [objectives] if cfg.batched else [[k] for k in objectives]
     for group in groups:
-        jobs = [(seed, k) for k in group]
-        envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs]
         what = ", ".join(f"obj {k} ({names[k]})" for k in group)
-        bar = progress(cfg.total_steps * len(jobs), f"specialists seed {seed}: {what}")
-
-        def on_step(t: int, records) -> None:
-            bar.update(len(records))
-            ended = [f"obj {k} {fmt_vec(r.returns)}" for k, r in zip(group, records) if r is not None]
-            if ended:
-                bar.set_postfix_str("return " + "; ".join(ended), refresh=False)
-
-        with bar:
-            results = train_specialists(envs, spec, cfg, jobs, device, on_step=on_step)
-        for env in envs:
-            env.close()
+        results = train_group(out, group, what, seed, spec, env_p, cfg, device)
         for result in results:
             save_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+        ckpt = checkpoint_path(out, group)
+        ckpt.unlink(missing_ok=True)
+        ckpt.with_name(ckpt.name + TMP_SUFFIX).unlink(missing_ok=True)  # one a kill cut short
+    remove_stale_checkpoints(out, objectives)
+
+
+def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
+    """The checkpoint of the specialists of objectives `group` trained together: beside the
+    outputs, or under $MAPEX_RESUME_ROOT in a sweep (pipeline.resume.checkpoint_dir)."""
+    return checkpoint_dir(out) / (CHECKPOINT_PREFIX + "-".join(f"obj{k}" for k in group) + ".pt")
+
+
+def remove_stale_checkpoints(out: Path, trained: Sequence[int]) -> None:
+    """Remove checkpoints left by another grouping of objectives this run has now trained
+    (a run killed with batched: true, rerun with batched: false, say): they cannot be resumed
+    any more, and a paper-scale one holds gigabytes."""
+    for path in checkpoint_dir(out).glob(f"{CHECKPOINT_PREFIX}obj*.pt"):
+        names = path.name[len(CHECKPOINT_PREFIX) : -len(".pt")].split("-")
+        if all(n.startswith("obj") and n[3:].isdigit() for n in names) and {int(n[3:]) for n in names} <= set(trained):
+            path.unlink(missing_ok=True)
+
+
+def run_fingerprint(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpecialistParams, device) -> str:
+    """Everything the run of specialists (seed, k) for k in `group`, stacked, depends on:
+    the params it reads, seed, objectives, device, thread count and every code file the stage
+    runs. Not checkpoint_every (when to save changes nothing saved), device (the device it
+    resolved to is here), batched (the group is)."""
+    config = {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "train_specialist": cfg.model_dump(exclude={"checkpoint_every", "device", "batched"}),
+        "seed": seed,
+        "objectives": list(group),
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+    }
+    return fingerprint(config, closure_files("stages.train_specialist"))
+
+
+def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
+    """The run state saved at `path` under fingerprint `fp`, else None (a missing, unreadable
+    or stale checkpoint is never trusted). Memory-mapped: the buffer rows are read from the
+    file as they are copied into the run, not held twice."""
+    if not path.exists():
+        return None
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as exc:  # truncated, corrupt, not a torch file
+        typer.echo(f"{path}: ignored, starting over (cannot be read: {type(exc).__name__}: {exc})", err=True)
+        return None
+    if not isinstance(obj, dict) or obj.get("format") != CHECKPOINT_FORMAT or obj.get("format_version") != CHECKPOINT_VERSION:
+        typer.echo(f"{path}: ignored, starting over (not a {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION} file)", err=True)
+        return None
+    if obj.get("fingerprint") != fp:
+        typer.echo(f"{path}: params, code, device or threads changed since it was written; starting over", err=True)
+        return None
+    return obj.get("state")
+
+
+def save_checkpoint(path: Path, fp: str, run: SpecialistsRun) -> None:
+    obj = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": fp, "state": run.state_dict()}
+    with atomic_path(path) as tmp:  # streamed to the file: no in-memory copy of the serialized buffers
+        torch.save(obj, tmp)
+
+
+def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams,
+                device: torch.device) -> list[SpecialistResult]:
+    """Train the specialists (seed, k), k in `group`, together: from their checkpoint if one
+    fits, checkpointing every cfg.checkpoint_every steps."""
+    jobs = [(seed, k) for k in group]
+    fp = run_fingerprint(seed, group, env_p, cfg, device)
+    ckpt = checkpoint_path(out, group)
+
+    def fresh() -> SpecialistsRun:
+        return SpecialistsRun([make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, cfg, jobs, device)
+
+    run = fresh()
+    problem = env_checkpoint_problem(run.envs[0])
+    if cfg.checkpoint_every and problem is not None:
+        typer.echo(f"train_specialist.checkpoint_every: checkpoints off for env {env_p.id} ({problem})", err=True)
+    state = load_checkpoint(ckpt, fp) if problem is None else None
+    if state is not None:
+        try:
+            run.load_state_dict(state)
+            typer.echo(f"{what}: resuming from step {run.t} of {ckpt}", err=True)
+        except ValueError as exc:  # right fingerprint, yet it does not fit: never trust it
+            typer.echo(f"{ckpt}: cannot be resumed ({exc}); starting over", err=True)
+            for env in run.envs:
+                env.close()
+            run = fresh()
+    del state
+
+    bar = progress(cfg.total_steps * len(jobs), f"specialists seed {seed}: {what}")
+    bar.update(run.t * len(jobs))
+
+    def on_step(t: int, records) -> None:
+        bar.update(len(records))
+        ended = [f"obj {k} {fmt_vec(r.returns)}" for k, r in zip(group, records) if r is not None]
+        if ended:
+            bar.set_postfix_str("return " + "; ".join(ended), refresh=False)
+
+    def on_checkpoint(run: SpecialistsRun) -> None:
+        save_checkpoint(ckpt, fp, run)
+
+    try:
+        with bar:
+            return continue_training(run, on_step, on_checkpoint if problem is None else None)
+    finally:
+        for env in run.envs:
+            env.close()
 
 
 def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) -> dict:

@@ -1,12 +1,19 @@
 """Stage train_specialist: the real `mapex train-specialist` command on the tiny preset.
 
 Every artifact is reloaded through the real loaders and checked against the run's params;
-bad params fail fast with one readable message and write nothing; same seed = same bits.
+bad params fail fast with one readable message and write nothing; same seed = same bits; a
+run killed mid-way resumes from its checkpoint to the same bits (and a changed one starts over).
 """
 
 from __future__ import annotations
 
 import csv
+import io
+import os
+import signal
+import subprocess
+import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,7 +26,8 @@ from pipeline.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
 from pipeline.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
 from pipeline.envs import env_spec, make_env
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialist import train_specialist
+from pipeline.specialist import SpecialistsRun, continue_training, env_state, restore_env_state, train_specialist
+from stages.train_specialist import CHECKPOINT_FORMAT, load_checkpoint
 
 CAP = 100  # the tiny preset's episode cap
 TOTAL = 350  # its total_steps
@@ -315,3 +323,285 @@ def test_out_of_range_objective_in_the_core():
     with pytest.raises(ValueError, match="objective 5 out of range"):
         train_specialist(env, spec, cfg, 5, 0, torch.device("cpu"))
     env.close()
+
+
+# --- checkpoints and resume ---------------------------------------------------------------
+#
+# Hopper (contacts, falls and cap cuts) with a 40-step cap, 300 steps, learning from step 100,
+# a 180-row ring (it wraps at step 180) and a checkpoint every 70 steps: at 70 (still acting
+# at random), 140 (ring filling) and 210, 280 (ring full, wrapped).
+
+RESUME = {
+    "env": {"id": "mo-hopper-2obj-v5", "max_episode_steps": 40},
+    "train_specialist": {"total_steps": 300, "learning_starts": 100, "batch_size": 32, "hidden_sizes": [16, 16],
+                         "buffer_size": 180, "checkpoint_every": 70},
+}
+RESUME_CFG = TrainSpecialistParams(**RESUME["train_specialist"], device="cpu")
+PAPER_ENVS = ["mo-hopper-2obj-v5", "mo-halfcheetah-v5", "mo-ant-2obj-v5", "mo-walker2d-v5", "mo-swimmer-v5"]
+
+
+def transitions(env, steps: int) -> list[np.ndarray]:
+    """What `steps` steps of random actions give (episodes restart on an end), flattened."""
+    out = []
+    for _ in range(steps):
+        a = env.action_space.sample()
+        o, r, term, trunc, info = env.step(a)
+        out.append(np.concatenate([a, o, r, [term, trunc, info.get("x_velocity", 0.0)]]))
+        if term or trunc:
+            out.append(env.reset()[0])
+    return out
+
+
+@pytest.mark.parametrize("env_id", PAPER_ENVS)
+def test_env_state_restores_a_mujoco_env_mid_episode_exactly(env_id):
+    """A fresh env given a saved env_state steps, ends and resets exactly as the saved one
+    goes on (the physics with the solver's warm start, Ant's pre-step body positions, the
+    time-limit count, the env's and its action sampler's RNGs)."""
+    env = make_env(env_id, 20)
+    env.reset(seed=3)
+    env.action_space.seed(4)
+    transitions(env, 27)  # an episode cut at 20, then 7 steps into the next
+    buf = io.BytesIO()
+    torch.save(env_state(env), buf)  # through a file, as a checkpoint goes
+    expected = transitions(env, 60)  # crosses three more episode ends
+    other = make_env(env_id, 20)
+    other.reset(seed=99)
+    other.action_space.seed(98)
+    transitions(other, 5)
+    restore_env_state(other, torch.load(io.BytesIO(buf.getvalue()), weights_only=True))
+    got = transitions(other, 60)
+    assert len(got) == len(expected)
+    for x, y in zip(got, expected):
+        assert x.tobytes() == y.tobytes()
+    env.close()
+    other.close()
+
+
+def test_env_state_refuses_envs_it_cannot_restore():
+    """Only MuJoCo physics behind gymnasium's standard wrappers: anything else is refused
+    with a reason (the stage then trains without checkpoints and says why)."""
+    import gymnasium as gym
+
+    from pipeline.specialist import EnvStateError, env_checkpoint_problem
+
+    pendulum = gym.make("Pendulum-v1")
+    assert "not a MuJoCo env" in env_checkpoint_problem(pendulum)
+    with pytest.raises(EnvStateError, match="not a MuJoCo env"):
+        env_state(pendulum)
+    recorded = gym.wrappers.RecordEpisodeStatistics(make_env("mo-swimmer-v5", 20))
+    assert "RecordEpisodeStatistics" in env_checkpoint_problem(recorded)
+    assert env_checkpoint_problem(make_env("mo-swimmer-v5", 20)) is None
+
+
+def hopper_run(jobs):
+    envs = [make_env("mo-hopper-2obj-v5", 40) for _ in jobs]
+    return SpecialistsRun(envs, env_spec(envs[0], "mo-hopper-2obj-v5", 40), RESUME_CFG, jobs, torch.device("cpu"))
+
+
+def assert_same_results(a, b) -> None:
+    for x, y in zip(a, b, strict=True):
+        assert (x.seed, x.objective, x.objectives) == (y.seed, y.objective, y.objectives)
+        for name in FIELDS:
+            assert x.buffer[name].tobytes() == y.buffer[name].tobytes(), name
+        for part in ("actor", "actor_target", "critic", "critic_target"):
+            sx, sy = getattr(x, part).state_dict(), getattr(y, part).state_dict()
+            assert all(torch.equal(sx[k], sy[k]) for k in sx), part
+        assert [(e.episode, e.end_step, e.length, e.terminated, e.returns.tobytes()) for e in x.episodes] == [
+            (e.episode, e.end_step, e.length, e.terminated, e.returns.tobytes()) for e in y.episodes
+        ]
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread, as the `mapex` command uses by default (two threads on a busy 2-core
+    machine make these tiny updates many times slower)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_a_run_restored_from_a_checkpoint_ends_as_the_uninterrupted_one(one_thread):
+    """The library: two stacked specialists, checkpointed mid-episode; runs restored from the
+    checkpoint at step 70 (random actions, ring filling) and 210 (learning, ring wrapped) end
+    bitwise as the run that was never stopped."""
+    jobs = [(0, 0), (0, 1)]
+    saved: dict[int, bytes] = {}
+
+    def keep(run) -> None:
+        assert (run.ep_step > 0).any()  # some env is mid-episode
+        buf = io.BytesIO()
+        torch.save(run.state_dict(), buf)
+        saved[run.t] = buf.getvalue()
+
+    reference = continue_training(hopper_run(jobs), on_checkpoint=keep)
+    assert sorted(saved) == [70, 140, 210, 280]
+    for t in (70, 210):
+        run = hopper_run(jobs)
+        run.load_state_dict(torch.load(io.BytesIO(saved[t]), weights_only=True))
+        assert run.t == t
+        assert_same_results(continue_training(run), reference)
+    # a state never fits a run of other specialists
+    with pytest.raises(ValueError, match="specialists"):
+        hopper_run([(1, 0), (1, 1)]).load_state_dict(torch.load(io.BytesIO(saved[70]), weights_only=True))
+
+
+class Killed(Exception):
+    """Stands for the worker dying: raised from inside the training loop."""
+
+
+class StepCounter:
+    """The env steps each training run takes, one entry per run in order (`counts`); while
+    `die_at` is set, the run whose first specialist has objective `objective` dies before
+    its step die_at."""
+
+    def __init__(self, die_at: int | None, objective: int) -> None:
+        self.die_at, self.objective = die_at, objective
+        self.runs: list = []
+        self.counts: list[int] = []
+
+    def clear(self) -> None:
+        """Disarm and start counting afresh."""
+        self.die_at = None
+        self.runs.clear()
+        self.counts.clear()
+
+
+def count_steps(monkeypatch, die_at: int | None = None, objective: int = 0) -> StepCounter:
+    counter = StepCounter(die_at, objective)
+    real = SpecialistsRun.step
+
+    def step(self):
+        if self.t == counter.die_at and self.jobs[0][1] == counter.objective:
+            raise Killed(f"killed before step {counter.die_at}")
+        if not counter.runs or counter.runs[-1] is not self:
+            counter.runs.append(self)
+            counter.counts.append(0)
+        counter.counts[-1] += 1
+        return real(self)
+
+    monkeypatch.setattr(SpecialistsRun, "step", step)
+    return counter
+
+
+def run_stage(cli, d: Path, write_params, train_specialist=None):
+    """The stage in-process on the RESUME preset, its train_specialist section updated."""
+    params = write_params(d, {"env": RESUME["env"], "train_specialist": {**RESUME["train_specialist"], **(train_specialist or {})}})
+    return cli("train-specialist", "--seed", 0, "--out", d / "out", "--params", params)
+
+
+def assert_same_artifacts(a: Path, b: Path) -> None:
+    for k in (0, 1):
+        x, _ = load_buffer(a / f"obj{k}" / "buffer.zarr")
+        y, _ = load_buffer(b / f"obj{k}" / "buffer.zarr")
+        for name in FIELDS:
+            assert x[name].tobytes() == y[name].tobytes(), (k, name)
+        sx, sy = state_dicts(a / f"obj{k}"), state_dicts(b / f"obj{k}")
+        assert sx.keys() == sy.keys()
+        for key in sx:
+            assert torch.equal(sx[key], sy[key]), (k, key)
+        assert (a / f"obj{k}" / "returns.csv").read_text() == (b / f"obj{k}" / "returns.csv").read_text()
+
+
+@pytest.mark.parametrize(
+    ("batched", "objective", "die_at", "resumed_at", "checkpoint"),
+    [(True, 0, 250, 210, "specialist_state_obj0-obj1.pt"), (False, 1, 150, 140, "specialist_state_obj1.pt")],
+    ids=["stacked", "one-at-a-time"],
+)
+def test_killed_stage_resumes_to_identical_artifacts(batched, objective, die_at, resumed_at, checkpoint, tmp_path, write_params, cli, monkeypatch):
+    """The stage dies between two checkpoints; the rerun resumes from the last one, takes
+    only the steps left, ends with the same bytes as a run never stopped, and removes the
+    checkpoint. One at a time: it dies in the second specialist, after the first was saved."""
+    overrides = {"batched": batched}
+    ref = run_stage(cli, tmp_path / "ref", write_params, overrides)
+    assert ref.exit_code == 0, ref.stderr
+    counter = count_steps(monkeypatch, die_at, objective)
+    dead = run_stage(cli, tmp_path / "run", write_params, overrides)
+    assert isinstance(dead.exception, Killed)
+    out = tmp_path / "run" / "out"
+    assert (out / checkpoint).is_file()
+    assert not (out / f"obj{objective}").exists()  # nothing of the dying specialists was written
+    counter.clear()
+    again = run_stage(cli, tmp_path / "run", write_params, overrides)
+    assert again.exit_code == 0, again.stderr
+    assert f"resuming from step {resumed_at} of {out / checkpoint}" in again.stderr
+    # stacked: one run, resumed; one at a time: obj0 trained again from 0, obj1 resumed
+    assert counter.counts == ([300 - resumed_at] if batched else [300, 300 - resumed_at])
+    assert_same_artifacts(tmp_path / "ref" / "out", out)
+    assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]  # the checkpoint is gone
+
+
+def test_sigkilled_stage_resumes_from_shared_storage(tmp_path, write_params):
+    """A real kill: the `mapex` process gets SIGKILL as soon as its first checkpoint is on
+    disk, on shared storage ($MAPEX_RESUME_ROOT, as a sweep sets it); the rerun, from another
+    working directory as a retry on another node, resumes and ends with the bytes of a run
+    never stopped."""
+    root = Path(__file__).resolve().parents[1]
+    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": {**RESUME["train_specialist"], "total_steps": 1000}})
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    shared = {**env, "MAPEX_RESUME_ROOT": str(tmp_path / "shared")}
+
+    def command(out: Path) -> list[str]:
+        return [sys.executable, "-m", "stages.cli", "train-specialist", "--seed", "0", "--out", str(out), "--params", str(params)]
+
+    for d in ("ref", "node_a", "node_b"):
+        (tmp_path / d).mkdir()
+    ref = subprocess.run(command(tmp_path / "ref" / "out"), cwd=tmp_path / "ref", env=env, capture_output=True, text=True, timeout=300)
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    out = tmp_path / "run" / "out"
+    ckpt = tmp_path / "shared" / "out" / "specialist_state_obj0-obj1.pt"
+    proc = subprocess.Popen(command(out), cwd=tmp_path / "node_a", env=shared, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while not ckpt.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert ckpt.exists(), "the run ended before it could be killed mid-way"
+    t = torch.load(ckpt, weights_only=True)["state"]["counters"]["t"]
+    assert 70 <= t < 1000 and t % 70 == 0
+    assert not (out / "obj0").exists() and not (out / "obj1").exists()
+    again = subprocess.run(command(out), cwd=tmp_path / "node_b", env=shared, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"resuming from step {t} of {ckpt}" in again.stderr
+    assert_same_artifacts(tmp_path / "ref" / "out", out)
+    assert list(ckpt.parent.iterdir()) == []  # no checkpoint left, nor a half-written one
+    assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]
+
+
+def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, cli, monkeypatch):
+    """A checkpoint written under other params is not resumed: the run trains from step 0,
+    (with checkpoint_every 0) saves no checkpoint of its own, and removes the stale one and
+    those of other groupings of the objectives it trained."""
+    import stages.train_specialist as stage
+
+    counter = count_steps(monkeypatch, die_at=150)
+    dead = run_stage(cli, tmp_path, write_params)
+    assert isinstance(dead.exception, Killed)
+    ckpt = tmp_path / "out" / "specialist_state_obj0-obj1.pt"
+    assert ckpt.is_file()
+    stale = tmp_path / "out" / "specialist_state_obj1.pt"  # as if left by a batched: false run
+    stale.write_bytes(b"old")
+    foreign = tmp_path / "out" / "specialist_state_obj1-obj2.pt"  # objective 2 is not trained here: kept
+    foreign.write_bytes(b"old")
+    saves: list[int] = []
+    monkeypatch.setattr(stage, "save_checkpoint", lambda path, fp, run: saves.append(run.t))
+    counter.clear()
+    changed = run_stage(cli, tmp_path, write_params, {"tau": 0.01, "checkpoint_every": 0})
+    assert changed.exit_code == 0, changed.stderr
+    assert "changed since it was written; starting over" in changed.stderr
+    assert "resuming" not in changed.stderr
+    assert counter.counts == [300] and saves == []
+    assert not ckpt.exists() and not stale.exists()
+    assert foreign.exists()
+
+
+def test_unreadable_or_foreign_checkpoints_are_ignored(tmp_path):
+    bad = tmp_path / "specialist_state_obj0.pt"
+    bad.write_bytes(b"not a zip file")
+    assert load_checkpoint(bad, "fp") is None
+    torch.save({"format": "something.else", "format_version": 1}, bad)
+    assert load_checkpoint(bad, "fp") is None
+    torch.save({"format": CHECKPOINT_FORMAT, "format_version": 1, "fingerprint": "old", "state": {}}, bad)
+    assert load_checkpoint(bad, "fp") is None
+    assert load_checkpoint(bad, "old") == {}
+    assert load_checkpoint(tmp_path / "missing.pt", "fp") is None

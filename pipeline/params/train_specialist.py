@@ -36,6 +36,12 @@ class TrainSpecialistParams(Strict):
         "false: one after another",
     )
     cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
+    checkpoint_every: int = Field(
+        50_000,
+        ge=0,
+        description="env steps between resumable checkpoints (OUT/specialist_state_obj*.pt: networks, optimizers, "
+        "replay buffers, RNGs, envs); a rerun with the same params, code, device and threads resumes; 0: off",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> "TrainSpecialistParams":
