@@ -22,11 +22,11 @@ import time
 import numpy as np
 import torch
 
-from pipeline.envs import make_env
-from pipeline.evaluation import eval_seeds, evaluate_policies
-from pipeline.extraction import AdvantageConfig, ChildConfig, ChildSeeds, make_children
-from pipeline.nets import Actor, CriticEnsemble
-from pipeline.seeding import derive_seeds
+from pipeline.core.envs import make_env
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policies
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
+from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.seeding import derive_seeds
 
 OBS, ACT = 17, 6
 PAPER_EPOCHS = 20  # mo-halfcheetah-v5, appendix table

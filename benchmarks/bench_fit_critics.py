@@ -1,4 +1,4 @@
-"""Gradient steps per second of post-hoc critic fitting (pipeline.posthoc) at paper sizes.
+"""Gradient steps per second of post-hoc critic fitting (pipeline.critics.posthoc) at paper sizes.
 
     python benchmarks/bench_fit_critics.py                     # 256-256 critics, batch 256, 2 objectives
     python benchmarks/bench_fit_critics.py --threads 1 --hidden 64 64
@@ -18,9 +18,9 @@ import time
 import numpy as np
 import torch
 
-from pipeline.nets import Actor
+from pipeline.core.nets import Actor
 from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.posthoc import fit_posthoc_critics
+from pipeline.critics.posthoc import fit_posthoc_critics
 
 OBS, ACT, N_OBJ = 17, 6, 2
 

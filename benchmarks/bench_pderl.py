@@ -2,9 +2,9 @@
 
 Runs, on --device, one objective's specialist trained for --frames env frames twice:
 
-  (a) TD3 with secondary critics (`pipeline.specialist.train_specialist`; on CUDA its updates
+  (a) TD3 with secondary critics (`pipeline.specialists.td3_training.train_specialist`; on CUDA its updates
       replay as captured CUDA graphs unless --eager);
-  (b) PDERL (`pipeline.pderl.train_pderl`): the population's evaluations, evolution, the RL
+  (b) PDERL (`pipeline.specialists.pderl.train_pderl`): the population's evaluations, evolution, the RL
       episode and one TD3 update per frame (eager `td3_update`), then the final evaluation.
 
 Both start updating after --learning-starts frames, so both make about frames - learning_starts
@@ -27,11 +27,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import pipeline.pderl as pderl  # noqa: E402
-from pipeline.envs import env_spec, make_env  # noqa: E402
+import pipeline.specialists.pderl as pderl  # noqa: E402
+from pipeline.core.envs import env_spec, make_env  # noqa: E402
 from pipeline.params.train_pderl import TrainPderlParams  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
-from pipeline.specialist import train_specialist  # noqa: E402
+from pipeline.specialists.td3_training import train_specialist  # noqa: E402
 
 PAPER_FRAMES = 2_000_000
 

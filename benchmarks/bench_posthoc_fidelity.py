@@ -20,9 +20,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.fidelity import score_critics  # noqa: E402
+from pipeline.critics.fidelity import score_critics  # noqa: E402
 from pipeline.params.fit_critics import FitCriticsParams  # noqa: E402
-from pipeline.posthoc import fit_posthoc_critics  # noqa: E402
+from pipeline.critics.posthoc import fit_posthoc_critics  # noqa: E402
 from stages.fit_critics import load_specialist  # noqa: E402
 
 

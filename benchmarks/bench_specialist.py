@@ -35,9 +35,9 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.envs import env_spec, make_env  # noqa: E402
+from pipeline.core.envs import env_spec, make_env  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
-from pipeline.specialist import train_specialists  # noqa: E402
+from pipeline.specialists.td3_training import train_specialists  # noqa: E402
 
 
 def load() -> str:

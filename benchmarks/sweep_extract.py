@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipeline.pareto import hypervolume, pareto_mask
-from pipeline.population import load_population
+from pipeline.core.pareto import hypervolume, pareto_mask
+from pipeline.core.population import load_population
 
 
 def distinct(points: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 0.02) -> int:

@@ -11,8 +11,8 @@ import typer
 from pydantic import BaseModel
 from tqdm import tqdm
 
-from pipeline.artifacts import ArtifactError
-from pipeline.envs import EnvError
+from pipeline.core.artifacts import ArtifactError
+from pipeline.core.envs import EnvError
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 
 F = TypeVar("F", bound=Callable[..., Any])

@@ -7,9 +7,9 @@ from typing import Any, Optional
 
 import typer
 
-from pipeline.artifacts import ArtifactError, write_text_atomic
-from pipeline.checkpoint import check_matches, load_critics
-from pipeline.fidelity import score_critics
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.checkpoint import check_matches, load_critics
+from pipeline.critics.fidelity import score_critics
 from pipeline.params import load_params, section
 from pipeline.params.critic_fidelity import CriticFidelityParams
 from stages.common import PARAMS_OPTION, reports_errors

@@ -11,7 +11,7 @@ Outputs (in OUT):
                    (re-evaluated mean and std over `evaluate.episodes` episodes). Columns are named
                    obj0, obj1, ... rather than after the objectives so dvc.yaml's plot axes fit every env.
   evaluation.json  what was run: env_id, variant, seed, episodes, seed_stream, max_episode_steps,
-                   population, env_samples_evaluation, and `provenance` (pipeline.provenance).
+                   population, env_samples_evaluation, and `provenance` (pipeline.core.provenance).
 """
 
 from __future__ import annotations
@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from pipeline.artifacts import ArtifactError, write_text_atomic
-from pipeline.envs import env_spec, make_env
-from pipeline.evaluation import EvalResult, eval_seeds, evaluate_policy
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.envs import env_spec, make_env
+from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
 from pipeline.params import ParamsError
 from pipeline.params.evaluate import EvaluateParams
-from pipeline.population import Member, load_population, member_actor
-from pipeline.provenance import provenance
-from pipeline.seeding import select_device
+from pipeline.core.population import Member, load_population, member_actor
+from pipeline.core.provenance import provenance
+from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "variant")

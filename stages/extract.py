@@ -12,23 +12,23 @@ import numpy as np
 import torch
 import typer
 
-from pipeline.artifacts import ArtifactError, write_text_atomic
-from pipeline.buffer import load_buffer
-from pipeline.checkpoint import load_critics
-from pipeline.codedeps import closure_files
-from pipeline.envs import EnvError, env_spec, make_env
-from pipeline.evaluation import eval_seeds, evaluate_policies, evaluate_policy
-from pipeline.extraction import AdvantageConfig, ChildConfig, ChildSeeds, make_children, population_scale
-from pipeline.nets import Actor
-from pipeline.pareto import hypervolume, pareto_mask
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.buffer import load_buffer
+from pipeline.core.checkpoint import load_critics
+from pipeline.core.codedeps import closure_files
+from pipeline.core.envs import EnvError, env_spec, make_env
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policies, evaluate_policy
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children, population_scale
+from pipeline.core.nets import Actor
+from pipeline.core.pareto import hypervolume, pareto_mask
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.common import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
 from pipeline.params.extract import ExtractParams
-from pipeline.policyset import load_policy_set
-from pipeline.population import Member, actor_state, member_actor, save_population
-from pipeline.provenance import provenance
-from pipeline.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
-from pipeline.seeding import derive_seeds, select_device
+from pipeline.core.policyset import load_policy_set
+from pipeline.core.population import Member, actor_state, member_actor, save_population
+from pipeline.core.provenance import provenance
+from pipeline.core.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
+from pipeline.core.seeding import derive_seeds, select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 EXTRACT_TAG = 0xE87AC7

@@ -12,16 +12,16 @@ from typing import Any, NamedTuple
 import numpy as np
 import typer
 
-from pipeline.artifacts import ArtifactError, torch_load_checked, write_text_atomic
-from pipeline.buffer import load_buffer
-from pipeline.checkpoint import FORMAT_VERSION, POLICY_FORMAT, actor_from_meta, check_matches, load_policy, save_critics
-from pipeline.fidelity import FidelityReport, score_critics
-from pipeline.nets import Actor
+from pipeline.core.artifacts import ArtifactError, torch_load_checked, write_text_atomic
+from pipeline.core.buffer import load_buffer
+from pipeline.core.checkpoint import FORMAT_VERSION, POLICY_FORMAT, actor_from_meta, check_matches, load_policy, save_critics
+from pipeline.critics.fidelity import FidelityReport, score_critics
+from pipeline.core.nets import Actor
 from pipeline.params import ParamsError
 from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.posthoc import fit_posthoc_critics
-from pipeline.provenance import provenance
-from pipeline.seeding import derive_seeds, select_device, torch_generator
+from pipeline.critics.posthoc import fit_posthoc_critics
+from pipeline.core.provenance import provenance
+from pipeline.core.seeding import derive_seeds, select_device, torch_generator
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
 
 # Extra seed key so post-hoc fitting draws streams independent of the specialist's own,

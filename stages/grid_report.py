@@ -10,9 +10,9 @@ from pathlib import Path
 
 import typer
 
-from pipeline.artifacts import ArtifactError, atomic_path
+from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.params import EnvParams, RunParams, load_params, section
-from pipeline.report import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
+from pipeline.reporting.report import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
 from stages.common import reports_errors
 from stages.report import check_comparable, load_runs
 

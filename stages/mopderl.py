@@ -1,4 +1,4 @@
-"""Stage mopderl: phase 2 of the MOPDERL baseline from one seed's PDERL specialists (pipeline/mopderl.py), resumable per generation."""
+"""Stage mopderl: phase 2 of the MOPDERL baseline from one seed's PDERL specialists (pipeline/baselines/mopderl.py), resumable per generation."""
 
 from __future__ import annotations
 
@@ -11,20 +11,20 @@ from typing import Any
 import torch
 import typer
 
-from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
-from pipeline.checkpoint import FORMAT_VERSION as POLICY_VERSION
-from pipeline.checkpoint import POLICY_FORMAT, actor_from_meta, load_critics
-from pipeline.codedeps import closure_files
-from pipeline.envs import make_env, env_spec
-from pipeline.mopderl import AgentInit, GenerationRecord, MopderlRun, StartingActor
+from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.core.checkpoint import FORMAT_VERSION as POLICY_VERSION
+from pipeline.core.checkpoint import POLICY_FORMAT, actor_from_meta, load_critics
+from pipeline.core.codedeps import closure_files
+from pipeline.core.envs import make_env, env_spec
+from pipeline.baselines.mopderl import AgentInit, GenerationRecord, MopderlRun, StartingActor
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.pderl import EpisodeResult
-from pipeline.population import Member, save_population
-from pipeline.provenance import provenance
-from pipeline.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
-from pipeline.seeding import select_device
+from pipeline.specialists.pderl import EpisodeResult
+from pipeline.core.population import Member, save_population
+from pipeline.core.provenance import provenance
+from pipeline.core.resume import clear_progress, fingerprint, load_progress, resume_root, save_progress
+from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 from stages.extract import SPEC_KEYS, load_specialists, normalised_hypervolume
 

@@ -1,4 +1,4 @@
-"""Stage morld: the MORL/D baseline of one seed (morl-baselines' MORLD, pipeline/morld.py), resumable per exchange."""
+"""Stage morld: the MORL/D baseline of one seed (morl-baselines' MORLD, pipeline/baselines/morld.py), resumable per exchange."""
 
 from __future__ import annotations
 
@@ -10,15 +10,15 @@ from typing import Any
 import torch
 import typer
 
-from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
-from pipeline.codedeps import closure_files
-from pipeline.envs import env_spec, make_env
-from pipeline.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_members, history_csv_rows, require_morl_baselines
+from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.core.codedeps import closure_files
+from pipeline.core.envs import env_spec, make_env
+from pipeline.baselines.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_members, history_csv_rows, require_morl_baselines
 from pipeline.params.morld import MorldParams
-from pipeline.population import save_population
-from pipeline.provenance import provenance
-from pipeline.resume import checkpoint_dir, fingerprint
-from pipeline.seeding import select_device
+from pipeline.core.population import save_population
+from pipeline.core.provenance import provenance
+from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 CHECKPOINT = "morld_state.pt"
@@ -113,7 +113,7 @@ def morld(
 def run_fingerprint(config: dict[str, Any], cfg: MorldParams, device: torch.device) -> str:
     """Everything a run's results depend on: params (not checkpoint_every, device: given
     separately), seed, device, thread count, the library version and every code file the
-    stage runs (as in pipeline/resume.py)."""
+    stage runs (as in pipeline/core/resume.py)."""
     full = {
         **config, "morld": cfg.model_dump(exclude={"checkpoint_every", "device"}),
         "device": str(device), "threads": torch.get_num_threads(), "morl_baselines": _library_version(),

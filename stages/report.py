@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from pipeline.artifacts import ArtifactError, atomic_path
-from pipeline.envs import objective_names
+from pipeline.core.artifacts import ArtifactError, atomic_path
+from pipeline.core.envs import objective_names
 from pipeline.params import RunParams, section
 from pipeline.params.report import ReportParams
-from pipeline.report import Run, front_figure, history_figure, label, report_markdown, variants_in
+from pipeline.reporting.report import Run, front_figure, history_figure, label, report_markdown, variants_in
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
 RUN_DIR = re.compile(r"^seed(\d+)$")

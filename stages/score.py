@@ -3,7 +3,7 @@
 Outputs (in OUT):
   front.csv        the non-dominated members (re-evaluated means), sorted by obj0: id, origin,
                    iteration, obj<m>.
-  metrics.json     front and specialist-only metrics (pipeline.metrics; "specialists" = every
+  metrics.json     front and specialist-only metrics (pipeline.evaluation.metrics; "specialists" = every
                    starting policy, all of each specialist's policy set), their HV ratio, the
                    extraction-time hypervolume, and the run's context, with the number of
                    starting policies and of children (DVC metrics).
@@ -27,13 +27,13 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from pipeline.artifacts import ArtifactError, write_text_atomic
-from pipeline.metrics import hypervolume_history, population_summary
-from pipeline.pareto import pareto_mask
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.evaluation.metrics import hypervolume_history, population_summary
+from pipeline.core.pareto import pareto_mask
 from pipeline.params import ParamsError
 from pipeline.params.score import ScoreParams
-from pipeline.population import Member, load_population
-from pipeline.provenance import provenance
+from pipeline.core.population import Member, load_population
+from pipeline.core.provenance import provenance
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
 META_KEYS = ("env_id", "n_objectives", "seed", "variant")

@@ -1,4 +1,4 @@
-"""Stage train_pderl: PDERL specialists of one seed, one PDERL run per objective (pipeline/pderl.py)."""
+"""Stage train_pderl: PDERL specialists of one seed, one PDERL run per objective (pipeline/specialists/pderl.py)."""
 
 from __future__ import annotations
 
@@ -10,16 +10,16 @@ from typing import Any, Optional
 import torch
 import typer
 
-from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
-from pipeline.codedeps import closure_files
-from pipeline.envs import EnvSpec, env_spec, make_env, objective_names
+from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.core.codedeps import closure_files
+from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
-from pipeline.policyset import save_policy_set
-from pipeline.resume import checkpoint_dir, fingerprint
-from pipeline.seeding import select_device
+from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
+from pipeline.core.policyset import save_policy_set
+from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, progress, reports_errors
 from stages.train_specialist import save_rl_agent, specialist_meta
 
@@ -88,7 +88,7 @@ def train_pderl(
 
 def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams, device) -> str:
     """Everything a PDERL run's results depend on: params it reads, seed, objective, device,
-    thread count and every code file the stage runs (as in pipeline/resume.py)."""
+    thread count and every code file the stage runs (as in pipeline/core/resume.py)."""
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),

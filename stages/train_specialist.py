@@ -10,17 +10,17 @@ from typing import Any, Optional, Sequence
 import torch
 import typer
 
-from pipeline.artifacts import TMP_SUFFIX, atomic_path, write_text_atomic
-from pipeline.buffer import save_buffer
-from pipeline.checkpoint import save_critics, save_policy
-from pipeline.codedeps import closure_files
-from pipeline.envs import env_spec, make_env, objective_names
+from pipeline.core.artifacts import TMP_SUFFIX, atomic_path, write_text_atomic
+from pipeline.core.buffer import save_buffer
+from pipeline.core.checkpoint import save_critics, save_policy
+from pipeline.core.codedeps import closure_files
+from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.provenance import provenance
-from pipeline.resume import checkpoint_dir, fingerprint
-from pipeline.seeding import select_device
-from pipeline.specialist import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
+from pipeline.core.provenance import provenance
+from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.seeding import select_device
+from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"
@@ -83,7 +83,7 @@ def train_specialist(
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
     """The checkpoint of the specialists of objectives `group` trained together: beside the
-    outputs, or under $MAPEX_RESUME_ROOT in a sweep (pipeline.resume.checkpoint_dir)."""
+    outputs, or under $MAPEX_RESUME_ROOT in a sweep (pipeline.core.resume.checkpoint_dir)."""
     return checkpoint_dir(out) / (CHECKPOINT_PREFIX + "-".join(f"obj{k}" for k in group) + ".pt")
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-import pipeline.artifacts as art
-from pipeline.artifacts import atomic_path, recover, write_text_atomic
+import pipeline.core.artifacts as art
+from pipeline.core.artifacts import atomic_path, recover, write_text_atomic
 
 
 def write_dir(path: Path, tag: str) -> None:

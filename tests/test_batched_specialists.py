@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 import torch
 
-import pipeline.specialist as specialist_mod
-from pipeline.buffer import Batch, StackedReplay
-from pipeline.envs import env_spec, make_env
-from pipeline.nets import CriticEnsemble, StackedActor
+import pipeline.specialists.td3_training as specialist_mod
+from pipeline.core.buffer import Batch, StackedReplay
+from pipeline.core.envs import env_spec, make_env
+from pipeline.core.nets import CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialist import init_stacked, init_td3, run_seeds, train_specialists
-from pipeline.td3 import stacked_update, td3_update
+from pipeline.specialists.td3_training import init_stacked, init_td3, run_seeds, train_specialists
+from pipeline.specialists.td3 import stacked_update, td3_update
 
 ENV, CAP = "mo-swimmer-v5", 25
 CFG = TrainSpecialistParams(total_steps=90, learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70, device="cpu")
@@ -138,7 +138,7 @@ def test_stacked_replay_round_trips_rows_in_order():
 
 def test_stacked_networks_round_trip():
     torch.manual_seed(0)
-    from pipeline.nets import Actor
+    from pipeline.core.nets import Actor
 
     actors = [Actor(5, 3, [8, 4], [-1, -2, 0], [1, 2, 3]) for _ in range(3)]
     st = StackedActor(actors)

@@ -12,9 +12,9 @@ import zarr
 from hypothesis import given
 from hypothesis import strategies as st
 
-import pipeline.buffer as buffer_mod
-from pipeline.artifacts import ArtifactError, atomic_path, torch_load_checked, torch_save_atomic, write_text_atomic
-from pipeline.buffer import FIELDS, FORMAT, FORMAT_VERSION, ReplayBuffer, batch_at, load_buffer, save_buffer
+import pipeline.core.buffer as buffer_mod
+from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, torch_save_atomic, write_text_atomic
+from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, ReplayBuffer, batch_at, load_buffer, save_buffer
 
 OBS, ACT, NOBJ = 3, 2, 2
 ATTRS = {"env_id": "mo-test-v0", "objective": 1, "seed": 7, "obs_dim": OBS, "act_dim": ACT, "n_objectives": NOBJ, "max_episode_steps": 4}

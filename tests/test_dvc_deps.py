@@ -1,11 +1,11 @@
 """dvc.yaml's code deps cannot drift: each stage lists exactly the project files its module runs.
 
 A stage's code deps must equal the transitive in-project import closure of its module
-(stages/<stage>.py, computed by pipeline.codedeps, the same function extract's resume
+(stages/<stage>.py, computed by pipeline.core.codedeps, the same function extract's resume
 fingerprint uses) plus stages/cli.py (the `mapex` entry point, which sets the torch thread
 count and so the results' last bits). An import added without its dep (an edit that would
 change results without a rerun) or a stale dep (a rerun for nothing) fails here;
-`python -m pipeline.codedeps` rewrites them.
+`python -m pipeline.core.codedeps` rewrites them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.codedeps import ROOT, module_closure
+from pipeline.core.codedeps import ROOT, module_closure
 
 STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
 
@@ -28,8 +28,8 @@ def code_deps(stage: dict) -> set[str]:
 def test_stage_code_deps_are_its_import_closure(name):
     expected = set(module_closure(f"stages.{name}")) | {"stages/cli.py"}
     got = code_deps(STAGES[name])
-    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.codedeps)"
-    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.codedeps)"
+    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.core.codedeps)"
+    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.core.codedeps)"
 
 
 def test_every_stage_has_its_module():
@@ -40,7 +40,7 @@ def test_every_stage_has_its_module():
 def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
     """codedeps on a toy project: `from a import b` pulls module a.b and a's __init__, relative
     imports resolve against the package, and imports of other projects are ignored."""
-    import pipeline.codedeps as cd
+    import pipeline.core.codedeps as cd
 
     pkg = tmp_path / "pipeline"
     (pkg / "sub").mkdir(parents=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.envs import EnvError, env_spec, make_env, objective_names
+from pipeline.core.envs import EnvError, env_spec, make_env, objective_names
 
 # (id, obs_dim, act_dim): the paper's v5 MuJoCo envs, all with 2 objectives.
 PAPER_ENVS = [
@@ -97,7 +97,7 @@ def test_no_gl_backend_is_chosen_at_import(tmp_path):
     import sys
 
     code = (
-        "import os, numpy as np, stages.cli, pipeline.envs as e\n"
+        "import os, numpy as np, stages.cli, pipeline.core.envs as e\n"
         "env = e.make_env('mo-halfcheetah-v5', 5); env.reset(seed=0); env.step(np.zeros(6, np.float32))\n"
         "print(repr(os.environ.get('MUJOCO_GL')))\n"
     )

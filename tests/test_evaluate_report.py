@@ -17,12 +17,12 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
-from pipeline.envs import make_env
-from pipeline.evaluation import eval_seeds, evaluate_policy
-from pipeline.metrics import hypervolume, mean_sem
-from pipeline.nets import Actor
-from pipeline.population import Member, actor_state, load_population, member_actor, save_population
-from pipeline.report import (Run, fmt_num, frames_to_reach, hv_verdict, provenance_table, sample_efficiency_table,
+from pipeline.core.envs import make_env
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
+from pipeline.evaluation.metrics import hypervolume, mean_sem
+from pipeline.core.nets import Actor
+from pipeline.core.population import Member, actor_state, load_population, member_actor, save_population
+from pipeline.reporting.report import (Run, fmt_num, frames_to_reach, hv_verdict, provenance_table, sample_efficiency_table,
                              specialist_groups, specialist_kind, specialist_metrics, verdict_outcome, verdicts)
 from stages.grid_report import grid_report
 from stages.evaluate import evaluate
@@ -548,7 +548,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_reference_point_presets_match_params_and_doc():
     presets = yaml.safe_load((REPO / "presets" / "reference_points.yaml").read_text())
-    from pipeline.envs import OBJECTIVE_NAMES
+    from pipeline.core.envs import OBJECTIVE_NAMES
 
     assert set(presets) == set(OBJECTIVE_NAMES)
     doc = (REPO / "docs" / "reference_points.md").read_text()

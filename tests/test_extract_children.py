@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline import extraction as ex
-from pipeline.envs import make_env
-from pipeline import evaluation as ex_eval
-from pipeline.evaluation import eval_seeds, evaluate_policy
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.extraction import mapex as ex
+from pipeline.core.envs import make_env
+from pipeline.evaluation import episodes as ex_eval
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
+from pipeline.core.nets import Actor, CriticEnsemble
 
 OBS, ACT = 17, 6  # mo-halfcheetah-v5's dims, so children can be evaluated in the real env
 RETURNS = np.array([[100.0, -300.0], [-5.0, -10.0], [60.0, -100.0]])  # 3 policies, all on the front

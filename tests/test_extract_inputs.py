@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from pipeline.buffer import load_buffer
-from pipeline.checkpoint import load_critics, save_critics
-from pipeline.nets import CriticEnsemble
-from pipeline.population import load_population
+from pipeline.core.buffer import load_buffer
+from pipeline.core.checkpoint import load_critics, save_critics
+from pipeline.core.nets import CriticEnsemble
+from pipeline.core.population import load_population
 
 EXTRACT = {
     "iterations": 2,

@@ -14,9 +14,9 @@ import pytest
 import torch
 import yaml
 
-from pipeline.population import load_population
-from pipeline.resume import FORMAT as RESUME_FORMAT
-from pipeline.resume import load_progress, save_progress
+from pipeline.core.population import load_population
+from pipeline.core.resume import FORMAT as RESUME_FORMAT
+from pipeline.core.resume import load_progress, save_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 

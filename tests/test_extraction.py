@@ -8,8 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import extraction as ex
-from pipeline.nets import Actor
+from pipeline.extraction import mapex as ex
+from pipeline.core.nets import Actor
 
 
 # ---------------------------------------------------------------- gaps and parents
@@ -255,7 +255,7 @@ def test_warm_up_regresses_onto_mean_parent_action():
 def test_pareto_mask_recovers_a_known_front():
     """Points on the unit quarter circle are mutually non-dominated; each scaled by 0.3..0.95 is
     dominated by its own original."""
-    from pipeline.pareto import pareto_mask
+    from pipeline.core.pareto import pareto_mask
 
     rng = np.random.default_rng(0)
     angles = rng.uniform(0, np.pi / 2, 40)
@@ -271,7 +271,7 @@ def test_pareto_mask_recovers_a_known_front():
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.tuples(st.integers(-20, 20), st.integers(-20, 20)), min_size=1, max_size=30))
 def test_pareto_mask_properties(points):
-    from pipeline.pareto import pareto_mask
+    from pipeline.core.pareto import pareto_mask
 
     p = np.array(points, dtype=float)
     mask = pareto_mask(p)

@@ -1,4 +1,4 @@
-"""Post-hoc critics (pipeline.posthoc), critic fidelity (pipeline.fidelity) and their stages.
+"""Post-hoc critics (pipeline.critics.posthoc), critic fidelity (pipeline.critics.fidelity) and their stages.
 
 Known answers: with a constant reward r and no terminal state, Q = r / (1 - gamma) whatever
 the policy; with every transition terminal, Q = r; with reward = action and a constant
@@ -16,12 +16,12 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from pipeline.buffer import load_buffer
-from pipeline.checkpoint import load_critics, save_policy
-from pipeline.fidelity import discounted_returns, scored_states, score_critics, tail_horizon
-from pipeline.nets import Actor
+from pipeline.core.buffer import load_buffer
+from pipeline.core.checkpoint import load_critics, save_policy
+from pipeline.critics.fidelity import discounted_returns, scored_states, score_critics, tail_horizon
+from pipeline.core.nets import Actor
 from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.posthoc import fit_posthoc_critics
+from pipeline.critics.posthoc import fit_posthoc_critics
 from stages.cli import app
 from stages.fit_critics import load_specialist
 

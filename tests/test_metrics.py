@@ -1,4 +1,4 @@
-"""pipeline.metrics: hand-computed answers, a naive reference for expected utility, properties."""
+"""pipeline.evaluation.metrics: hand-computed answers, a naive reference for expected utility, properties."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline import metrics as M
+from pipeline.evaluation import metrics as M
 
 # ---------------------------------------------------------------- known answers
 

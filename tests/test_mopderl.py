@@ -1,4 +1,4 @@
-"""MOPDERL phase 2 (pipeline/mopderl.py, stages/mopderl.py).
+"""MOPDERL phase 2 (pipeline/baselines/mopderl.py, stages/mopderl.py).
 
 NSGA-II pieces on hand-checkable points; the tournament and critic rules; the frame and
 update accounting of a generation and bitwise checkpoint resumption, on synthetic RL agents;
@@ -20,8 +20,8 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from pipeline.envs import env_spec, make_env
-from pipeline.mopderl import (
+from pipeline.core.envs import env_spec, make_env
+from pipeline.baselines.mopderl import (
     AgentInit,
     MopderlRun,
     StartingActor,
@@ -35,11 +35,11 @@ from pipeline.mopderl import (
     tournament_pair,
     tournament_winner,
 )
-from pipeline.nets import Actor, CriticEnsemble
-from pipeline.pareto import pareto_mask
+from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.pareto import pareto_mask
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.population import load_population
+from pipeline.core.population import load_population
 from stages.mopderl import mopderl as mopderl_stage
 from stages.train_pderl import train_pderl as train_pderl_stage
 

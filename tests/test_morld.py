@@ -1,4 +1,4 @@
-"""The MORL/D baseline (pipeline/morld.py, stages/morld.py), on tiny Swimmer runs.
+"""The MORL/D baseline (pipeline/baselines/morld.py, stages/morld.py), on tiny Swimmer runs.
 
 Skipped as a whole when morl-baselines (the optional `baselines` extra) is not installed.
 Checks: the exported actor computes MOSAC's deterministic action; the light archive keeps what
@@ -28,10 +28,10 @@ pytest.importorskip("morl_baselines")
 from morl_baselines.common.pareto import ParetoArchive  # noqa: E402
 from morl_baselines.single_policy.ser.mosac_continuous_action import MOSACActor  # noqa: E402
 
-import pipeline.morld  # noqa: E402
-from pipeline.envs import env_spec, make_env  # noqa: E402
-from pipeline.evaluation import eval_seeds, evaluate_policy  # noqa: E402
-from pipeline.morld import (  # noqa: E402
+import pipeline.baselines.morld  # noqa: E402
+from pipeline.core.envs import env_spec, make_env  # noqa: E402
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy  # noqa: E402
+from pipeline.baselines.morld import (  # noqa: E402
     EVAL_STREAM,
     INSTALL_HINT,
     ActorArchive,
@@ -42,7 +42,7 @@ from pipeline.morld import (  # noqa: E402
     require_morl_baselines,
 )
 from pipeline.params.morld import MorldParams  # noqa: E402
-from pipeline.population import Member, actor_state, load_population, member_actor  # noqa: E402
+from pipeline.core.population import Member, actor_state, load_population, member_actor  # noqa: E402
 from stages.morld import CHECKPOINT, morld as morld_stage  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -83,7 +83,7 @@ def test_exported_actor_reproduces_mosac_deterministic_action():
     torch.testing.assert_close(mine, theirs, rtol=0, atol=1e-6)
     torch.testing.assert_close(theirs, by_hand, rtol=0, atol=0)
     assert (mine >= torch.tensor(low)).all() and (mine <= torch.tensor(high)).all()
-    # and through the population format: the state dict loads into pipeline.nets.Actor as a member
+    # and through the population format: the state dict loads into pipeline.core.nets.Actor as a member
     member = Member("morld", None, 0, [], None, [0.0, 0.0], [0.0, 0.0], 1, 0, hidden_sizes_of(ours), actor_state(ours), "pop0")
     rebuilt = member_actor(member, {"obs_dim": 8, "act_dim": 3, "action_low": low, "action_high": high})
     with torch.no_grad():
@@ -244,11 +244,11 @@ def test_missing_library_is_one_clear_error(tmp_path: Path, params_file: Path, m
 def test_core_modules_import_without_the_library():
     code = (
         "import sys; sys.modules['morl_baselines'] = None\n"
-        "import pipeline.morld, pipeline.params.morld, stages.morld\n"
-        "try:\n    pipeline.morld.require_morl_baselines()\n"
-        "except pipeline.morld.BaselinesMissing as exc:\n    print('missing:', exc)\n"
+        "import pipeline.baselines.morld, pipeline.params.morld, stages.morld\n"
+        "try:\n    pipeline.baselines.morld.require_morl_baselines()\n"
+        "except pipeline.baselines.morld.BaselinesMissing as exc:\n    print('missing:', exc)\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert "missing:" in proc.stdout and INSTALL_HINT in proc.stdout
-    assert pipeline.morld.__name__ == "pipeline.morld"
+    assert pipeline.baselines.morld.__name__ == "pipeline.baselines.morld"

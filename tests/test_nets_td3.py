@@ -11,14 +11,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from torch import nn
 
-from pipeline.artifacts import ArtifactError
-from pipeline.buffer import Batch, batch_at
-from pipeline.checkpoint import check_matches, load_critics, load_policy, save_critics, save_policy
-from pipeline.envs import EnvSpec
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.core.artifacts import ArtifactError
+from pipeline.core.buffer import Batch, batch_at
+from pipeline.core.checkpoint import check_matches, load_critics, load_policy, save_critics, save_policy
+from pipeline.core.envs import EnvSpec
+from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialist import covered_objectives, init_td3
-from pipeline.td3 import (
+from pipeline.specialists.td3_training import covered_objectives, init_td3
+from pipeline.specialists.td3 import (
     actor_loss,
     critic_loss,
     polyak_update,

@@ -1,4 +1,4 @@
-"""PDERL specialists (pipeline/pderl.py, stages/train_pderl.py).
+"""PDERL specialists (pipeline/specialists/pderl.py, stages/train_pderl.py).
 
 The genetic operators on hand-checkable networks; elitism, frame accounting and checkpoint
 determinism of the generation loop; and the real stage end to end on a tiny preset, killed
@@ -19,13 +19,13 @@ import typer
 from typer.testing import CliRunner
 
 import pipeline.params
-from pipeline.buffer import load_buffer
-from pipeline.checkpoint import load_critics, load_policy
-from pipeline.envs import env_spec, make_env
-from pipeline.nets import Actor
+from pipeline.core.buffer import load_buffer
+from pipeline.core.checkpoint import load_critics, load_policy
+from pipeline.core.envs import env_spec, make_env
+from pipeline.core.nets import Actor
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.pderl import (
+from pipeline.specialists.pderl import (
     Individual,
     PderlRun,
     StateRing,
@@ -36,7 +36,7 @@ from pipeline.pderl import (
     tournament,
     train_pderl,
 )
-from pipeline.policyset import load_policy_set
+from pipeline.core.policyset import load_policy_set
 from stages.train_pderl import CHECKPOINT, train_pderl as train_pderl_stage
 
 CAP = 30

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.artifacts import ArtifactError
-from pipeline.checkpoint import actor_from_meta, load_policy
-from pipeline.envs import make_env
-from pipeline.evaluation import eval_seeds, evaluate_policy
-from pipeline.pareto import pareto_mask
-from pipeline.policyset import load_policy_set, save_policy_set
-from pipeline.population import FORMAT, load_population, save_population
+from pipeline.core.artifacts import ArtifactError
+from pipeline.core.checkpoint import actor_from_meta, load_policy
+from pipeline.core.envs import make_env
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
+from pipeline.core.pareto import pareto_mask
+from pipeline.core.policyset import load_policy_set, save_policy_set
+from pipeline.core.population import FORMAT, load_population, save_population
 
 EXTRACT = {
     "iterations": 2,
@@ -242,8 +242,8 @@ def test_a_broken_set_is_refused_not_replaced_by_policy_pt(specs, tmp_path, mape
 
 def _population(path: Path, drop_meta: str | None = None, drop_member: str | None = None, version: int = 2) -> Path:
     """A two-member population written as torch.save would (meta or member key dropped on request)."""
-    from pipeline.nets import Actor
-    from pipeline.population import Member, actor_state
+    from pipeline.core.nets import Actor
+    from pipeline.core.population import Member, actor_state
 
     actor = actor_state(Actor(17, 6, [4], [-1.0] * 6, [1.0] * 6))
     members = [Member("specialist", 0, 0, [], None, [1.0, 2.0], [0.0, 0.0], 1, 10, [4], actor, "rl"),

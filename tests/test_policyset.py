@@ -5,10 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pipeline.artifacts import ArtifactError, torch_save_atomic
-from pipeline.checkpoint import save_policy
-from pipeline.nets import Actor
-from pipeline.policyset import load_policy_set, save_policy_set
+from pipeline.core.artifacts import ArtifactError, torch_save_atomic
+from pipeline.core.checkpoint import save_policy
+from pipeline.core.nets import Actor
+from pipeline.core.policyset import load_policy_set, save_policy_set
 
 META = {"env_id": "toy", "obs_dim": 3, "act_dim": 2, "n_objectives": 2, "action_low": [-1.0, -1.0],
         "action_high": [1.0, 1.0], "hidden_sizes": [8], "objective": 1, "seed": 0}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 
-import pipeline.provenance as prov
+import pipeline.core.provenance as prov
 
 
 def git(cwd, *args):

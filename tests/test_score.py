@@ -26,8 +26,8 @@ import yaml
 from typer.testing import CliRunner
 
 import pipeline.params as params_module
-from pipeline.nets import Actor
-from pipeline.population import Member, actor_state, save_population
+from pipeline.core.nets import Actor
+from pipeline.core.population import Member, actor_state, save_population
 from stages.score import score
 
 ENV_ID = "mo-halfcheetah-v5"

@@ -1,4 +1,4 @@
-"""`mapex sweep` (pipeline/sweep.py) on a local two-node Ray cluster and a local-directory DVC
+"""`mapex sweep` (pipeline/distributed/sweep.py) on a local two-node Ray cluster and a local-directory DVC
 remote, with the real dvc.yaml on a tiny preset in a temporary git + DVC copy of the project.
 
 Checks: grid files are validated with errors naming file and key; the DAG and each cell's
@@ -23,7 +23,7 @@ import typer
 import yaml
 from typer.testing import CliRunner
 
-from pipeline import sweep as sw
+from pipeline.distributed import sweep as sw
 from stages.sweep import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -212,10 +212,10 @@ def test_core_install_does_not_need_ray():
         "        raise ImportError('no ray')\n"
         "    return real(name, *a, **k)\n"
         "builtins.__import__ = block\n"
-        "import pipeline.sweep, stages.sweep\n"
+        "import pipeline.distributed.sweep, stages.sweep\n"
         "try:\n"
-        "    pipeline.sweep._import_ray()\n"
-        "except pipeline.sweep.SweepError as e:\n"
+        "    pipeline.distributed.sweep._import_ray()\n"
+        "except pipeline.distributed.sweep.SweepError as e:\n"
         "    print(e)\n"
     )
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)

@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.artifacts import torch_load_checked
-from pipeline.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
-from pipeline.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
-from pipeline.envs import env_spec, make_env
+from pipeline.core.artifacts import torch_load_checked
+from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
+from pipeline.core.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
+from pipeline.core.envs import env_spec, make_env
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialist import SpecialistsRun, continue_training, env_state, restore_env_state, train_specialist
+from pipeline.specialists.td3_training import SpecialistsRun, continue_training, env_state, restore_env_state, train_specialist
 from stages.train_specialist import CHECKPOINT_FORMAT, load_checkpoint
 
 CAP = 100  # the tiny preset's episode cap
@@ -292,7 +292,7 @@ def test_missing_params_file_is_a_clear_error(tmp_path, cli):
 
 def test_update_schedule_and_episode_records(monkeypatch):
     """Updates start at learning_starts, one per step; every policy_freq-th one moves the actor."""
-    import pipeline.specialist as specialist_mod
+    import pipeline.specialists.td3_training as specialist_mod
 
     calls: list[bool] = []
     real_update = specialist_mod.stacked_update
@@ -382,7 +382,7 @@ def test_env_state_refuses_envs_it_cannot_restore():
     with a reason (the stage then trains without checkpoints and says why)."""
     import gymnasium as gym
 
-    from pipeline.specialist import EnvStateError, env_checkpoint_problem
+    from pipeline.specialists.td3_training import EnvStateError, env_checkpoint_problem
 
     pendulum = gym.make("Pendulum-v1")
     assert "not a MuJoCo env" in env_checkpoint_problem(pendulum)

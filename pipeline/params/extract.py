@@ -4,7 +4,7 @@
 (appendix table "Environment-specific MAPEX hyperparameters"); the other defaults are the
 paper's shared MAPEX table, or the precursor code's value where the paper gives none.
 Two settings deviate from the paper and say so in their descriptions: `advantage_norm: none`,
-the default (a mix of units, see pipeline/extraction.py), and `children_per_iteration` above 1
+the default (a mix of units, see pipeline/extraction/mapex.py), and `children_per_iteration` above 1
 (K children per iteration from the same front, trained together).
 """
 

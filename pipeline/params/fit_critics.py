@@ -7,8 +7,8 @@ batch 256, Adam 3e-4, gamma 0.99, tau 0.005, targets soft-updated every 2 steps)
 target-policy smoothing: the paper defines every critic by the TD3 rule, so smoothing is on
 (0.2 / 0.5, as for the specialists); the precursor used none (set policy_noise: 0 for that),
 and the budget: the precursor's fixed 5,000 steps left the critics far from the returns they
-estimate, so fitting runs until their fidelity (pipeline.fidelity, scored with the actor they
-are fitted with) stops improving, at most `steps` steps (pipeline.posthoc.fit_posthoc_critics).
+estimate, so fitting runs until their fidelity (pipeline.critics.fidelity, scored with the actor they
+are fitted with) stops improving, at most `steps` steps (pipeline.critics.posthoc.fit_posthoc_critics).
 
 The stopping rule's scoring settings are this section's own (not `critic_fidelity`'s), so a
 change to the fidelity report reruns no fit.

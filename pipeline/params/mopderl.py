@@ -1,4 +1,4 @@
-"""Section `mopderl`: phase 2 of the MOPDERL baseline (stage mopderl, pipeline/mopderl.py).
+"""Section `mopderl`: phase 2 of the MOPDERL baseline (stage mopderl, pipeline/baselines/mopderl.py).
 
 MOPDERL's phase 1 is one PDERL run per objective: the PDERL specialists of stage
 train_pderl. Phase 2, configured here, merges their populations and evolves them with

@@ -1,4 +1,4 @@
-"""Section `score`: how the re-evaluated returns are scored (pipeline.metrics).
+"""Section `score`: how the re-evaluated returns are scored (pipeline.evaluation.metrics).
 
 Scoring is arithmetic on the evaluate stage's returns, so these settings (and
 env.reference_point, which score reads from the `env` section) rerun no episode.

@@ -4,7 +4,7 @@ population.pt (format "mapex.population", version 2), loadable with torch.load(w
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
               variant, params (the env and extract params, seed and variant the run used),
-              provenance (pipeline.provenance: git commit, library versions, device, threads)
+              provenance (pipeline.core.provenance: git commit, library versions, device, threads)
     members:  list, in the order policies joined the population (index = policy id): first
               the starting policies (every policy of specialist 0's policy set, in the set's
               order, then specialist 1's, ...), then the children
@@ -21,7 +21,7 @@ population.pt (format "mapex.population", version 2), loadable with torch.load(w
         eval_episodes  number of evaluation episodes
         env_samples    cumulative env samples spent on evaluation once this policy was evaluated
         hidden_sizes   the actor's hidden widths
-        actor          state dict of pipeline.nets.Actor
+        actor          state dict of pipeline.core.nets.Actor
 
 Version 1 (before policy sets) lacks `policy_name`; it still loads, its starting policies
 named "policy" (each came from a policy.pt) and its children None.
@@ -39,8 +39,8 @@ from typing import Any, Sequence
 
 import torch
 
-from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.nets import Actor
+from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.core.nets import Actor
 
 FORMAT = "mapex.population"
 FORMAT_VERSION = 2

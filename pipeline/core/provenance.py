@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 LIBRARIES = ("mapex", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "zarr")
 
 

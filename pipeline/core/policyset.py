@@ -18,9 +18,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
-from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.checkpoint import FORMAT_VERSION, POLICY_FORMAT, actor_from_meta
-from pipeline.nets import Actor
+from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.core.checkpoint import FORMAT_VERSION, POLICY_FORMAT, actor_from_meta
+from pipeline.core.nets import Actor
 
 POLICY_SET_FORMAT = "mapex.policy_set"
 POLICY_SET_VERSION = 1

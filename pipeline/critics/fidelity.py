@@ -29,7 +29,7 @@ from typing import Any, Protocol, Sequence
 import numpy as np
 import torch
 
-from pipeline.nets import Actor
+from pipeline.core.nets import Actor
 
 
 class TwinCritic(Protocol):

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from pipeline.buffer import Batch
-from pipeline.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.buffer import Batch
+from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 
 
 @dataclass

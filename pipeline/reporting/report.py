@@ -21,7 +21,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.metrics import mean_sem
+from pipeline.evaluation.metrics import mean_sem
 
 VARIANT_ORDER = ("mapex_pderl", "mapex_posthoc_pderl", "warmup_only_pderl", "mapex_td3", "mapex_posthoc_td3",
                  "warmup_only_td3", "mopderl", "morld")
@@ -60,7 +60,7 @@ class Run:
     on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
     # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))
     history: dict[str, np.ndarray]
-    provenance: dict | None = None  # stage -> pipeline.provenance record or None (score's provenance.json)
+    provenance: dict | None = None  # stage -> pipeline.core.provenance record or None (score's provenance.json)
     objective: np.ndarray | None = None  # (n,) the specialist a starting policy came from, -1 for a child
 
     def starting_counts(self) -> dict[int, int]:
@@ -453,7 +453,7 @@ PROVENANCE_COLUMNS = ("git commit", "torch", "numpy", "mujoco", "gymnasium", "mo
 
 
 def provenance_cells(record: dict | None) -> tuple[str, ...]:
-    """One provenance record (pipeline.provenance) as table cells; 'not recorded' where absent."""
+    """One provenance record (pipeline.core.provenance) as table cells; 'not recorded' where absent."""
     if not record:
         return ("not recorded",) * len(PROVENANCE_COLUMNS)
     versions = record.get("versions") or {}

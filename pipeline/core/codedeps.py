@@ -12,7 +12,7 @@ import ast
 from functools import lru_cache
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("pipeline", "stages")
 
 
@@ -47,7 +47,7 @@ def _imported_names(path: Path, module: str) -> set[str]:
             else:
                 base = node.module or ""
             names.add(base)
-            # `from pipeline import specialist` imports the submodule pipeline.specialist
+            # `from pipeline import specialist` imports the submodule pipeline.specialists.td3_training
             names.update(f"{base}.{a.name}" for a in node.names if a.name != "*")
     return {n for n in names if n.split(".")[0] in PACKAGES}
 
@@ -111,5 +111,5 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
     return changed
 
 
-if __name__ == "__main__":  # python -m pipeline.codedeps: bring dvc.yaml's code deps up to date
+if __name__ == "__main__":  # python -m pipeline.core.codedeps: bring dvc.yaml's code deps up to date
     print("updated:", ", ".join(sync_dvc_yaml()) or "nothing")

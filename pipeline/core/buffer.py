@@ -27,7 +27,7 @@ import numpy as np
 import torch
 import zarr
 
-from pipeline.artifacts import ArtifactError, atomic_path
+from pipeline.core.artifacts import ArtifactError, atomic_path
 
 FORMAT = "mapex.replay_buffer"
 FORMAT_VERSION = 1

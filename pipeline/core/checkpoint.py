@@ -25,8 +25,8 @@ from typing import Any
 
 import torch
 
-from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.core.nets import Actor, CriticEnsemble
 
 POLICY_FORMAT = "mapex.policy"
 CRITICS_FORMAT = "mapex.critics"

@@ -2,7 +2,7 @@
 
 The paper trains its specialists with PDERL (one run per objective: the warm-up stage of
 MOPDERL). A run keeps a population of deterministic actors and one TD3 agent (with
-secondary critics, pipeline/td3.py) that learns from every transition anyone collects.
+secondary critics, pipeline/specialists/td3.py) that learns from every transition anyone collects.
 One generation:
 
 1. Evaluate: every individual runs `eval_episodes` episodes with its deterministic actions;
@@ -53,14 +53,14 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.buffer import FIELDS, ReplayBuffer
-from pipeline.envs import EnvSpec
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.core.buffer import FIELDS, ReplayBuffer
+from pipeline.core.envs import EnvSpec
+from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.seeding import derive_seeds, torch_generator
-from pipeline.specialist import init_td3
-from pipeline.td3 import TD3State, td3_update
+from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.specialists.td3_training import init_td3
+from pipeline.specialists.td3 import TD3State, td3_update
 
 PDERL_TAG = 0x50444552  # "PDER": separates PDERL's streams from every other use of (seed, objective)
 STATE_FORMAT = "mapex.pderl_state"

@@ -2,12 +2,12 @@
 
 `points` is always an (n, m) array of return vectors (n policies, m objectives). Functions
 named after a front indicator (sparsity, expected utility, ...) take the points as given: pass
-the non-dominated set (`pipeline.pareto.pareto_mask`) when the front is meant. `front_metrics`
+the non-dominated set (`pipeline.core.pareto.pareto_mask`) when the front is meant. `front_metrics`
 bundles all of them for one front, as the evaluate stage reports them.
 
 Definitions (and where they come from):
 
-- hypervolume: `pipeline.pareto.hypervolume` (pymoo, exact), bounded below by a fixed reference
+- hypervolume: `pipeline.core.pareto.hypervolume` (pymoo, exact), bounded below by a fixed reference
   point per env (params `env.reference_point`).
 - hv_fraction: hypervolume / volume of the box [ref, ideal]; with the ideal point of the front
   itself it measures how much of its own bounding box a front fills (1 for a single point).
@@ -35,8 +35,8 @@ import math
 
 import numpy as np
 
-from pipeline.pareto import hypervolume as _pareto_hypervolume
-from pipeline.pareto import ideal_box_volume, pareto_mask
+from pipeline.core.pareto import hypervolume as _pareto_hypervolume
+from pipeline.core.pareto import ideal_box_volume, pareto_mask
 
 
 def _as_points(points: np.ndarray, m: int | None = None) -> np.ndarray:
@@ -60,7 +60,7 @@ def non_dominated(points: np.ndarray) -> np.ndarray:
 
 
 def hypervolume(points: np.ndarray, ref: np.ndarray | list[float]) -> float:
-    """Hypervolume of `points` (n, m) above the reference point `ref` (m,). See pipeline.pareto."""
+    """Hypervolume of `points` (n, m) above the reference point `ref` (m,). See pipeline.core.pareto."""
     ref = np.asarray(ref, dtype=float)
     p = _as_points(points, len(ref))
     return _pareto_hypervolume(p, ref) if len(p) else 0.0

@@ -51,9 +51,9 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from pipeline.nets import Actor, CriticEnsemble, StackedActor
-from pipeline.pareto import pareto_mask
-from pipeline.seeding import torch_generator
+from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.pareto import pareto_mask
+from pipeline.core.seeding import torch_generator
 
 
 # ---------------------------------------------------------------- step 1: gaps and weights

@@ -5,7 +5,7 @@ module level; `require_morl_baselines` imports it when a run is built and names 
 command when it is missing.
 
 What the run is. `MorldRun` builds the library's `MORLD` (MOSAC agents, weighted sums) on our
-env (pipeline.envs.make_env, so every training and evaluation episode is capped at
+env (pipeline.core.envs.make_env, so every training and evaluation episode is capped at
 env.max_episode_steps) and repeats the body of `MORLD.train` itself, one exchange per `step`:
 the next agent in turn collects `exchange_every` frames (one SAC update per frame), the others
 make `update_passes` updates, every agent is scored by MORL/D's own evaluation and offered to
@@ -27,7 +27,7 @@ the archive keeps. Every exported actor is re-scored here with deterministic act
 (`export_members`), and downstream stages evaluate again on fresh episodes.
 
 Actors. MOSAC's actor is latent_pi = (Linear, ReLU) x n, then a mean head and a log-std head;
-its deterministic action is tanh(mean) * action_scale + action_bias. Our `pipeline.nets.Actor`
+its deterministic action is tanh(mean) * action_scale + action_bias. Our `pipeline.core.nets.Actor`
 computes centre + scale * tanh(net(obs)) with net = (Linear, ReLU) x n + Linear: the same
 function once the latent layers and the mean head are copied into `net` and action_scale /
 action_bias into scale / centre (`actor_from_mosac`). The log-std head only shapes
@@ -58,12 +58,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.envs import EnvSpec, make_env
-from pipeline.evaluation import EvalResult, eval_seeds, evaluate_policies
-from pipeline.nets import Actor
+from pipeline.core.envs import EnvSpec, make_env
+from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies
+from pipeline.core.nets import Actor
 from pipeline.params.morld import MorldParams
-from pipeline.population import Member, actor_state
-from pipeline.seeding import derive_seeds
+from pipeline.core.population import Member, actor_state
+from pipeline.core.seeding import derive_seeds
 
 MORL_BASELINES_VERSION = "1.3.0"
 INSTALL_HINT = 'pip install -e ".[baselines]"'
@@ -118,7 +118,7 @@ def check_mosac_actor(module: nn.Module) -> None:
     """Raise ValueError unless `module` is MOSAC's actor as morl-baselines 1.3.0 builds it:
     latent_pi = (Linear, ReLU) x n, heads fc_mean and fc_logstd, buffers action_scale and
     action_bias. Anything else (dropout, layer norm, another activation) has no exact
-    `pipeline.nets.Actor` counterpart."""
+    `pipeline.core.nets.Actor` counterpart."""
     latent = getattr(module, "latent_pi", None)
     missing = [a for a in ("fc_mean", "action_scale", "action_bias") if not hasattr(module, a)]
     if not isinstance(latent, nn.Sequential) or missing:
@@ -133,7 +133,7 @@ def check_mosac_actor(module: nn.Module) -> None:
     if not pattern_ok:
         raise ValueError(
             f"MOSAC actor with latent layers {[type(m).__name__ for m in layers]}: only (Linear, ReLU) x n converts "
-            "exactly into pipeline.nets.Actor"
+            "exactly into pipeline.core.nets.Actor"
         )
 
 

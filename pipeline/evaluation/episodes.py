@@ -16,8 +16,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.nets import Actor, StackedActor
-from pipeline.seeding import derive_seeds
+from pipeline.core.nets import Actor, StackedActor
+from pipeline.core.seeding import derive_seeds
 
 EVAL_TAG = 0x5EED_E7A1  # separates evaluation seeds from every other stream derived from a run seed
 

@@ -3,7 +3,7 @@
 A stage that checkpoints after each unit of work stores the fingerprint with its progress; a
 rerun resumes only if the fingerprint matches, so a changed param, input, code file, device
 or thread count starts over instead of continuing stale state. The code files are every
-in-project file the stage imports (`pipeline.codedeps.closure_files`), the same list DVC's
+in-project file the stage imports (`pipeline.core.codedeps.closure_files`), the same list DVC's
 deps hold, so no hand-kept list can miss one.
 
 Layout of a progress directory: one file per finished item (`item_00000.pt`, ...), each
@@ -23,7 +23,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
-from pipeline.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
 
 # Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
 # to one directory per stage item, so a retry on another node resumes where a dead one stopped.

@@ -3,7 +3,7 @@
 `train_specialists` trains S specialists in lockstep in one process: the specialists of every
 objective of a seed, or of several seeds. Each keeps its own env, replay buffer, RNG streams
 and minibatch draws, so each is exactly the TD3 specialist it would be alone; only the
-networks are stacked, so one batched update serves all of them (see pipeline/td3.py). S = 1
+networks are stacked, so one batched update serves all of them (see pipeline/specialists/td3.py). S = 1
 is one specialist on its own (`train_specialist`).
 
 The loop prints nothing; progress goes through the `on_step` callback.
@@ -33,12 +33,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.buffer import StackedReplay
-from pipeline.envs import EnvSpec
-from pipeline.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.buffer import StackedReplay
+from pipeline.core.envs import EnvSpec
+from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.seeding import derive_seeds, torch_generator
-from pipeline.td3 import GraphedUpdate, StackedTD3, TD3State, stacked_update
+from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.specialists.td3 import GraphedUpdate, StackedTD3, TD3State, stacked_update
 
 
 @dataclass

@@ -1,12 +1,12 @@
 """MOPDERL phase 2: NSGA-II evolution of the merged PDERL populations beside their RL agents.
 
 MOPDERL (the paper's baseline) first trains one PDERL run per objective (phase 1: our PDERL
-specialists, pipeline/pderl.py), then merges the populations and evolves them towards a
+specialists, pipeline/specialists/pderl.py), then merges the populations and evolves them towards a
 Pareto front. This module is phase 2. State: a population of deterministic actors, each with
 a fitness vector (mean undiscounted return of every objective), a mini buffer of states
 (`StateRing`) and a type (the objective it descends from: a starting actor's specialist, a
 child's crossover critic); one TD3 agent per objective (with secondary critics,
-pipeline/td3.py), restored from its specialist; and the all-time archive of non-dominated
+pipeline/specialists/td3.py), restored from its specialist; and the all-time archive of non-dominated
 fitness vectors.
 
 Start (`MopderlRun.initialize`, generation 0): every starting actor is evaluated; its
@@ -93,16 +93,16 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.buffer import FIELDS, ReplayBuffer
-from pipeline.envs import EnvSpec
-from pipeline.nets import Actor, CriticEnsemble
-from pipeline.pareto import pareto_mask
+from pipeline.core.buffer import FIELDS, ReplayBuffer
+from pipeline.core.envs import EnvSpec
+from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.pareto import pareto_mask
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
-from pipeline.population import Member, actor_state
-from pipeline.seeding import derive_seeds, torch_generator
-from pipeline.td3 import TD3State, td3_update
+from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
+from pipeline.core.population import Member, actor_state
+from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.specialists.td3 import TD3State, td3_update
 
 MOPDERL_TAG = 0x4D4F5044  # "MOPD": separates MOPDERL's streams from every other use of a seed
 STATE_FORMAT = "mapex.mopderl_state"
@@ -357,7 +357,7 @@ def _cpu(obj: Any) -> Any:
 class MopderlRun:
     """The whole state of one MOPDERL phase-2 run and its generation loop.
 
-    `members` is the run's output so far (pipeline.population.Member): the starting actors
+    `members` is the run's output so far (pipeline.core.population.Member): the starting actors
     (ids 0..n-1, in the order given), then every new individual that entered the archive, in
     order of entry. Call `initialize` once (generation 0), then `step_generation` until
     `budget_spent`; or `load_state_dict` a checkpoint instead of `initialize`.

@@ -7,7 +7,7 @@ objective m, so the Bellman target uses pi_k's action at s'. (The authors' precu
 used the best policy of the population here instead; that is a deviation from the paper
 and is not reproduced.)
 
-Each gradient step reuses the TD3 pieces that train the joint critics (`pipeline.td3`):
+Each gradient step reuses the TD3 pieces that train the joint critics (`pipeline.specialists.td3`):
 
     y_m = r_m + gamma * (1 - terminated) * min_h Q'_{m,h}(s', clip(pi_k(s') + clip(noise)))
 
@@ -25,10 +25,10 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
-from pipeline.buffer import Batch, batch_at
-from pipeline.nets import Actor, CriticEnsemble
+from pipeline.core.buffer import Batch, batch_at
+from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.td3 import critic_loss, polyak_update, smoothed_target_action, td3_targets
+from pipeline.specialists.td3 import critic_loss, polyak_update, smoothed_target_action, td3_targets
 
 
 class FitCheck(NamedTuple):
@@ -99,7 +99,7 @@ def fit_posthoc_critics(
 ) -> FittedCritics:
     """Fit Q^(k)_m for each m in `objectives` on the transitions `data` of buffer D_k.
 
-    data: the arrays of `pipeline.buffer.load_buffer` (T rows; obs (T, obs_dim), action
+    data: the arrays of `pipeline.core.buffer.load_buffer` (T rows; obs (T, obs_dim), action
     (T, act_dim), reward (T, n_objectives_env), next_obs, terminated (T,) ...).
     target_policy: pi_k, whose action at s' enters the Bellman target (frozen; the stage
     passes the specialist's TD3 target actor when the checkpoint has one, as the joint

@@ -65,7 +65,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from pipeline.params import KNOWN_SECTIONS, ParamsError
-from pipeline.resume import RESUME_ROOT_ENV
+from pipeline.core.resume import RESUME_ROOT_ENV
 
 # Stages that get a GPU when the cluster has one (resources gpus: auto); the others run on CPU.
 GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract")

@@ -1,0 +1,1 @@
+"""Sweeps beyond one machine: stage items as Ray tasks, a shared DVC remote."""

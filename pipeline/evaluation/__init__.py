@@ -1,0 +1,1 @@
+"""Evaluation episodes and front metrics, the same for every method."""

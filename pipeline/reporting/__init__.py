@@ -1,0 +1,1 @@
+"""The report: tables, verdicts and figures from scored runs."""

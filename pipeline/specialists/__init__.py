@@ -1,0 +1,1 @@
+"""Specialists: TD3 with secondary critics (stacked training) and PDERL."""
