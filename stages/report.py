@@ -66,7 +66,8 @@ def report(
                                              f"{' vs '.join(label(v) for v in variants_in(list(by_variant.values())))} side by side.")
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
     captions["hypervolume.png"] = ("Hypervolume of the population after each iteration (MOPDERL: generation), vs "
-                                   "iteration and vs cumulative env frames after the specialists: returns measured while "
+                                   "iteration and vs cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: all "
+                                   "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
                                    "the method ran (solid) and the same members re-evaluated (dashed).")
     context = {"evaluation episodes per member": str(runs[0].metrics["episodes"]),
                "starting policies per specialist": starting_policies_line(runs)}

@@ -97,6 +97,18 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
+def _shared_legend(fig: Figure, axes) -> None:
+    """One legend below the panels for every entry of `axes` (first label wins), instead of one
+    legend per panel covering its points."""
+    seen: dict[str, object] = {}
+    for ax in axes:
+        for handle, name in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(name, handle)
+    if seen:
+        cols = 4 if max(map(len, seen)) <= 32 else 3 if max(map(len, seen)) <= 44 else 2
+        fig.legend(list(seen.values()), list(seen), loc="outside lower center", ncols=min(cols, len(seen)), fontsize="small")
+
+
 def _front_line(ax, points: np.ndarray, **kw) -> None:
     """Draw the attainment boundary of a 2-D maximisation front (points sorted by objective 0)."""
     if len(points) == 0:
@@ -153,10 +165,13 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
             ax.scatter(pts[nd, 0], pts[nd, 1], s=70, facecolors="none", edgecolors="black", lw=1.2,
                        label="non-dominated")
         _starting_policies(ax, run, pts)
-        ax.set_title(f"{label(v)} - {env_id}, seed {seed}")
+        ax.set_title(label(v))
         ax.set_xlabel(names[0])
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small", loc="best")
+        if len(variants) == 1:
+            ax.legend(fontsize="small", loc="best")
+    if len(variants) > 1:
+        _shared_legend(fig, axes)
     for row in grid:
         row[0].set_ylabel(names[1])
     if mappable is not None:
@@ -218,11 +233,11 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
                   colour, name, len(rs), ls)
     ax_it.set_xlabel("iteration")
     ax_it.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax_s.set_xlabel("cumulative env frames after the specialists (MAPEX: evaluations; MOPDERL: all of phase 2)")
+    ax_s.set_xlabel("env frames after the specialists")
     ax_it.set_ylabel("hypervolume")
     for ax in (ax_it, ax_s):
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small", loc="best")
+    _shared_legend(fig, [ax_it])
     fig.suptitle(f"Hypervolume of the population as each method runs: {env_id}")
     return fig
 
@@ -635,7 +650,7 @@ def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
         ax.set_xlabel("objective 0")
         ax.set_ylabel("objective 1")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="x-small", loc="best")
+    _shared_legend(fig, grid.flat[: len(cells)])
     fig.suptitle("Re-evaluated fronts per cell (one line per seed)")
     return fig
 
@@ -659,7 +674,7 @@ def grid_history_figure(cells: list[Cell], width: float) -> Figure:
         ax.set_xlabel("env frames after the specialists")
         ax.set_ylabel("hypervolume (re-evaluated)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="x-small", loc="best")
+    _shared_legend(fig, grid.flat[: len(cells)])
     fig.suptitle("Hypervolume against env frames, per cell")
     return fig
 
