@@ -10,14 +10,14 @@ from typing import Any
 import torch
 import typer
 
-from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.codedeps import closure_files
 from pipeline.core.envs import env_spec, make_env
 from pipeline.baselines.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_members, history_csv_rows, require_morl_baselines
 from pipeline.params.morld import MorldParams
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -131,25 +131,12 @@ def _library_version() -> str | None:
 
 
 def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (missing, unreadable or
-    stale checkpoints are never trusted)."""
-    if not path.exists():
-        return None
-    try:
-        obj = torch_load_checked(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
-    except ArtifactError as exc:
-        typer.echo(f"{path}: ignored, starting over ({exc})", err=True)
-        return None
-    if obj.get("fingerprint") != fp:
-        typer.echo(f"{path}: params, code, device, threads or library changed since it was written; starting over", err=True)
-        return None
-    return obj.get("state")
+    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume)."""
+    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, lambda line: typer.echo(line, err=True))
 
 
 def save_checkpoint(path: Path, fp: str, run: MorldRun) -> None:
-    obj = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": fp, "state": run.state_dict()}
-    with atomic_path(path) as tmp:  # streamed to disk: no second in-memory copy of the buffer
-        torch.save(obj, tmp)
+    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def history_csv(history: list[ExchangeRecord]) -> str:

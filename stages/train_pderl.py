@@ -10,7 +10,7 @@ from typing import Any, Optional
 import torch
 import typer
 
-from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, write_text_atomic
+from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.codedeps import closure_files
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
@@ -18,7 +18,7 @@ from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from pipeline.core.policyset import save_policy_set
-from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, progress, reports_errors
 from stages.train_specialist import save_rl_agent, specialist_meta
@@ -102,25 +102,12 @@ def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpeci
 
 
 def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (missing, unreadable or
-    stale checkpoints are never trusted)."""
-    if not path.exists():
-        return None
-    try:
-        obj = torch_load_checked(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION)
-    except ArtifactError as exc:
-        typer.echo(f"{path}: ignored, starting over ({exc})", err=True)
-        return None
-    if obj.get("fingerprint") != fp:
-        typer.echo(f"{path}: params, code, device or threads changed since it was written; starting over", err=True)
-        return None
-    return obj.get("state")
+    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume)."""
+    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, lambda line: typer.echo(line, err=True))
 
 
 def save_checkpoint(path: Path, fp: str, run: PderlRun) -> None:
-    obj = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": fp, "state": run.state_dict()}
-    with atomic_path(path) as tmp:  # streamed to disk: no second in-memory copy of the buffer
-        torch.save(obj, tmp)
+    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,

@@ -10,7 +10,7 @@ from typing import Any, Optional, Sequence
 import torch
 import typer
 
-from pipeline.core.artifacts import TMP_SUFFIX, atomic_path, write_text_atomic
+from pipeline.core.artifacts import TMP_SUFFIX, write_text_atomic
 from pipeline.core.buffer import save_buffer
 from pipeline.core.checkpoint import save_critics, save_policy
 from pipeline.core.codedeps import closure_files
@@ -18,7 +18,7 @@ from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import checkpoint_dir, fingerprint
+from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
@@ -114,29 +114,12 @@ def run_fingerprint(seed: int, group: Sequence[int], env_p: EnvParams, cfg: Trai
 
 
 def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (a missing, unreadable
-    or stale checkpoint is never trusted). Memory-mapped: the buffer rows are read from the
-    file as they are copied into the run, not held twice."""
-    if not path.exists():
-        return None
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception as exc:  # truncated, corrupt, not a torch file
-        typer.echo(f"{path}: ignored, starting over (cannot be read: {type(exc).__name__}: {exc})", err=True)
-        return None
-    if not isinstance(obj, dict) or obj.get("format") != CHECKPOINT_FORMAT or obj.get("format_version") != CHECKPOINT_VERSION:
-        typer.echo(f"{path}: ignored, starting over (not a {CHECKPOINT_FORMAT} v{CHECKPOINT_VERSION} file)", err=True)
-        return None
-    if obj.get("fingerprint") != fp:
-        typer.echo(f"{path}: params, code, device or threads changed since it was written; starting over", err=True)
-        return None
-    return obj.get("state")
+    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume)."""
+    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, lambda line: typer.echo(line, err=True))
 
 
 def save_checkpoint(path: Path, fp: str, run: SpecialistsRun) -> None:
-    obj = {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": fp, "state": run.state_dict()}
-    with atomic_path(path) as tmp:  # streamed to the file: no in-memory copy of the serialized buffers
-        torch.save(obj, tmp)
+    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams,

@@ -21,9 +21,9 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
-from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
+from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, torch_save_atomic
 
 # Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
 # to one directory per stage item, so a retry on another node resumes where a dead one stopped.
@@ -96,4 +96,40 @@ def checkpoint_dir(out: str | Path) -> Path:
     OUT itself, or $MAPEX_RESUME_ROOT/<OUT's name> when set (shared storage)."""
     root = os.environ.get(RESUME_ROOT_ENV)
     return Path(root) / Path(out).name if root else Path(out)
+
+
+# One-file checkpoints of a whole run (training stages: TD3 and PDERL specialists, MORL/D):
+# {"format", "format_version", "fingerprint", "state"}, written streamed and atomically.
+
+
+def load_run_checkpoint(path: str | Path, fmt: str, version: int, fp: str, log: Callable[[str], None]) -> dict[str, Any] | None:
+    """The run state saved at `path` under fingerprint `fp`, else None: a missing, unreadable,
+    foreign or stale checkpoint is never trusted (`log` says why it is ignored). Memory-mapped:
+    buffer rows are read from the file as they are copied into the run, not held twice."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        import torch
+
+        obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as exc:  # truncated, corrupt, not a torch file
+        log(f"{path}: ignored, starting over (cannot be read: {type(exc).__name__}: {exc})")
+        return None
+    if not isinstance(obj, dict) or obj.get("format") != fmt or obj.get("format_version") != version:
+        log(f"{path}: ignored, starting over (not a {fmt} v{version} file)")
+        return None
+    if obj.get("fingerprint") != fp:
+        log(f"{path}: params, code, device, threads or libraries changed since it was written; starting over")
+        return None
+    return obj.get("state")
+
+
+def save_run_checkpoint(path: str | Path, fmt: str, version: int, fp: str, state: dict[str, Any]) -> None:
+    """Write a run checkpoint atomically, streamed to the file (no in-memory copy of its buffers)."""
+    import torch
+
+    obj = {"format": fmt, "format_version": version, "fingerprint": fp, "state": state}
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 

@@ -97,6 +97,18 @@ def _figure(width: float, height: float) -> Figure:
     return fig
 
 
+def _panels(n: int, width: float, aspect: float, share: bool = False) -> tuple[Figure, np.ndarray, np.ndarray]:
+    """A figure of n panels, up to 3 a row, each `aspect` times as high as wide: (figure, the
+    grid of axes, the first n axes); spare panels are hidden."""
+    cols = min(n, 3)
+    rows = -(-n // cols)
+    fig = _figure(width, (width / cols) * aspect * rows)
+    grid = fig.subplots(rows, cols, sharex=share, sharey=share, squeeze=False)
+    for ax in grid.flat[n:]:
+        ax.set_visible(False)
+    return fig, grid, grid.flat[:n]
+
+
 def _shared_legend(fig: Figure, axes) -> None:
     """One legend below the panels for every entry of `axes` (first label wins), instead of one
     legend per panel covering its points."""
@@ -139,13 +151,7 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
     variants' fronts dashed for comparison. Only objectives 0 and 1 are drawn.
     """
     variants = [v for v in variants_in(list(runs.values()))]
-    cols = min(len(variants), 3)
-    rows = -(-len(variants) // cols)
-    fig = _figure(width, (width / cols) * 0.95 * rows if len(variants) > 1 else width * 0.6)
-    grid = fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)
-    for ax in grid.flat[len(variants):]:
-        ax.set_visible(False)
-    axes = grid.flat[: len(variants)]
+    fig, grid, axes = _panels(len(variants), width, 0.95 if len(variants) > 1 else 0.6, share=True)
     max_it = max(max(int(r.iteration.max()), 1) for r in runs.values())
     norm = Normalize(vmin=1, vmax=max_it)
     mappable = None
@@ -513,6 +519,7 @@ def report_markdown(
     provenance, definitions."""
     seeds = sorted({r.seed for r in runs})
     ref = runs[0].metrics.get("reference_point")
+    said = verdicts(runs, min_difference, noise_sems)
     lines = [
         f"# MAPEX report: {env_id}",
         "",
@@ -524,8 +531,7 @@ def report_markdown(
         "",
         "## Verdicts",
         "",
-        *(line for v in verdicts(runs, min_difference, noise_sems) for line in (f"- {v.sentence}",)),
-        *(["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."] if not verdicts(runs) else []),
+        *([f"- {v.sentence}" for v in said] or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]),
         "",
         "## Metrics of the re-evaluated final fronts",
         "",
@@ -635,13 +641,8 @@ def grid_provenance_table(cells: list[Cell]) -> str:
 
 def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
     """One panel per cell: every method's re-evaluated front, one line per seed (same colour)."""
-    cols = min(len(cells), 3)
-    rows = -(-len(cells) // cols)
-    fig = _figure(width, (width / cols) * 0.9 * rows)
-    grid = fig.subplots(rows, cols, squeeze=False)
-    for ax in grid.flat[len(cells):]:
-        ax.set_visible(False)
-    for ax, c in zip(grid.flat, cells):
+    fig, _, axes = _panels(len(cells), width, 0.9)
+    for ax, c in zip(axes, cells):
         for v in variants_in(c.runs):
             for i, r in enumerate(sorted((r for r in c.runs if r.variant == v), key=lambda r: r.seed)):
                 _front_line(ax, r.returns[r.on_front, :2], color=COLOURS.get(v, "grey"), lw=1.1, alpha=0.8,
@@ -650,7 +651,7 @@ def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
         ax.set_xlabel("objective 0")
         ax.set_ylabel("objective 1")
         ax.grid(alpha=0.3)
-    _shared_legend(fig, grid.flat[: len(cells)])
+    _shared_legend(fig, axes)
     fig.suptitle("Re-evaluated fronts per cell (one line per seed)")
     return fig
 
@@ -658,13 +659,8 @@ def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
 def grid_history_figure(cells: list[Cell], width: float) -> Figure:
     """One panel per cell: re-evaluated hypervolume against cumulative env frames after the
     specialists, mean ± SEM over seeds per method."""
-    cols = min(len(cells), 3)
-    rows = -(-len(cells) // cols)
-    fig = _figure(width, (width / cols) * 0.8 * rows)
-    grid = fig.subplots(rows, cols, squeeze=False)
-    for ax in grid.flat[len(cells):]:
-        ax.set_visible(False)
-    for ax, c in zip(grid.flat, cells):
+    fig, _, axes = _panels(len(cells), width, 0.8)
+    for ax, c in zip(axes, cells):
         for v in variants_in(c.runs):
             rs = [r for r in c.runs if r.variant == v]
             x = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
@@ -674,7 +670,7 @@ def grid_history_figure(cells: list[Cell], width: float) -> Figure:
         ax.set_xlabel("env frames after the specialists")
         ax.set_ylabel("hypervolume (re-evaluated)")
         ax.grid(alpha=0.3)
-    _shared_legend(fig, grid.flat[: len(cells)])
+    _shared_legend(fig, axes)
     fig.suptitle("Hypervolume against env frames, per cell")
     return fig
 
