@@ -22,17 +22,18 @@ install: $(BIN)/python
 	@# dependencies then come from the usual index together with the project's.
 	$(BIN)/pip install -q --no-index --no-deps "$(TORCH_SPEC)" 2>/dev/null \
 	  || $(BIN)/pip install -q --no-deps "$(TORCH_SPEC)" --index-url $(TORCH_INDEX)
-	$(BIN)/pip install -q "$(TORCH_SPEC)" -e ".[dev]" > $(VENV)/install.log 2>&1 \
+	@# the core package only: `make repro` needs nothing more (test and bench add their extras)
+	$(BIN)/pip install -q "$(TORCH_SPEC)" -e . > $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install failed (log: $(VENV)/install.log)"; exit 1; }
 
 repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install
-	@# the optional extras too (Ray, morl-baselines), so tests/test_sweep.py and tests/test_morld.py
-	@# run instead of skipping
+	@# the test tools (dev) and the optional extras (Ray, morl-baselines), so tests/test_sweep.py
+	@# and tests/test_morld.py run instead of skipping
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines]" >> $(VENV)/install.log 2>&1 \
-	  || { cat $(VENV)/install.log; echo "install of .[sweep,baselines] failed (log: $(VENV)/install.log)"; exit 1; }
+	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
 
 bench: install

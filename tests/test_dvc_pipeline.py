@@ -29,6 +29,7 @@ TINY = {
     "pderl_seeds": [],
     "extract_from": ["td3"],
     "extract_variants": ["mapex", "warmup_only"],
+    "posthoc_from": [],
     "mopderl_seeds": [],
     "morld_seeds": [],
     "methods": ["mapex_td3", "warmup_only_td3"],
@@ -89,7 +90,8 @@ def set_beta(root: Path, beta: float) -> None:
 def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     dvc = str(BIN / "dvc")
     first = run([dvc, "repro"], repo)
-    assert ran(first) == {"train_specialist", "fit_critics", "critic_fidelity", "extract", "evaluate", "score", "report"}
+    # posthoc_from: [] -> no post-hoc fits: joint-critic extraction does not depend on them
+    assert ran(first) == {"train_specialist", "critic_fidelity", "extract", "evaluate", "score", "report"}
     report = (repo / "data" / "report" / "report.md").read_text()
     metrics_before = (repo / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text()
 
@@ -118,7 +120,7 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     set_key(repo, "env", "reference_point", [x - 1.0 for x in env["reference_point"]])
     assert ran(run([dvc, "repro"], repo)) == {"score", "report"}
 
-    # a fidelity setting reruns only the joint critics' fidelity check, not the post-hoc fits
+    # a fidelity setting reruns only the fidelity check
     set_key(repo, "critic_fidelity", "episodes", 3)
     assert ran(run([dvc, "repro"], repo)) == {"critic_fidelity"}
 
@@ -152,7 +154,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
-    params = {**TINY, "pderl_seeds": [0], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex", "mapex_posthoc"],
+    params = {**TINY, "pderl_seeds": [0], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex"], "posthoc_from": ["td3", "pderl"],
               "mopderl_seeds": [0], "morld_seeds": [0] if "morld" in baselines else [], "methods": methods,
               "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
               "train_pderl": PDERL_TINY, "mopderl": MOPDERL_TINY, "morld": MORLD_TINY,

@@ -180,3 +180,24 @@ def test_repository_params_file_validates():
     section(raw, "", RunParams, path)
     cfg = section(raw, "train_specialist", TrainSpecialistParams, path)
     assert cfg.learning_starts < cfg.total_steps
+
+
+def test_run_params_methods_must_be_what_the_lists_produce():
+    ok = {"seeds": [0, 1], "pderl_seeds": [0, 1], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex"],
+          "posthoc_from": ["pderl"], "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"]}
+    assert section(ok, "", RunParams).posthoc_from == ["pderl"]
+    # a method nobody produces, and a produced method left out: both name the list to fix
+    with pytest.raises(ParamsError, match=r"produce \['mapex_td3', 'mapex_pderl', 'mapex_posthoc_pderl'\]: set methods"):
+        section({**ok, "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_td3"]}, "", RunParams)
+    with pytest.raises(ParamsError, match="set methods to that list"):
+        section({**ok, "methods": ["mapex_td3", "mapex_pderl"]}, "", RunParams)
+    # MAPEX-PostHoc is chosen by posthoc_from (its own stage), not as an extraction variant
+    with pytest.raises(ParamsError, match=r"extract_variants = .*mapex_posthoc is chosen by `posthoc_from`"):
+        section({**ok, "extract_variants": ["mapex", "mapex_posthoc"]}, "", RunParams)
+    with pytest.raises(ParamsError, match=r"unknown variants \['mapex_awr'\]"):
+        section({**ok, "extract_variants": ["mapex_awr"]}, "", RunParams)
+    # post-hoc critics for PDERL specialists need PDERL specialists
+    with pytest.raises(ParamsError, match="posthoc_from: pderl: PDERL specialists are needed; set pderl_seeds to"):
+        section({**ok, "pderl_seeds": [], "extract_from": ["td3"], "methods": ["mapex_td3", "mapex_posthoc_pderl"]}, "", RunParams)
+    with pytest.raises(ParamsError, match="posthoc_from"):
+        section({**ok, "posthoc_from": ["sac"]}, "", RunParams)

@@ -36,6 +36,7 @@ TINY = {
     "pderl_seeds": [],
     "extract_from": ["td3"],
     "extract_variants": ["mapex", "warmup_only"],
+    "posthoc_from": [],
     "mopderl_seeds": [],
     "morld_seeds": [],
     "methods": ["mapex_td3", "warmup_only_td3"],
@@ -143,7 +144,7 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
     grid = {
         "envs": [{"name": "cheetah", "id": "mo-halfcheetah-v5", "params": {"extract": {"iterations": 3}}}, "mo-hopper-2obj-v5"],
         "seeds": [1, 2],
-        "overrides": {"joint": {}, "posthoc": {"extract_variants": ["mapex_posthoc"], "methods": ["mapex_posthoc_td3"]}},
+        "overrides": {"joint": {}, "posthoc": {"extract_variants": [], "posthoc_from": ["td3"], "methods": ["mapex_posthoc_td3"]}},
     }
     path = write_grid(tmp_path / "grid.yaml", grid)
     cells = {c.name: c.params for c in sw.plan_cells(sw.load_grid(path), path, source, commit)}
@@ -171,15 +172,15 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     items = {i.name: i for i in sw.stage_items(ws)}
     listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
     assert set(items) == set(listed.stdout.split())
-    assert items["fit_critics@0-td3-1"].upstream == ("train_specialist@0",)
-    assert items["fit_critics@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
+    assert items["critic_fidelity@0-td3-1"].upstream == ("train_specialist@0",)
+    assert items["critic_fidelity@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
     assert items["report"].upstream == ("evaluate@0-mapex_td3", "evaluate@0-warmup_only_td3", "score@0-mapex_td3", "score@0-warmup_only_td3")
     assert "data/evaluate/mapex_td3/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
     assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
     order = list(items)
     assert all(order.index(u) < order.index(n) for n, i in items.items() for u in i.upstream)
     sub = [i.name for i in sw.stage_items(ws, ["extract@0-td3-mapex"])]
-    assert sorted(sub) == ["extract@0-td3-mapex", "fit_critics@0-td3-0", "fit_critics@0-td3-1", "train_specialist@0"]
+    assert sorted(sub) == ["extract@0-td3-mapex", "train_specialist@0"]  # posthoc_from: [] -> no post-hoc fits
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         sw.stage_items(ws, ["nope"])
     bad = write_grid(tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}})
@@ -187,13 +188,22 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert result.exit_code == 2 and "resources: ['evaluation'] are not dvc.yaml stages" in result.output
 
     # signatures: what DVC's run-cache key depends on besides code. An extract param changes
-    # extract's and everything downstream, not the specialists' or their critics'.
+    # extract's and everything downstream, not the specialists' or their critics' fidelity.
     params = yaml.safe_load((ws / "params.yaml").read_text())
     params["extract"]["beta"] = 0.5
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     changed = {i.name: i for i in sw.stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
-    assert same == {"train_specialist@0", "fit_critics@0-td3-0", "fit_critics@0-td3-1"} | {n for n in items if n.startswith("critic_fidelity")}
+    assert same == {"train_specialist@0"} | {n for n in items if n.startswith("critic_fidelity")}
+
+    # with post-hoc critics on, MAPEX-PostHoc depends on their fits and the joint-critic
+    # extraction still does not, so a post-hoc refit never reruns it
+    params.update(posthoc_from=["td3"], methods=[*params["methods"], "mapex_posthoc_td3"])
+    (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    assert sorted(i.name for i in sw.stage_items(ws, ["extract@0-td3-mapex"])) == ["extract@0-td3-mapex", "train_specialist@0"]
+    assert sorted(i.name for i in sw.stage_items(ws, ["extract_posthoc@0-td3"])) == [
+        "extract_posthoc@0-td3", "fit_critics@0-td3-0", "fit_critics@0-td3-1", "train_specialist@0"]
+    assert {"critic_fidelity_posthoc@0-td3-0", "evaluate@0-mapex_posthoc_td3"} <= {i.name for i in sw.stage_items(ws)}
 
 
 def test_a_cell_dvc_cannot_read_is_refused_before_anything_runs(tmp_path, source):
@@ -287,7 +297,7 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster)
     out = result.output
     assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
     assert "mo-hopper-2obj-v5 extract@0-td3-mapex: ran" in out  # by its retry
-    assert "mo-hopper-2obj-v5: done (14 ran, 0 restored)" in out
+    assert "mo-hopper-2obj-v5: done (10 ran, 0 restored)" in out
     ws = base / "work" / "mo-hopper-2obj-v5"
     assert (ws / "data" / "report" / "report.md").is_file()
     # the lock equals a plain serial `dvc repro` of the commit with the cell's params, byte for byte
@@ -309,16 +319,16 @@ def test_a_second_sweep_runs_nothing(swept, source):
 
 
 def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
-    """Another grid, up to fit_critics@0-td3-0: 2 envs x 2 override sets (`b` changes
-    fit_critics.steps). hopper.a has the first sweep's params (another cell name), so its tasks
-    restore both items from the run-cache without computing them. Within an env, the two sets
-    share one task for the specialists (the same DVC run) and fit their critics each."""
+    """Another grid, up to critic_fidelity@0-td3-0: 2 envs x 2 override sets (`b` changes
+    critic_fidelity.episodes). hopper.a has the first sweep's params (another cell name), so its
+    tasks restore both items from the run-cache without computing them. Within an env, the two
+    sets share one task for the specialists (the same DVC run) and check their critics each."""
     base, _, _ = swept
     grid = {
         "envs": [{"name": "hopper", "id": "mo-hopper-2obj-v5"}, {"name": "cheetah", "id": "mo-halfcheetah-v5"}],
         "seeds": [0],
-        "overrides": {"a": {}, "b": {"fit_critics": {"steps": 10}}},
-        "targets": ["fit_critics@0-td3-0"],
+        "overrides": {"a": {}, "b": {"critic_fidelity": {"episodes": 3}}},
+        "targets": ["critic_fidelity@0-td3-0"],
     }
     path = write_grid(tmp_path / "two.yaml", grid)
     result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
@@ -338,24 +348,24 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
     assert all(sorted(x) == sorted(SHARED) for x in (ha, hb, ca, cb))
     assert all(ha[k] == first[k] for k in SHARED)
     for a, b in ((ha, hb), (ca, cb)):
-        assert a["train_specialist@0"] == b["train_specialist@0"] and a["fit_critics@0-td3-0"]["outs"] != b["fit_critics@0-td3-0"]["outs"]
+        assert a["train_specialist@0"] == b["train_specialist@0"] and a["critic_fidelity@0-td3-0"]["outs"] != b["critic_fidelity@0-td3-0"]["outs"]
     assert ca["train_specialist@0"]["outs"] != ha["train_specialist@0"]["outs"]
 
 
-SHARED = ("train_specialist@0", "fit_critics@0-td3-0")
+SHARED = ("train_specialist@0", "critic_fidelity@0-td3-0")
 
 
 def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(cluster, source, tmp_path):
     grid = write_grid(
         tmp_path / "bad.yaml",
-        {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["fit_critics@0-td3-0"]},
+        {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["critic_fidelity@0-td3-0"]},
     )
     result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", tmp_path / "scratch")
     assert result.exit_code == 1, result.output
     out = result.output
     assert "nope train_specialist@0: FAILED" in out and "mo-nope-v5" in out  # the stage's own error line
-    assert "nope fit_critics@0-td3-0: not run: upstream train_specialist@0 failed" in out
-    assert "stages failed in nope: fit_critics@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
+    assert "nope critic_fidelity@0-td3-0: not run: upstream train_specialist@0 failed" in out
+    assert "stages failed in nope: critic_fidelity@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
     assert not (tmp_path / "work" / "nope" / "dvc.lock").exists()
     assert list((tmp_path / "scratch" / "nope").iterdir()) == []  # its clone is cleaned up
 
@@ -384,12 +394,12 @@ def s3_server():
 
 
 def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_path, s3_server):
-    """The first sweep's cell up to fit_critics@0-td3-0 again, with an S3-compatible remote: the
+    """The first sweep's cell up to critic_fidelity@0-td3-0 again, with an S3-compatible remote: the
     stages compute (the bucket's run-cache is empty), their lock entries equal the local-remote
     sweep's, outputs and run-cache land in the bucket, and a second run restores everything."""
     base, _, _ = swept
     url, s3 = s3_server
-    grid = write_grid(tmp_path / "s3.yaml", {**GRID, "targets": ["fit_critics@0-td3-0"]})
+    grid = write_grid(tmp_path / "s3.yaml", {**GRID, "targets": ["critic_fidelity@0-td3-0"]})
     args = [grid, "--remote", "s3://mapex-sweep/remote", "--repo", source, "--workdir", tmp_path / "work",
             "--scratch", tmp_path / "scratch", "--remote-option", f"endpointurl={url}",
             "--remote-option", "access_key_id=testing", "--remote-option", "secret_access_key=testing"]

@@ -14,6 +14,14 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("pipeline", "stages")
+# dvc.yaml stages that run another stage's command (stage name -> stages/<module>.py); every
+# other stage runs stages/<its name>.py.
+STAGE_MODULES = {"extract_posthoc": "extract", "critic_fidelity_posthoc": "critic_fidelity"}
+
+
+def stage_module(stage: str) -> str:
+    """The module a dvc.yaml stage runs: 'extract_posthoc' -> 'stages.extract'."""
+    return f"stages.{STAGE_MODULES.get(stage, stage)}"
 
 
 def _module_file(name: str) -> Path | None:
@@ -99,7 +107,7 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
                 block.append(lines[i])
                 i += 1
             data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/"))]  # comments stay with the data deps
-            code = sorted(set(module_closure(f"stages.{stage}")) | {"stages/cli.py"})
+            code = sorted(set(module_closure(stage_module(stage))) | {"stages/cli.py"})
             new = data + [f"      - {c}\n" for c in code]
             if new != block:
                 changed.append(stage)

@@ -68,7 +68,7 @@ from pipeline.params import KNOWN_SECTIONS, ParamsError
 from pipeline.core.resume import RESUME_ROOT_ENV
 
 # Stages that get a GPU when the cluster has one (resources gpus: auto); the others run on CPU.
-GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract")
+GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract", "extract_posthoc")
 SWEEP_EXTRA = 'pip install -e ".[sweep]"'
 # Test hook: "<cell>/<item>=<marker file>" makes that task's worker die (os._exit) once, after its
 # stage ran and before it published anything, the worst moment for a worker to die.

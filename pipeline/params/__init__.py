@@ -26,6 +26,7 @@ KNOWN_SECTIONS = (
     "pderl_seeds",
     "extract_from",
     "extract_variants",
+    "posthoc_from",
     "mopderl_seeds",
     "morld_seeds",
     "methods",

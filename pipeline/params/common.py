@@ -26,6 +26,11 @@ class EnvParams(Strict):
 
 # Extraction variants (stage extract --variant): what each changes in section `extract`.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
+# The variants that read the critics trained jointly with the specialists (stage extract,
+# list extract_variants). mapex_posthoc reads critics fitted post hoc and has its own stage
+# (extract_posthoc, list posthoc_from), so that extraction with joint critics does not depend
+# on post-hoc critics: DVC deps cannot depend on a matrix value.
+JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist) and pderl
 # (stage train_pderl), under data/specialists/<kind>/seedS.
 SPECIALIST_KINDS = ("td3", "pderl")
@@ -42,8 +47,8 @@ class RunParams(Strict):
 
     DVC cannot filter a matrix, so each producing stage has its own list, and `methods` (what
     evaluate, score and report compare) must be exactly what those lists produce: every
-    extraction variant from every kind in `extract_from` (named variant_kind), plus each
-    baseline whose seed list is not empty. The check names the list to change.
+    extraction variant from every kind in `extract_from` (named variant_kind), mapex_posthoc
+    from every kind in `posthoc_from`, plus each baseline whose seed list is not empty. The check names the list to change.
     """
 
     seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run of every method")
@@ -54,9 +59,13 @@ class RunParams(Strict):
     extract_from: list[Literal["td3", "pderl"]] = Field(
         ["td3"], min_length=1, description="kinds of specialists the extract stage starts from (td3, pderl)"
     )
-    extract_variants: list[Literal["mapex", "mapex_posthoc", "warmup_only"]] = Field(
-        ["mapex", "warmup_only"], description="extraction variants run from each kind in extract_from: mapex (joint critics), "
-        "mapex_posthoc (critics fitted post hoc), warmup_only (the ablation: no advantage-weighted phase)"
+    extract_variants: list[str] = Field(
+        ["mapex", "warmup_only"], description="extraction variants run from each kind in extract_from, with the specialists' "
+        "joint critics: mapex, warmup_only (the ablation: no advantage-weighted phase)"
+    )
+    posthoc_from: list[Literal["td3", "pderl"]] = Field(
+        [], description="kinds of specialists to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc "
+        "from (stage extract_posthoc, method mapex_posthoc_<kind>); [] skips both"
     )
     mopderl_seeds: list[int] = Field([], description="seeds of the MOPDERL baseline (stage mopderl): [] or `seeds`")
     morld_seeds: list[int] = Field([], description="seeds of the MORL/D baseline (stage morld): [] or `seeds`")
@@ -75,16 +84,28 @@ class RunParams(Strict):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
 
-    @field_validator("extract_from", "extract_variants", "methods")
+    @field_validator("extract_from", "extract_variants", "posthoc_from", "methods")
     @classmethod
     def _unique(cls, v: list[str]) -> list[str]:
         if len(set(v)) != len(v):
             raise ValueError(f"entries must be unique, got {v}")
         return v
 
+    @field_validator("extract_variants")
+    @classmethod
+    def _joint_variants(cls, v: list[str]) -> list[str]:
+        if "mapex_posthoc" in v:
+            raise ValueError("mapex_posthoc is chosen by `posthoc_from` (the kinds of specialists to fit post-hoc critics "
+                             "for, e.g. [td3]), not by extract_variants; remove it here")
+        bad = [x for x in v if x not in JOINT_VARIANTS]
+        if bad:
+            raise ValueError(f"unknown variants {bad}: expected entries of {list(JOINT_VARIANTS)}")
+        return v
+
     def produced_methods(self) -> list[str]:
-        """The methods the producer lists make, in report order."""
+        """The methods the producer lists make."""
         out = [method_name(v, k) for k in self.extract_from for v in self.extract_variants]
+        out += [method_name("mapex_posthoc", k) for k in self.posthoc_from]
         return out + [b for b, seeds in (("mopderl", self.mopderl_seeds), ("morld", self.morld_seeds)) if seeds]
 
     @model_validator(mode="after")
@@ -94,11 +115,13 @@ class RunParams(Strict):
             if v and sorted(v) != sorted(self.seeds):
                 raise ValueError(f"{key} = {v}: must be [] or the same seeds as `seeds` ({self.seeds}), since every method "
                                  f"is evaluated on every seed")
-        needs_pderl = [m for m in ("pderl" in self.extract_from and "extract_from: pderl", self.mopderl_seeds and "mopderl_seeds") if m]
+        needs_pderl = [m for m in ("pderl" in self.extract_from and "extract_from: pderl",
+                                   "pderl" in self.posthoc_from and "posthoc_from: pderl",
+                                   self.mopderl_seeds and "mopderl_seeds") if m]
         if needs_pderl and not self.pderl_seeds:
             raise ValueError(f"{' and '.join(needs_pderl)}: PDERL specialists are needed; set pderl_seeds to {self.seeds}")
         produced = self.produced_methods()
         if sorted(self.methods) != sorted(produced):
-            raise ValueError(f"methods = {self.methods}, but extract_from x extract_variants and the baselines' seed lists "
+            raise ValueError(f"methods = {self.methods}, but extract_from x extract_variants, posthoc_from and the baselines' seed lists "
                              f"produce {produced}: set methods to that list (or change those lists)")
         return self
