@@ -14,12 +14,14 @@ cd "$(dirname "$0")/../.."
 DEST=${1:-.whl}
 PYVER=${2:-3.12}
 PIP=${PIP:-.venv/bin/pip}
-# the runtime closure of pipeline/ and stages/ below torch, numpy, matplotlib and PyYAML
+# the runtime closure of pipeline/ and stages/ below torch, numpy, matplotlib and PyYAML, and
+# pytest with what tests/conftest.py imports (for the CUDA tests)
 PACKAGES="mujoco mujoco-core glfw absl-py etils gymnasium farama-notifications cloudpickle imageio pillow mo-gymnasium pygame
 zarr numcodecs donfig google-crc32c cffi pycparser typing-extensions
 pydantic pydantic-core annotated-types typing-inspection
 pymoo moocore platformdirs autograd cma alive-progress about-time graphemeu dill deprecated wrapt
-typer click shellingham rich markdown-it-py mdurl pygments annotated-doc tqdm ${EXTRA:-}"
+typer click shellingham rich markdown-it-py mdurl pygments annotated-doc tqdm
+pytest pluggy iniconfig packaging hypothesis sortedcontainers ${EXTRA:-}"
 mkdir -p "$DEST"
 for name in $PACKAGES; do
   version=$($PIP show "$name" 2>/dev/null | awk '/^Version:/{print $2}' || true)

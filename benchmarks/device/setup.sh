@@ -4,7 +4,7 @@
 # repository on PYTHONPATH (exported, so the tests' subprocesses see it too) and says which
 # module is still missing, if any.
 WHEELS=${1:-.whl}
-python3 -m pip install -q --no-index --no-deps --target /tmp/site "$WHEELS"/*.whl
+[ -d /tmp/site ] || python3 -m pip install -q --no-index --no-deps --target /tmp/site "$WHEELS"/*.whl
 export PYTHONPATH=/tmp/site:$PWD${PYTHONPATH:+:$PYTHONPATH}
 export PATH=/tmp/site/bin:$PATH
 python3 - <<'PY'

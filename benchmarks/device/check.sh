@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# On a GPU machine, after carrying .whl (benchmarks/device/fetch_wheels.sh): install, run the
+# tests that exercise the CUDA paths, then the GPU benchmarks; every result also goes to $OUT.
+#
+#   bash benchmarks/device/check.sh [tests|bench|all]      (default all; fits one 10-min command)
+#
+# tests: the stage and unit tests of the specialists and of extraction, which on a GPU machine
+# run on CUDA (device: auto): CUDA graphs vs eager, batched vs one-at-a-time, a killed stage
+# resuming to identical artifacts, K children together. bench: specialist env steps/s for 1, 2
+# and 10 stacked specialists (issue goals: >= 900 for one, >= 5,000 aggregate for 10), and
+# seconds per paper-scale child for K = 1 and K = 16 (goal: 1,200 children <= 1 hour).
+set -uo pipefail
+cd "$(dirname "$0")/../.."
+WHAT=${1:-all}
+OUT=${OUT:-/tmp/mapex-device-out}
+mkdir -p "$OUT"
+source benchmarks/device/setup.sh "${WHEELS:-.whl}" > "$OUT/setup.txt" 2>&1  # not in a pipe: its exports must stay
+cat "$OUT/setup.txt"
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
+if [ "$WHAT" != bench ]; then
+  timeout 300 python3 -m pytest -q -p no:cacheprovider -x tests/test_batched_specialists.py tests/test_extract_children.py \
+    tests/test_train_specialist.py tests/test_extract_stage.py 2>&1 | tail -60 | tee "$OUT/cuda_tests.txt"
+fi
+if [ "$WHAT" != tests ]; then
+  timeout 200 python3 benchmarks/bench_specialist.py --device cuda --stack 1 2 10 --no-sb3 --warmup 2000 --steps 3000 \
+    2>&1 | tee "$OUT/bench_specialist.txt"
+  timeout 200 python3 benchmarks/bench_extract.py --device cuda --k 1 16 2>&1 | tee "$OUT/bench_extract.txt"
+fi

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Re-evaluate, score and report the payoff run (benchmarks/device/payoff.sh) on this machine:
+#
+#   bash benchmarks/payoff_report.sh WORKDIR        (WORKDIR, or the light/ folder brought back)
+#
+# Writes WORKDIR/report/paper/ (MAPEX in the paper's form vs warm-up only) and
+# WORKDIR/report/gentle/ (the gentle form vs the same warm-up only runs: the warm-up does not
+# read the epochs or lr that distinguish the forms), each with report.md and figures, from the
+# evaluate and score commands dvc.yaml runs, with each form's params (WORKDIR/{paper,gentle}.yaml).
+set -euo pipefail
+W=${1:?usage: payoff_report.sh WORKDIR}
+MAPEX=${MAPEX:-mapex}
+SEEDS=$(python3 -c "import yaml,sys; print(' '.join(map(str, yaml.safe_load(open(sys.argv[1]))['seeds'])))" "$W/paper.yaml")
+for form in paper gentle; do
+  for s in $SEEDS; do
+    for method in mapex_td3 warmup_only_td3; do
+      src=$form; [ "$method" = warmup_only_td3 ] && src=paper
+      pop="$W/fronts/$src/$method/seed$s/population.pt"
+      ev="$W/evaluate/$form/$method/seed$s"; sc="$W/score/$form/$method/seed$s"
+      [ -e "$ev/evaluated.csv" ] || $MAPEX evaluate --population "$pop" --seed "$s" --out "$ev" --params "$W/$form.yaml"
+      [ -e "$sc/metrics.json" ] || $MAPEX score --population "$pop" --evaluated "$ev" --out "$sc" --params "$W/$form.yaml"
+    done
+  done
+  $MAPEX report --evaluated "$W/evaluate/$form" --scored "$W/score/$form" --out "$W/report/$form" --params "$W/$form.yaml"
+  echo "$form: $W/report/$form/report.md"
+done

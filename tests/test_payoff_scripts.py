@@ -1,0 +1,72 @@
+"""benchmarks/device/payoff.sh and benchmarks/payoff_report.sh, end to end on a tiny preset.
+
+They are written for a GPU machine whose time is scarce, so they must work the first time: the
+run (specialists, then three extraction runs per seed), its resumption (a second call redoes
+nothing) and the report of both forms from what it brings back.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+
+TINY = {
+    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0], "objective_names": None},
+    "seeds": [0],
+    "objectives": [0, 1],
+    "extract_from": ["td3"],
+    "extract_variants": ["mapex", "warmup_only"],
+    "methods": ["mapex_td3", "warmup_only_td3"],
+    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "extract": {
+        "iterations": 2, "child_buffer_size": 200, "eval_episodes": 2, "warmup_steps": 10, "warmup_batch_size": 32,
+        "epochs": 3, "beta": 1.0, "omega_max": 1.0, "batch_size": 32, "hidden_sizes": [16, 16],
+    },
+    "evaluate": {"episodes": 2},
+    "report": {"dpi": 60},
+}
+
+
+def sh(*args, cwd: Path = ROOT) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHON": sys.executable,
+           "PYTHONPATH": str(ROOT), "MAPEX": f"{sys.executable} -m stages.cli"}
+    return subprocess.run(["bash", *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True)
+
+
+def test_payoff_run_resumes_and_reports_both_forms(tmp_path):
+    params = tmp_path / "tiny.yaml"
+    params.write_text(yaml.safe_dump(TINY))
+    work = tmp_path / "w"
+    r = sh("benchmarks/device/payoff.sh", work, params)
+    assert r.returncode == 0, r.stdout + r.stderr
+    progress = (work / "progress.log").read_text()
+    for name in ("train_specialist_seed0", "extract_paper_mapex_seed0", "extract_paper_warmup_only_seed0",
+                 "extract_gentle_mapex_seed0"):
+        assert f"{name}: done in" in progress, progress
+    gentle = yaml.safe_load((work / "gentle.yaml").read_text())["extract"]
+    assert (gentle["epochs"], gentle["lr"]) == (1, 1e-4)
+    # the forms differ in their AWR phase only: the warm-up alone gives one population for both
+    paper = torch.load(work / "fronts/paper/mapex_td3/seed0/population.pt", weights_only=False)
+    soft = torch.load(work / "fronts/gentle/mapex_td3/seed0/population.pt", weights_only=False)
+    assert paper["meta"]["params"]["extract"]["epochs"] == 3 and soft["meta"]["params"]["extract"]["epochs"] == 1
+
+    # a second call finds everything done and redoes nothing
+    again = sh("benchmarks/device/payoff.sh", work, params)
+    assert again.returncode == 0 and again.stdout.count("done before") == 4, again.stdout + again.stderr
+
+    # what comes back is small and enough to report from
+    light = work / "light"
+    assert not list(light.rglob("buffer.zarr")) and not list(light.rglob("critics.pt"))
+    r = sh("benchmarks/payoff_report.sh", light)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for form in ("paper", "gentle"):
+        report = (light / "report" / form / "report.md").read_text()
+        assert "MAPEX-TD3" in report and "warm-up only" in report
