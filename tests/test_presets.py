@@ -15,7 +15,10 @@ ROOT = Path(__file__).resolve().parents[1]
 PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
 
 
-@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS], ids=lambda p: p.name)
+PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
+
+
+@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS, PAYOFF], ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_params_file_validates(path):
     raw = load_params(path)
     env = section(raw, "env", EnvParams, path)
@@ -40,3 +43,16 @@ def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
         assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
         assert ts == TrainSpecialistParams(total_steps=ts.total_steps)  # everything else: the paper's TD3 table
         assert env.max_episode_steps == 750
+
+
+def test_payoff_preset_is_the_issue_settings():
+    """300k-step specialists at 256 units, 2 seeds; paper-form children (HalfCheetah: 20 epochs, beta 1,
+    omega_max 1) on 200k-row hybrid buffers at 256 units, at least 12 each, one per iteration."""
+    raw = load_params(PAYOFF)
+    ts = section(raw, "train_specialist", TrainSpecialistParams, PAYOFF)
+    assert ts.total_steps >= 300_000 and ts.hidden_sizes == [256, 256] and ts.secondary_critics
+    assert len(raw["seeds"]) >= 2
+    ex = section(raw, "extract", ExtractParams, PAYOFF).resolved("mo-halfcheetah-v5")
+    assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS["mo-halfcheetah-v5"]
+    assert ex.iterations * ex.children_per_iteration >= 12 and ex.children_per_iteration == 1
+    assert (ex.child_buffer_size, ex.hidden_sizes) == (200_000, [256, 256])
