@@ -1,10 +1,15 @@
-"""The shipped params files (quickstart and the paper presets) validate and match the paper."""
+"""The shipped params files (quickstart, the paper presets, the payoff preset) validate, resolve in
+dvc.yaml and match the paper."""
 
 from __future__ import annotations
 
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
 from pipeline.params.registry import section_models
@@ -56,3 +61,23 @@ def test_payoff_preset_is_the_issue_settings():
     assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS["mo-halfcheetah-v5"]
     assert ex.iterations * ex.children_per_iteration >= 12 and ex.children_per_iteration == 1
     assert (ex.child_buffer_size, ex.hidden_sizes) == (200_000, [256, 256])
+
+
+@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS, PAYOFF], ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
+    """`dvc stage list` with dvc.yaml and the params file: its matrices resolve, and every
+    method x seed of `methods` gets an evaluate and a score item."""
+    dvc = Path(sys.executable).parent / "dvc"
+    if not dvc.is_file():
+        pytest.fail(f"dvc is not installed next to {sys.executable}")
+    shutil.copy(ROOT / "dvc.yaml", tmp_path / "dvc.yaml")
+    shutil.copy(path, tmp_path / "params.yaml")
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run([str(dvc), "init", "-q"], cwd=tmp_path, check=True)
+    r = subprocess.run([str(dvc), "stage", "list", "--name-only"], cwd=tmp_path, capture_output=True, text=True)
+    assert r.returncode == 0, r.stdout + r.stderr
+    items = set(r.stdout.split())
+    raw = yaml.safe_load(path.read_text())
+    for stage in ("evaluate", "score"):
+        assert {i for i in items if i.startswith(stage + "@")} == {f"{stage}@{s}-{m}" for s in raw["seeds"] for m in raw["methods"]}
+    assert "report" in items
