@@ -22,7 +22,8 @@ if [ "$WHAT" != bench ]; then
     tests/test_train_specialist.py tests/test_extract_stage.py 2>&1 | tail -60 | tee "$OUT/cuda_tests.txt"
 fi
 if [ "$WHAT" != tests ]; then
-  timeout 200 python3 benchmarks/bench_specialist.py --device cuda --stack 1 2 10 --no-sb3 --warmup 2000 --steps 3000 \
+  sb3=--no-sb3; python3 -c "import stable_baselines3" 2>/dev/null && sb3=
+  timeout 200 python3 benchmarks/bench_specialist.py --device cuda --stack 2 10 $sb3 --warmup 2000 --steps 3000 \
     2>&1 | tee "$OUT/bench_specialist.txt"
   timeout 200 python3 benchmarks/bench_extract.py --device cuda --k 1 16 2>&1 | tee "$OUT/bench_extract.txt"
 fi

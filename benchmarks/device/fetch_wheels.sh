@@ -14,22 +14,30 @@ cd "$(dirname "$0")/../.."
 DEST=${1:-.whl}
 PYVER=${2:-3.12}
 PIP=${PIP:-.venv/bin/pip}
-# the runtime closure of pipeline/ and stages/ below torch, numpy, matplotlib and PyYAML, and
-# pytest with what tests/conftest.py imports (for the CUDA tests)
-PACKAGES="mujoco mujoco-core glfw absl-py etils gymnasium farama-notifications cloudpickle imageio pillow mo-gymnasium pygame
-zarr numcodecs donfig google-crc32c cffi pycparser typing-extensions
+# The runtime closure of pipeline/ and stages/ that the lent GPU machines' image lacks (the
+# library's device/KINDS.md lists what it holds: numpy, scipy, matplotlib, pandas, pillow,
+# imageio, PyYAML, tqdm, rich, pytest, hypothesis, ... are there). typer and click are carried
+# anyway (small, and the CLI depends on their behaviour), and stable-baselines3 for
+# bench_specialist.py's comparison (pandas, its one import beyond ours, is there).
+PACKAGES="mujoco mujoco-core glfw gymnasium farama-notifications mo-gymnasium pygame
+zarr numcodecs donfig google-crc32c cffi pycparser
 pydantic pydantic-core annotated-types typing-inspection
-pymoo moocore platformdirs autograd cma alive-progress about-time graphemeu dill deprecated wrapt
-typer click shellingham rich markdown-it-py mdurl pygments annotated-doc tqdm
-pytest pluggy iniconfig packaging hypothesis sortedcontainers ${EXTRA:-}"
+pymoo moocore platformdirs autograd cma alive-progress about-time graphemeu deprecated
+typer click ${EXTRA:-}"
+SB3_VERSION=${SB3_VERSION:-2.9.2}   # when .venv has none (pip install -e ".[bench]" gives one)
+fetch() {
+  $PIP download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64 \
+    --platform manylinux2014_x86_64 -d "$DEST" "$1==$2"
+}
 mkdir -p "$DEST"
 for name in $PACKAGES; do
   version=$($PIP show "$name" 2>/dev/null | awk '/^Version:/{print $2}' || true)
   if [ -z "$version" ]; then
     echo "skip $name: not installed in .venv (so not needed)"; continue
   fi
-  $PIP download -q --no-deps --only-binary=:all: --python-version "$PYVER" \
-    --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-    -d "$DEST" "$name==$version"
+  fetch "$name" "$version"
 done
+sb3=$($PIP show stable-baselines3 2>/dev/null | awk '/^Version:/{print $2}' || true)
+fetch stable-baselines3 "${sb3:-$SB3_VERSION}"
 du -sh "$DEST"

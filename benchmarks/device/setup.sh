@@ -11,7 +11,7 @@ python3 - <<'PY'
 import importlib, sys
 missing = []
 for m in ("torch", "numpy", "yaml", "matplotlib", "scipy", "mujoco", "gymnasium", "mo_gymnasium", "zarr",
-          "pydantic", "pymoo", "typer", "tqdm", "pygame", "pytest"):
+          "pydantic", "pymoo", "typer", "tqdm", "pygame", "pytest", "hypothesis", "stable_baselines3"):
     try:
         importlib.import_module(m)
     except Exception as exc:  # noqa: BLE001
