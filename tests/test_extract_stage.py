@@ -87,7 +87,8 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     assert [int(line.split(",")[1]) for line in lines[1:]] == [2, 3, 4, 5]
     assert not (tmp_path / "resume" / "extract" / "mapex_td3" / "seed0").exists()  # cleaned up when done
     prov = meta["provenance"]
-    assert prov["device"].startswith("cpu") and prov["versions"]["torch"] == torch.__version__
+    # extract.device is auto here: CUDA on a GPU machine (benchmarks/device/check.sh runs this file there)
+    assert prov["device"].startswith("cuda" if torch.cuda.is_available() else "cpu") and prov["versions"]["torch"] == torch.__version__
     assert "reference_point" not in meta and "reference_point" not in meta["params"]["env"]
 
 

@@ -4,11 +4,13 @@
 #
 #   bash benchmarks/device/check.sh [tests|bench|all]      (default all; fits one 10-min command)
 #
-# tests: the stage and unit tests of the specialists and of extraction, which on a GPU machine
-# run on CUDA (device: auto): CUDA graphs vs eager, batched vs one-at-a-time, a killed stage
-# resuming to identical artifacts, K children together. bench: specialist env steps/s for 1, 2
-# and 10 stacked specialists (issue goals: >= 900 for one, >= 5,000 aggregate for 10), and
-# seconds per paper-scale child for K = 1 and K = 16 (goal: 1,200 children <= 1 hour).
+# tests: the specialists' and extraction's CUDA cases (skipped elsewhere): CUDA graphs vs eager,
+# a run restored from a checkpoint and a SIGKILL'd stage resuming on CUDA (graphs and eager),
+# K children on CUDA without per-step syncs; and the extract stage's tests, which pick CUDA there
+# (extract.device: auto), including a killed extraction resuming bitwise.
+# bench: specialist env steps/s for 1, 2 and 10 stacked specialists and SB3's TD3 (issue goals:
+# >= 900 for one, >= 5,000 aggregate for 10), and seconds per paper-scale child for K = 1 and
+# K = 16 (goal: 1,200 children <= 1 hour).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 WHAT=${1:-all}
@@ -18,7 +20,7 @@ source benchmarks/device/setup.sh "${WHEELS:-.whl}" > "$OUT/setup.txt" 2>&1  # n
 cat "$OUT/setup.txt"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 if [ "$WHAT" != bench ]; then
-  timeout 300 python3 -m pytest -q -p no:cacheprovider -x tests/test_batched_specialists.py tests/test_extract_children.py \
+  timeout 300 python3 -m pytest -q -p no:cacheprovider -rs tests/test_batched_specialists.py tests/test_extract_children.py \
     tests/test_train_specialist.py tests/test_extract_stage.py 2>&1 | tail -60 | tee "$OUT/cuda_tests.txt"
 fi
 if [ "$WHAT" != tests ]; then
