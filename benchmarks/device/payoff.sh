@@ -8,7 +8,7 @@
 #   bash benchmarks/device/payoff.sh WORKDIR [PARAMS]   (default presets/payoff/mo-halfcheetah-v5.yaml)
 #
 # Rerunning it continues: finished outputs are kept, a killed specialist resumes from its last
-# checkpoint and a killed extraction from its last iteration (MAPEX_RESUME_ROOT=WORKDIR/resume).
+# checkpoint and a killed extraction from its last iteration (WORKDIR/resume, a folder per form).
 # The machine's state lasts only while it stays warm, so start it with setsid and poll
 # WORKDIR/progress.log; WORKDIR/light/ (populations, histories, learning curves, logs; a few
 # MB) is what to bring back. Then benchmarks/payoff_report.sh WORKDIR re-evaluates, scores and
@@ -58,7 +58,8 @@ for s in $SEEDS; do
     out="$W/fronts/$form/${variant}_td3/seed$s"
     run "extract_${form}_${variant}_seed$s" "$out/population.pt" \
       "$PY" -m stages.cli extract --seed "$s" --variant "$variant" --kind td3 \
-      --specialists "$W/specialists/td3/seed$s" --out "$out" --params "$W/$form.yaml" &
+      --specialists "$W/specialists/td3/seed$s" --out "$out" --params "$W/$form.yaml" \
+      --resume-dir "$W/resume/$form" &  # per form: both forms run method mapex_td3 at once
     pids+=($!)
   done
 done
