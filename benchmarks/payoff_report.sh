@@ -10,7 +10,8 @@
 set -euo pipefail
 W=${1:?usage: payoff_report.sh WORKDIR}
 MAPEX=${MAPEX:-mapex}
-SEEDS=$(python3 -c "import yaml,sys; print(' '.join(map(str, yaml.safe_load(open(sys.argv[1]))['seeds'])))" "$W/paper.yaml")
+PY=${PYTHON:-python3}   # one with PyYAML (the project's .venv)
+SEEDS=$("$PY" -c "import yaml,sys; print(' '.join(map(str, yaml.safe_load(open(sys.argv[1]))['seeds'])))" "$W/paper.yaml")
 for form in paper gentle; do
   for s in $SEEDS; do
     for method in mapex_td3 warmup_only_td3; do

@@ -48,7 +48,8 @@ class RunParams(Strict):
     DVC cannot filter a matrix, so each producing stage has its own list, and `methods` (what
     evaluate, score and report compare) must be exactly what those lists produce: every
     extraction variant from every kind in `extract_from` (named variant_kind), mapex_posthoc
-    from every kind in `posthoc_from`, plus each baseline whose seed list is not empty. The check names the list to change.
+    from every kind in `posthoc_from`, plus each baseline whose seed list is not empty. The
+    check names the list to change.
     """
 
     seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run of every method")
