@@ -5,7 +5,8 @@ Runs, on --device, one objective's specialist trained for --frames env frames tw
   (a) TD3 with secondary critics (`pipeline.specialists.td3_training.train_specialist`; on CUDA its updates
       replay as captured CUDA graphs unless --eager);
   (b) PDERL (`pipeline.specialists.pderl.train_pderl`): the population's evaluations, evolution, the RL
-      episode and one TD3 update per frame (eager `td3_update`), then the final evaluation.
+      episode and one TD3 update per frame (its `TD3Learner`: the same update as (a), as CUDA
+      graphs on CUDA unless --eager), then the final evaluation.
 
 Both start updating after --learning-starts frames, so both make about frames - learning_starts
 updates (PDERL a little more: its last generation runs to its end). Prints frames, updates,
@@ -98,7 +99,7 @@ def bench_pderl(args: argparse.Namespace) -> dict:
     sync(args.device)
     wall = time.perf_counter() - t
     env.close()
-    return {"name": "PDERL (eager TD3)", "frames": result.frames, "updates": result.updates, "wall": wall,
+    return {"name": "PDERL" + (" (eager)" if args.eager or args.device == "cpu" else " (CUDA graphs)"), "frames": result.frames, "updates": result.updates, "wall": wall,
             "generations": len(result.history), "episodes_s": episodes.seconds, "evolution_s": evolution.seconds}
 
 

@@ -27,9 +27,9 @@ CHECKPOINT = "pderl_state.pt"
 CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
 CHECKPOINT_VERSION = 1
 
-# train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; it runs
-# unstacked, eagerly, on train_pderl.device): left out of the resume fingerprint.
-_UNUSED_TD3_KEYS = {"total_steps", "batched", "cuda_graphs", "device"}
+# train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
+# RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
+_UNUSED_TD3_KEYS = {"total_steps", "batched", "device"}
 
 
 @reports_errors

@@ -14,12 +14,12 @@ import pytest
 import torch
 
 import pipeline.specialists.td3_training as specialist_mod
-from pipeline.core.buffer import Batch, StackedReplay
+from pipeline.core.buffer import Batch, StackedReplay, batch_at
 from pipeline.core.envs import env_spec, make_env
-from pipeline.core.nets import CriticEnsemble, StackedActor
+from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import init_stacked, init_td3, run_seeds, train_specialists
-from pipeline.specialists.td3 import stacked_update, td3_update
+from pipeline.specialists.td3_training import TD3Learner, init_stacked, init_td3, run_seeds, stack_td3, train_specialists
+from pipeline.specialists.td3 import TD3State, stacked_update, td3_update
 
 ENV, CAP = "mo-swimmer-v5", 25
 CFG = TrainSpecialistParams(total_steps=90, learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70, device="cpu")
@@ -174,3 +174,101 @@ def test_cuda_graphs_match_eager_cuda():
             torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
         for x, y in zip(a.critic.parameters(), b.critic.parameters()):
             torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
+
+
+# ------------------------------------------------ TD3Learner: the RL agent of PDERL and MOPDERL
+
+
+def learner_and_reference(spec, cfg, device, primary=1):
+    """A TD3Learner and the plain `TD3State` it must equal, from the same initial networks."""
+    m = spec.n_objectives
+    torch.manual_seed(5)
+    actor = Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high)
+    critic = CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * m)
+    ref = TD3State(
+        actor=copy.deepcopy(actor), actor_target=copy.deepcopy(actor).requires_grad_(False),
+        critic=copy.deepcopy(critic), critic_target=copy.deepcopy(critic).requires_grad_(False),
+        actor_opt=None, critic_opt=None, objectives=list(range(m)), primary=primary,
+    )
+    ref.actor_opt = torch.optim.Adam(ref.actor.parameters(), lr=cfg.actor_lr, fused=True)
+    ref.critic_opt = torch.optim.Adam(ref.critic.parameters(), lr=cfg.critic_lr, fused=True)
+    state = stack_td3(cfg, [actor], [critic], [list(range(m))], [primary], device)
+    learner = TD3Learner(spec, cfg, state, np.random.default_rng(7), noise_seed=11, cuda_rows_seed=13, device=device)
+    return learner, ref
+
+
+def feed(learner, spec, n, seed=0):
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        learner.add(rng.normal(size=spec.obs_dim).astype(np.float32), rng.uniform(-1, 1, spec.act_dim).astype(np.float32),
+                    rng.normal(size=spec.n_objectives), rng.normal(size=spec.obs_dim).astype(np.float32),
+                    bool(i % 17 == 16), bool(i % 25 == 24), i // 25, i % 25)
+
+
+def test_td3_learner_is_td3_update():
+    """PDERL's and MOPDERL's RL agent: its updates are td3_update's on the rows and smoothing
+    noise its own streams draw (the stacked path with S = 1; equal up to float rounding)."""
+    spec, cfg = spec_of(), CFG
+    learner, ref = learner_and_reference(spec, cfg, torch.device("cpu"))
+    feed(learner, spec, 60)
+    data = learner.buffer.chronological(0)  # not yet wrapped: chronological order is storage order
+    learner.train(7)
+    rows, noise = np.random.default_rng(7), torch.Generator().manual_seed(11)
+    for k in range(1, 8):
+        batch = batch_at(data, rows.integers(0, 60, size=cfg.batch_size))
+        td3_update(ref, batch, k % cfg.policy_freq == 0, cfg.gamma, cfg.tau, cfg.policy_noise, cfg.noise_clip, noise)
+    actor, actor_target, critic, critic_target = learner.networks()
+    for mine, theirs in ((actor, ref.actor), (actor_target, ref.actor_target), (critic, ref.critic), (critic_target, ref.critic_target)):
+        for x, y in zip(mine.parameters(), theirs.parameters()):
+            torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    assert not torch.equal(next(actor.parameters()), next(learner_and_reference(spec, cfg, torch.device("cpu"))[1].actor.parameters()))
+    obs, act = torch.randn(9, spec.obs_dim), torch.rand(9, spec.act_dim)
+    torch.testing.assert_close(learner.q_primary(obs, act), ref.critic.member(obs, act, 2 * ref.primary), rtol=1e-5, atol=1e-6)
+
+
+def test_stacked_replay_fill_take_latest():
+    spec = spec_of()
+    buf = StackedReplay(1, 8, spec.obs_dim, spec.act_dim, spec.n_objectives, torch.device("cpu"))
+    src = StackedReplay(1, 20, spec.obs_dim, spec.act_dim, spec.n_objectives, torch.device("cpu"))
+    rng = np.random.default_rng(1)
+    for i in range(11):
+        src.add(rng.normal(size=(1, spec.obs_dim)), rng.uniform(-1, 1, (1, spec.act_dim)), rng.normal(size=(1, spec.n_objectives)),
+                rng.normal(size=(1, spec.obs_dim)), [i == 4], [i == 7], [i // 5], [i % 5])
+    data = src.chronological(0)
+    buf.fill(data)  # 11 rows into a ring of 8: the latest 8
+    assert (buf.size, buf.ptr) == (8, 0)
+    got = buf.chronological(0)
+    for k, v in data.items():
+        assert np.array_equal(got[k], v[3:]), k
+    assert np.array_equal(buf.latest(0, 3), data["obs"][-3:])
+    assert np.array_equal(buf.latest(0, 3, "episode"), data["episode"][-3:])
+    assert np.array_equal(buf.take(0, np.array([6, 1]), "terminated"), data["terminated"][[9, 4]])
+    buf.add(data["obs"][:1], data["action"][:1], data["reward"][:1], data["next_obs"][:1], [True], [False], [9], [0])
+    assert np.array_equal(buf.latest(0, 2), np.concatenate([data["obs"][-1:], data["obs"][:1]]))  # wraps oldest first
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_td3_learner_on_cuda_graphs_eager_and_resume():
+    """On CUDA: the graphed learner matches the eager one, and a learner restored from a
+    state_dict mid-run ends where the uninterrupted one does (CUDA: up to float rounding)."""
+    spec, dev = spec_of(), torch.device("cuda")
+    runs = {}
+    for graphs in (True, False):
+        learner, _ = learner_and_reference(spec, CFG.model_copy(update={"cuda_graphs": graphs, "device": "cuda"}), dev)
+        feed(learner, spec, 60)
+        learner.train(30)
+        runs[graphs] = learner
+    cfg = CFG.model_copy(update={"device": "cuda"})
+    part, _ = learner_and_reference(spec, cfg, dev)
+    feed(part, spec, 60)
+    part.train(12)
+    state = part.state_dict()
+    resumed, _ = learner_and_reference(spec, cfg, dev)
+    resumed.load_state_dict(state)
+    resumed.train(18)
+    for other in (runs[False], resumed):
+        for x, y in zip(runs[True].networks()[0].parameters(), other.networks()[0].parameters()):
+            torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
+        for x, y in zip(runs[True].networks()[2].parameters(), other.networks()[2].parameters()):
+            torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
+    assert resumed.updates == runs[True].updates == 30

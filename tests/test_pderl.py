@@ -230,7 +230,7 @@ def test_generation_keeps_elites_and_counts_every_frame(hopper):
     assert run.updates == run.history[-1].frames - td3.learning_starts  # one update per frame past the start
     assert run.episodes == len(lengths) and np.isfinite(rl_fitness)
     # the buffer's episode bookkeeping: consecutive episode ids, step counters restarting at 0
-    ep = run.buffer.data["episode"][: run.buffer.size]
+    ep = run.buffer.host["episode"][0, : run.buffer.size]
     assert np.array_equal(np.bincount(ep), lengths)
 
 
@@ -263,6 +263,40 @@ def test_checkpoint_resume_is_bitwise(hopper):
     assert all(np.array_equal(full.buffer[k], resumed.buffer[k]) for k in full.buffer)
     with pytest.raises(ValueError, match="seed"):
         PderlRun(spec, td3, cfg, 1, 4).load_state_dict(state)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("graphs", [True, False], ids=["cuda-graphs", "cuda-eager"])
+def test_runs_on_cuda_and_resumes(hopper, graphs):
+    """On CUDA (the RL agent's buffer on the GPU, its updates as CUDA graphs or eager): one
+    update per frame past the start, the agent learns, and a run restored after generation 2
+    keeps its history and goes on to the budget. (Not compared bit for bit with the
+    uninterrupted run: CUDA promises reproducibility only up to its kernels, and the
+    population's discrete choices can amplify a last-bit difference.)"""
+    env, spec = hopper
+    td3 = TrainSpecialistParams(**(TD3 | {"device": "cuda", "cuda_graphs": graphs}))
+    cfg = TrainPderlParams(**(PDERL | {"device": "cuda"}))
+    saved = {}
+
+    def keep_two(run, rec):
+        if rec.generation == 2:
+            saved["state"] = torch.load(io.BytesIO(_saved_bytes(run)), weights_only=True)
+
+    full = train_pderl(env, spec, td3, cfg, 1, 3, device="cuda", on_generation=keep_two)
+    assert full.updates == full.history[-1].frames - td3.learning_starts
+    fresh = PderlRun(spec, td3, cfg, 1, 3, device="cuda").agent.networks()[0]
+    assert not all(torch.equal(a, b) for a, b in zip(full.actor.parameters(), fresh.parameters()))
+    assert np.isfinite(full.rl_fitness) and all(np.isfinite(full.fitness))
+    resumed = train_pderl(env, spec, td3, cfg, 1, 3, device="cuda", state=saved["state"])
+    assert resumed.history[:2] == full.history[:2] and len(resumed.history) > 2
+    assert resumed.frames >= cfg.total_frames and resumed.updates == resumed.history[-1].frames - td3.learning_starts
+    assert np.isfinite(resumed.rl_fitness)
+
+
+def _saved_bytes(run) -> bytes:
+    buf = io.BytesIO()
+    torch.save(run.state_dict(), buf)
+    return buf.getvalue()
 
 
 # ---------------------------------------------------------------------------------- stage

@@ -49,7 +49,8 @@ Choices where MOPDERL (paper, the authors' public code) is ambiguous, or where w
   restored from the specialists' artifacts (actor and target actor, critic ensemble and its
   target, replay buffer) with fresh Adam optimizers: the artifacts hold no optimizer state.
   Their hyperparameters are train_specialist's. TD3's start timesteps do not apply here (the
-  buffers are full).
+  buffers are full). Each is a `TD3Learner` (pipeline/specialists/td3_training.py), as
+  PDERL's agent: on CUDA its buffer lives on the GPU and its updates replay as CUDA graphs.
 - The critic of a crossover (`crossover_critic`) follows the authors' code: when the parents'
   types differ, the worse-placed parent's type (the child starts from the better parent and
   is pulled towards the other one where that one's objective says so); when they share a
@@ -93,7 +94,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.core.buffer import FIELDS, ReplayBuffer
+from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import pareto_mask
@@ -102,13 +103,13 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.specialists.td3 import TD3State, td3_update
+from pipeline.specialists.td3_training import TD3Learner, stack_td3
 
 MOPDERL_TAG = 0x4D4F5044  # "MOPD": separates MOPDERL's streams from every other use of a seed
 STATE_FORMAT = "mapex.mopderl_state"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: the RL agents are TD3Learners (stacked networks, device buffers)
 _STREAMS = ("episodes", "evolution", "mutation", "noise")
-_AGENT_STREAMS = ("rows", "smoothing")
+_AGENT_STREAMS = ("rows", "smoothing", "cuda_rows")
 
 
 def mopderl_seeds(seed: int) -> dict[str, int]:
@@ -117,7 +118,8 @@ def mopderl_seeds(seed: int) -> dict[str, int]:
 
 
 def agent_seeds(seed: int, objective: int) -> dict[str, int]:
-    """Seeds of RL agent `objective`'s own streams (minibatch rows, target smoothing noise)."""
+    """Seeds of RL agent `objective`'s own streams (minibatch rows on a CPU, target smoothing
+    noise, minibatch rows on CUDA)."""
     return dict(zip(_AGENT_STREAMS, derive_seeds(seed, MOPDERL_TAG, 1 + objective, n=len(_AGENT_STREAMS))))
 
 
@@ -305,17 +307,22 @@ class Individual:
 @dataclass
 class RLAgent:
     objective: int
-    td3: TD3State
-    buffer: ReplayBuffer
-    rows_rng: np.random.Generator
-    smoothing: torch.Generator
+    learner: TD3Learner  # its TD3 networks, optimizers, replay buffer and update RNG streams
     added: int = 0  # transitions added to its buffer in phase 2
-    updates: int = 0  # TD3 updates made in phase 2
     next_episode: int = 0  # episode id its buffer gives the next episode it stores
+
+    @property
+    def buffer(self) -> StackedReplay:
+        return self.learner.buffer
+
+    @property
+    def updates(self) -> int:
+        """TD3 updates made in phase 2."""
+        return self.learner.updates
 
     def q(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """The agent's primary critic, head 0 (Q1): what its crossovers compare actions with."""
-        return self.td3.critic.member(obs, action, 2 * self.td3.primary)
+        return self.learner.q_primary(obs, action)
 
 
 @dataclass
@@ -332,13 +339,6 @@ class GenerationRecord:
 
 def hidden_sizes_of(actor: Actor) -> list[int]:
     return [layer.out_features for layer in actor.net if isinstance(layer, torch.nn.Linear)][:-1]
-
-
-def latest_states(buffer: ReplayBuffer, n: int) -> np.ndarray:
-    """The last min(n, size) observations of a replay buffer, oldest first."""
-    n = min(n, buffer.size)
-    idx = (buffer.ptr - n + np.arange(n)) % buffer.capacity
-    return buffer.data["obs"][idx]
 
 
 def _cpu(obj: Any) -> Any:
@@ -405,32 +405,18 @@ class MopderlRun:
 
     def _agent(self, a: AgentInit) -> RLAgent:
         c, d = self.td3_cfg, self.device
-        actor = copy.deepcopy(a.actor).to(d).requires_grad_(True)
-        critic = copy.deepcopy(a.critic).to(d).requires_grad_(True)
         if a.objective not in a.objectives:
             raise ValueError(f"agent {a.objective}: its critics cover {a.objectives}, not its own objective")
-        td3 = TD3State(
-            actor=actor,
-            actor_target=copy.deepcopy(a.actor_target).to(d).requires_grad_(False),
-            critic=critic,
-            critic_target=copy.deepcopy(a.critic_target).to(d).requires_grad_(False),
-            # fresh optimizers: the specialists' artifacts hold no optimizer state
-            actor_opt=torch.optim.Adam(actor.parameters(), lr=c.actor_lr, fused=True),
-            critic_opt=torch.optim.Adam(critic.parameters(), lr=c.critic_lr, fused=True),
-            objectives=list(a.objectives),
-            primary=list(a.objectives).index(a.objective),
-        )
-        s = self.spec
-        buffer = ReplayBuffer(c.buffer_size, s.obs_dim, s.act_dim, s.n_objectives)
-        rows = {k: np.asarray(v)[-c.buffer_size :] for k, v in a.buffer.items()}
-        n = len(rows["obs"])
-        for k in FIELDS:
-            buffer.data[k][:n] = rows[k]
-        buffer.size, buffer.ptr = n, n % buffer.capacity
+        # The specialists' TD3 machinery with S = 1 (on CUDA: device buffer, CUDA graphs), with
+        # fresh optimizers: the specialists' artifacts hold no optimizer state.
+        state = stack_td3(c, [a.actor], [a.critic], [list(a.objectives)], [list(a.objectives).index(a.objective)], d,
+                          actor_targets=[a.actor_target], critic_targets=[a.critic_target])
         seeds = agent_seeds(self.seed, a.objective)
-        next_episode = int(rows["episode"][-1]) + 1 if n else 0
-        return RLAgent(a.objective, td3, buffer, np.random.default_rng(seeds["rows"]), torch_generator(seeds["smoothing"], d),
-                       next_episode=next_episode)
+        learner = TD3Learner(self.spec, c, state, np.random.default_rng(seeds["rows"]), seeds["smoothing"], seeds["cuda_rows"], d)
+        if len(a.buffer["obs"]):
+            learner.buffer.fill(a.buffer)
+        next_episode = int(np.asarray(a.buffer["episode"])[-1]) + 1 if len(a.buffer["obs"]) else 0
+        return RLAgent(a.objective, learner, next_episode=next_episode)
 
     # -- acting ---------------------------------------------------------------------------
 
@@ -457,7 +443,7 @@ class MopderlRun:
             next_obs, reward, terminated, truncated, _ = env.step(a)
             next_obs = np.asarray(next_obs, np.float32)
             for ag, ep in zip(agents, ids):
-                ag.buffer.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), ep, step)
+                ag.learner.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), ep, step)
             if ring is not None:
                 ring.add(obs)
             returns += reward
@@ -484,17 +470,10 @@ class MopderlRun:
         r = np.stack(rets)
         ind.fitness, ind.fitness_std, ind.env_samples = r.mean(axis=0), r.std(axis=0), self.frames
 
-    def td3_step(self, agent: RLAgent) -> None:
-        agent.updates += 1
-        c = self.td3_cfg
-        batch = agent.buffer.sample(c.batch_size, agent.rows_rng, self.device)
-        td3_update(agent.td3, batch, agent.updates % c.policy_freq == 0, c.gamma, c.tau, c.policy_noise, c.noise_clip, agent.smoothing)
-
     def train_agents(self) -> None:
         """Bring each agent to floor(rl_updates_per_frame x frames it received) updates."""
         for ag in self.agents:
-            for _ in range(max(0, math.floor(self.cfg.rl_updates_per_frame * ag.added) - ag.updates)):
-                self.td3_step(ag)
+            ag.learner.train(max(0, math.floor(self.cfg.rl_updates_per_frame * ag.added) - ag.updates))
 
     # -- members and archive --------------------------------------------------------------
 
@@ -591,8 +570,8 @@ class MopderlRun:
         for ag in self.agents:
             w = pop[tournament_winner(pos, c.tournament_size, rng)]
             rl_ring = StateRing(c.crossover_transitions, self.spec.obs_dim)
-            rl_ring.extend(latest_states(ag.buffer, c.crossover_transitions))
-            child, states = distillation_crossover(w.actor, ag.td3.actor, w.ring, rl_ring, ag.q, c, rng)  # type: ignore[arg-type]
+            rl_ring.extend(ag.buffer.latest(0, c.crossover_transitions))
+            child, states = distillation_crossover(w.actor, ag.learner.actor(), w.ring, rl_ring, ag.q, c, rng)  # type: ignore[arg-type]
             child.zero_grad(set_to_none=True)
             ring = self._ring()
             ring.extend(states)
@@ -605,8 +584,8 @@ class MopderlRun:
             b = ag.buffer
             rows = np.sort(rng.choice(b.size, size=min(c.mutation_states, b.size), replace=False))
             ring = self._ring()
-            ring.extend(latest_states(b, c.mini_buffer_size))
-            new.append(self._mutated_clone(ag.td3.actor, ring, b.data["obs"][rows], ag.objective, []))
+            ring.extend(b.latest(0, c.mini_buffer_size))
+            new.append(self._mutated_clone(ag.learner.actor(), ring, b.take(0, rows), ag.objective, []))
         return new
 
     def step_generation(self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None) -> GenerationRecord:
@@ -620,7 +599,7 @@ class MopderlRun:
         self.population = [candidates[i] for i in keep]
         rl_returns = []
         for ag in self.agents:
-            ep = self.run_episode(env, ag.td3.actor, None, [ag], noise=True)
+            ep = self.run_episode(env, ag.learner.actor(), None, [ag], noise=True)
             rl_returns.append([float(x) for x in ep.returns])
             if on_episode is not None:
                 on_episode(ep)
@@ -645,19 +624,10 @@ class MopderlRun:
             }
 
         def agent_state(ag: RLAgent) -> dict[str, Any]:
-            t, b = ag.td3, ag.buffer
             return {
                 "objective": ag.objective,
-                "td3": _cpu({
-                    "actor": t.actor.state_dict(), "actor_target": t.actor_target.state_dict(),
-                    "critic": t.critic.state_dict(), "critic_target": t.critic_target.state_dict(),
-                    "actor_opt": t.actor_opt.state_dict(), "critic_opt": t.critic_opt.state_dict(),
-                }),
-                "buffer": {"ptr": b.ptr, "size": b.size, "capacity": b.capacity,
-                           "rows": {k: torch.from_numpy(b.data[k][: b.size].copy()) for k in FIELDS}},
-                "rows_rng": copy.deepcopy(ag.rows_rng.bit_generator.state),
-                "smoothing": ag.smoothing.get_state(),
-                "added": ag.added, "updates": ag.updates, "next_episode": ag.next_episode,
+                "learner": ag.learner.state_dict(),
+                "added": ag.added, "next_episode": ag.next_episode,
             }
 
         return {
@@ -702,22 +672,10 @@ class MopderlRun:
                     np.array(s["fitness"], dtype=float), np.array(s["fitness_std"], dtype=float), s["env_samples"],
                 ))
             for ag, s in zip(self.agents, state["agents"]):
-                t = ag.td3
-                for name in ("actor", "actor_target", "critic", "critic_target"):
-                    getattr(t, name).load_state_dict(s["td3"][name])
-                t.actor_opt.load_state_dict(s["td3"]["actor_opt"])
-                t.critic_opt.load_state_dict(s["td3"]["critic_opt"])
-                b = s["buffer"]
-                if b["capacity"] != ag.buffer.capacity:
-                    raise ValueError(f"buffer capacity {b['capacity']} != {ag.buffer.capacity}")
-                for k in FIELDS:
-                    ag.buffer.data[k][: b["size"]] = b["rows"][k].numpy()
-                ag.buffer.ptr, ag.buffer.size = b["ptr"], b["size"]
-                ag.rows_rng.bit_generator.state = s["rows_rng"]
-                ag.smoothing.set_state(s["smoothing"])
-                ag.added, ag.updates, ag.next_episode = s["added"], s["updates"], s["next_episode"]
-        except (RuntimeError, KeyError, ValueError) as exc:
-            raise ValueError(f"state does not fit this run ({exc})") from None
+                ag.learner.load_state_dict(s["learner"])
+                ag.added, ag.next_episode = s["added"], s["next_episode"]
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"state does not fit this run ({type(exc).__name__}: {exc})") from None
         self.population = population
         self.archive = [(a["uid"], np.array(a["fitness"], dtype=float)) for a in state["archive"]]
         self.member_of = {int(u): int(m) for u, m in state["member_of"]}

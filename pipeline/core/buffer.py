@@ -227,6 +227,32 @@ class StackedReplay:
         c = self.cols
         return Batch(got[..., c["obs"]], got[..., c["action"]], got[..., c["reward"]], got[..., c["next_obs"]], got[..., c["terminated"]].squeeze(-1))
 
+    def take(self, s: int, idx: np.ndarray, name: str = "obs") -> np.ndarray:
+        """Field `name` of specialist s's ring slots `idx` (storage positions), as numpy."""
+        if name in self.host:
+            return self.host[name][s][idx].copy()
+        rows = self.rows[s, torch.from_numpy(np.asarray(idx, np.int64)).to(self.device), self.cols[name]].cpu().numpy()
+        return rows[:, 0] > 0.5 if name == "terminated" else rows
+
+    def latest(self, s: int, n: int, name: str = "obs") -> np.ndarray:
+        """Field `name` of specialist s's latest min(n, size) rows, oldest first (numpy)."""
+        n = min(n, self.size)
+        return self.take(s, (self.ptr - n + np.arange(n)) % self.capacity, name)
+
+    def fill(self, data: dict[str, np.ndarray]) -> None:
+        """Start every specialist's ring with the rows `data` (the Zarr layout, oldest first; the
+        latest `capacity` of them if there are more); the same rows for all S."""
+        n = min(len(data["obs"]), self.capacity)
+        rows = {k: np.asarray(v)[len(v) - n :] for k, v in data.items()}
+        packed = np.zeros((n, self.rows.shape[2]), np.float32)
+        for k, c in self.cols.items():
+            packed[:, c] = rows[k].reshape(n, -1)
+        with torch.no_grad():
+            self.rows[:, :n].copy_(torch.from_numpy(packed))
+        for k, v in self.host.items():
+            v[:, :n] = rows[k]
+        self.size, self.ptr = n, n % self.capacity
+
     def chronological(self, s: int) -> dict[str, np.ndarray]:
         """Specialist s's stored rows, oldest first, as the numpy fields of the Zarr format."""
         if self.size < self.capacity:

@@ -40,6 +40,13 @@ Randomness is drawn from streams seeded by (seed, objective, PDERL_TAG) (`pderl_
 episode e is reset with a seed derived from its index alone. `PderlRun.state_dict` holds
 every piece of state, RNG states included, so a run checkpointed after any generation and
 resumed ends bitwise as an uninterrupted one on a CPU (same thread count and libraries).
+
+The RL agent is a `TD3Learner`: the specialists' stacked TD3 path with one specialist, so on
+CUDA its replay buffer lives on the GPU and a generation's updates replay as captured CUDA
+graphs with no host sync (train_specialist.cuda_graphs). Earlier versions used the plain
+`td3_update` with a numpy buffer; the two updates agree up to float rounding
+(tests/test_batched_specialists.py), so CPU results of earlier PDERL runs are not bitwise
+those of today's code.
 """
 
 from __future__ import annotations
@@ -53,19 +60,17 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from pipeline.core.buffer import FIELDS, ReplayBuffer
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.specialists.td3_training import init_td3
-from pipeline.specialists.td3 import TD3State, td3_update
+from pipeline.specialists.td3_training import TD3Learner, covered_objectives, stack_td3
 
 PDERL_TAG = 0x50444552  # "PDER": separates PDERL's streams from every other use of (seed, objective)
 STATE_FORMAT = "mapex.pderl_state"
-STATE_VERSION = 1
-_STREAMS = ("torch_init", "episodes", "evolution", "rows", "noise", "smoothing", "mutation")
+STATE_VERSION = 2  # 2: the RL agent is a TD3Learner (stacked networks, device buffer)
+_STREAMS = ("torch_init", "episodes", "evolution", "rows", "noise", "smoothing", "mutation", "cuda_rows")
 
 QFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (obs (B, o), action (B, a)) -> (B,)
 
@@ -406,22 +411,32 @@ class PderlRun:
         self.seeds = pderl_seeds(seed, objective)
         # Networks are initialised on the CPU from their own seed (the same on every device),
         # without disturbing the caller's global torch RNG.
+        objectives, primary = covered_objectives(objective, spec.n_objectives, td3_cfg.secondary_critics)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seeds["torch_init"])
-            self.td3: TD3State = init_td3(spec, td3_cfg, objective, self.device)  # built on the CPU, then moved
+            rl_actor = self._new_actor()
+            rl_critic = CriticEnsemble(spec.obs_dim, spec.act_dim, td3_cfg.hidden_sizes, 2 * len(objectives))
             actors = [self._new_actor() for _ in range(cfg.population_size)]
         self.population = [Individual(a.to(self.device), StateRing(cfg.mini_buffer_size, spec.obs_dim)) for a in actors]
-        self.buffer = ReplayBuffer(td3_cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives)
+        # The RL agent: the specialists' TD3 machinery with S = 1 (so on CUDA its buffer lives on
+        # the GPU and its updates replay as CUDA graphs), holding the shared replay buffer.
+        self.agent = TD3Learner(
+            spec, td3_cfg, stack_td3(td3_cfg, [rl_actor], [rl_critic], [objectives], [primary], self.device),
+            np.random.default_rng(self.seeds["rows"]), self.seeds["smoothing"], self.seeds["cuda_rows"], self.device,
+        )
+        self.buffer = self.agent.buffer
         self.evo_rng = np.random.default_rng(self.seeds["evolution"])
-        self.rows_rng = np.random.default_rng(self.seeds["rows"])
         self.noise_rng = np.random.default_rng(self.seeds["noise"])
-        self.smoothing = torch_generator(self.seeds["smoothing"], self.device)
         self.mutation_gen = torch_generator(self.seeds["mutation"], "cpu")
         self.generation = 0
         self.frames = 0
         self.episodes = 0
-        self.updates = 0
         self.history: list[GenerationRecord] = []
+
+    @property
+    def updates(self) -> int:
+        """TD3 updates made so far."""
+        return self.agent.updates
 
     def _new_actor(self) -> Actor:
         s = self.spec
@@ -431,7 +446,7 @@ class PderlRun:
 
     def q_primary(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """The RL agent's primary critic, head 0 (Q1): what crossover compares parents with."""
-        return self.td3.critic.member(obs, action, 2 * self.td3.primary)
+        return self.agent.q_primary(obs, action)
 
     @torch.no_grad()
     def run_episode(self, env: gym.Env, actor: Actor, noise: bool, ring: StateRing | None) -> EpisodeResult:
@@ -450,7 +465,7 @@ class PderlRun:
                 a = np.clip(a, low, high).astype(np.float32)
             next_obs, reward, terminated, truncated, _ = env.step(a)
             next_obs = np.asarray(next_obs, np.float32)
-            self.buffer.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), self.episodes, step)
+            self.agent.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), self.episodes, step)
             if ring is not None:
                 ring.add(obs)
             returns += reward
@@ -472,12 +487,6 @@ class PderlRun:
                 on_episode(ep)
         return total / self.cfg.eval_episodes
 
-    def td3_step(self) -> None:
-        self.updates += 1
-        c = self.td3_cfg
-        batch = self.buffer.sample(c.batch_size, self.rows_rng, self.device)
-        td3_update(self.td3, batch, self.updates % c.policy_freq == 0, c.gamma, c.tau, c.policy_noise, c.noise_clip, self.smoothing)
-
     # -- the loop -------------------------------------------------------------------------
 
     @property
@@ -491,11 +500,10 @@ class PderlRun:
             ind.fitness = self.evaluate(env, ind.actor, ind.ring, on_episode)
         fitness = np.array([ind.fitness for ind in self.population])
         report = evolve(self.population, self.q_primary, self.cfg, self.evo_rng, self.mutation_gen)
-        rl = self.run_episode(env, self.td3.actor, noise=True, ring=None)
+        rl = self.run_episode(env, self.agent.actor(), noise=True, ring=None)
         if on_episode is not None:
             on_episode(rl)
-        for _ in range(max(0, self.frames - max(start, self.td3_cfg.learning_starts))):
-            self.td3_step()
+        self.agent.train(max(0, self.frames - max(start, self.td3_cfg.learning_starts)))
         self.generation += 1
         rl_slot = None
         if self.generation % self.cfg.rl_sync_period == 0:
@@ -514,11 +522,9 @@ class PderlRun:
         slots = [i for i in range(len(fitness)) if i not in elites]
         worst = min(slots, key=lambda i: (fitness[i], i))
         ind = self.population[worst]
-        ind.actor.load_state_dict(self.td3.actor.state_dict())
+        ind.actor.load_state_dict(self.agent.actor().state_dict())
         ind.ring.clear()
-        n = min(self.buffer.size, ind.ring.capacity)
-        idx = (self.buffer.ptr - n + np.arange(n)) % self.buffer.capacity
-        ind.ring.extend(self.buffer.data["obs"][idx])
+        ind.ring.extend(self.buffer.latest(0, ind.ring.capacity))
         ind.fitness = None
         return worst
 
@@ -527,17 +533,16 @@ class PderlRun:
         frames count too). Returns the RL actor's fitness."""
         for ind in self.population:
             ind.fitness = self.evaluate(env, ind.actor, ind.ring, on_episode)
-        return self.evaluate(env, self.td3.actor, None, on_episode)
+        return self.evaluate(env, self.agent.actor(), None, on_episode)
 
     def result(self, rl_fitness: float) -> PderlResult:
-        t = self.td3
+        actor, actor_target, critic, critic_target = self.agent.networks()
         return PderlResult(
             seed=self.seed, objective=self.objective,
             actors=[copy.deepcopy(ind.actor).cpu() for ind in self.population],
             fitness=[ind.fitness for ind in self.population], rl_fitness=rl_fitness,
-            actor=copy.deepcopy(t.actor).cpu(), actor_target=copy.deepcopy(t.actor_target).cpu(),
-            critic=copy.deepcopy(t.critic).cpu(), critic_target=copy.deepcopy(t.critic_target).cpu(),
-            objectives=list(t.objectives), buffer=self.buffer.chronological(),
+            actor=actor, actor_target=actor_target, critic=critic, critic_target=critic_target,
+            objectives=list(self.agent.objectives), buffer=self.buffer.chronological(0),
             history=list(self.history), frames=self.frames, updates=self.updates,
         )
 
@@ -545,30 +550,20 @@ class PderlRun:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything the run depends on from here, as CPU tensors and plain Python values."""
-        t = self.td3
-        b = self.buffer
         return {
             "format": STATE_FORMAT,
             "format_version": STATE_VERSION,
             "seed": self.seed,
             "objective": self.objective,
-            "counters": {"generation": self.generation, "frames": self.frames, "episodes": self.episodes, "updates": self.updates},
+            "counters": {"generation": self.generation, "frames": self.frames, "episodes": self.episodes},
             "history": [asdict(r) for r in self.history],
-            "td3": _cpu({
-                "actor": t.actor.state_dict(), "actor_target": t.actor_target.state_dict(),
-                "critic": t.critic.state_dict(), "critic_target": t.critic_target.state_dict(),
-                "actor_opt": t.actor_opt.state_dict(), "critic_opt": t.critic_opt.state_dict(),
-            }),
+            "td3": self.agent.state_dict(),
             "population": [
                 {"actor": _cpu(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "fitness": ind.fitness} for ind in self.population
             ],
-            "buffer": {"ptr": b.ptr, "size": b.size, "capacity": b.capacity,
-                       "rows": {k: torch.from_numpy(b.data[k][: b.size].copy()) for k in FIELDS}},
             "rng": {
                 "evolution": copy.deepcopy(self.evo_rng.bit_generator.state),
-                "rows": copy.deepcopy(self.rows_rng.bit_generator.state),
                 "noise": copy.deepcopy(self.noise_rng.bit_generator.state),
-                "smoothing": self.smoothing.get_state(),
                 "mutation": self.mutation_gen.get_state(),
             },
         }
@@ -584,32 +579,19 @@ class PderlRun:
             raise ValueError(f"state of seed {state['seed']}, objective {state['objective']}; this run is seed {self.seed}, objective {self.objective}")
         if len(state["population"]) != len(self.population):
             raise ValueError(f"state holds {len(state['population'])} individuals, the run {len(self.population)}")
-        if state["buffer"]["capacity"] != self.buffer.capacity:
-            raise ValueError(f"state's buffer capacity {state['buffer']['capacity']} != {self.buffer.capacity}")
         try:
-            t, s = self.td3, state["td3"]
-            for name in ("actor", "actor_target", "critic", "critic_target"):
-                getattr(t, name).load_state_dict(s[name])
-            t.actor_opt.load_state_dict(s["actor_opt"])
-            t.critic_opt.load_state_dict(s["critic_opt"])
+            self.agent.load_state_dict(state["td3"])
             for ind, saved in zip(self.population, state["population"]):
                 ind.actor.load_state_dict(saved["actor"])
                 ind.ring.load_state_dict(saved["ring"])
                 ind.fitness = saved["fitness"]
-            rows = state["buffer"]["rows"]
-            size = state["buffer"]["size"]
-            for k in FIELDS:
-                self.buffer.data[k][:size] = rows[k].numpy()
-        except (RuntimeError, KeyError, ValueError) as exc:
-            raise ValueError(f"state does not fit this run ({exc})") from None
-        self.buffer.ptr, self.buffer.size = state["buffer"]["ptr"], size
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"state does not fit this run ({type(exc).__name__}: {exc})") from None
         self.evo_rng.bit_generator.state = state["rng"]["evolution"]
-        self.rows_rng.bit_generator.state = state["rng"]["rows"]
         self.noise_rng.bit_generator.state = state["rng"]["noise"]
-        self.smoothing.set_state(state["rng"]["smoothing"])
         self.mutation_gen.set_state(state["rng"]["mutation"])
         c = state["counters"]
-        self.generation, self.frames, self.episodes, self.updates = c["generation"], c["frames"], c["episodes"], c["updates"]
+        self.generation, self.frames, self.episodes = c["generation"], c["frames"], c["episodes"]
         self.history = [GenerationRecord(**r) for r in state["history"]]
 
 

@@ -102,29 +102,51 @@ def run_seeds(seed: int, objective: int) -> dict[str, int]:
 def init_stacked(spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device) -> StackedTD3:
     """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
     would be alone (torch seeded with its own seed, actor first, then its critics)."""
-    actors, critics, reward_index, primary = [], [], [], []
-    for s, (seed, objective) in enumerate(jobs):
+    actors, critics, covered, primary = [], [], [], []
+    for seed, objective in jobs:
         objectives, j = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
         torch.manual_seed(run_seeds(seed, objective)["torch"])
         actors.append(Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high))
         critics.append(CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)))
-        reward_index.append(objectives)
-        primary.append(s * 2 * len(objectives) + 2 * j)
+        covered.append(objectives)
+        primary.append(j)
+    return stack_td3(cfg, actors, critics, covered, primary, device)
+
+
+def stack_td3(
+    cfg: TrainSpecialistParams,
+    actors: Sequence[Actor],
+    critics: Sequence[CriticEnsemble],
+    covered: Sequence[Sequence[int]],
+    primary: Sequence[int],
+    device: torch.device,
+    actor_targets: Sequence[Actor] | None = None,
+    critic_targets: Sequence[CriticEnsemble] | None = None,
+) -> StackedTD3:
+    """S specialists' networks stacked (copies; targets copies of the online nets unless given)
+    with fresh optimizers. covered[s]: the objectives specialist s's ensemble covers, in member
+    order; primary[s]: the index of its own objective in that list."""
     actor = StackedActor(actors).to(device)
     critic = CriticEnsemble.stack(critics).to(device)
+    actor_target = copy.deepcopy(actor) if actor_targets is None else StackedActor(actor_targets).to(device)
+    critic_target = copy.deepcopy(critic) if critic_targets is None else CriticEnsemble.stack(critic_targets).to(device)
+    sizes = {2 * len(c) for c in covered}
+    if len(sizes) != 1 or [c.n_members for c in critics] != [2 * len(c) for c in covered]:
+        raise ValueError(f"stacked specialists need critic ensembles of one size, 2 members per covered objective: {list(covered)}")
+    e = sizes.pop()
     # fused Adam: one kernel per parameter tensor (same update as the plain one). Captured CUDA
     # graphs need the optimizer's step counters on the device (capturable).
     graphs = device.type == "cuda" and cfg.cuda_graphs
     opt = dict(fused=True, capturable=True) if graphs else dict(fused=True)
     return StackedTD3(
         actor=actor,
-        actor_target=copy.deepcopy(actor).requires_grad_(False),
+        actor_target=actor_target.requires_grad_(False),
         critic=critic,
-        critic_target=copy.deepcopy(critic).requires_grad_(False),
+        critic_target=critic_target.requires_grad_(False),
         actor_opt=torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, **opt),
         critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr, **opt),
-        reward_index=torch.tensor(reward_index, dtype=torch.long, device=device),
-        primary_members=torch.tensor(primary, dtype=torch.long, device=device),
+        reward_index=torch.tensor([list(c) for c in covered], dtype=torch.long, device=device),
+        primary_members=torch.tensor([s * e + 2 * j for s, j in enumerate(primary)], dtype=torch.long, device=device),
     )
 
 
@@ -204,6 +226,64 @@ def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) ->
         for i, p in enumerate(params):
             for key, value in saved["state"][i].items():
                 opt.state[p][key].copy_(value)
+
+
+def nets_state(st: StackedTD3) -> dict[str, Any]:
+    """The networks and optimizers of a stacked set, as CPU tensors."""
+    return _cpu({
+        "actor": st.actor.state_dict(), "actor_target": st.actor_target.state_dict(),
+        "critic": st.critic.state_dict(), "critic_target": st.critic_target.state_dict(),
+        "actor_opt": st.actor_opt.state_dict(), "critic_opt": st.critic_opt.state_dict(),
+    })
+
+
+def load_nets_state(update: "_Updater", nets: dict[str, Any], n_updates: int) -> None:
+    """Restore `nets_state` into the networks `update` trains (fresh, never updated)."""
+    st = update.state
+    for name in ("actor", "actor_target", "critic", "critic_target"):
+        getattr(st, name).load_state_dict(nets[name])
+    if update.graphs and n_updates > 0:
+        # The captured graphs read the optimizers' own state tensors: capture them now (on
+        # fresh optimizers, with the restored networks and buffer), then fill those tensors in
+        # place.
+        update.graph()
+        _copy_optimizer_state_(st.actor_opt, nets["actor_opt"])
+        _copy_optimizer_state_(st.critic_opt, nets["critic_opt"])
+    else:
+        st.actor_opt.load_state_dict(nets["actor_opt"])
+        st.critic_opt.load_state_dict(nets["critic_opt"])
+
+
+def buffer_state(b: StackedReplay) -> dict[str, Any]:
+    """A StackedReplay's rows and pointers as CPU tensors. The rows are not copied when a full
+    ring already lies on the CPU: they are the live ring, so save (or copy) the state before
+    the next row is added."""
+    size = b.size
+    if size == b.capacity and b.rows.device.type == "cpu":
+        rows, host = b.rows.detach(), {k: torch.from_numpy(v) for k, v in b.host.items()}
+    else:  # the rows written so far, copied to the CPU
+        rows = b.rows[:, :size].to("cpu", copy=True)
+        host = {k: torch.from_numpy(v[:, :size].copy()) for k, v in b.host.items()}
+    return {"capacity": b.capacity, "ptr": b.ptr, "size": size, "rows": rows, **host}
+
+
+def check_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
+    """ValueError unless `saved` (a `buffer_state`) fits buffer `b`."""
+    if saved["capacity"] != b.capacity:
+        raise ValueError(f"state's buffer capacity {saved['capacity']} != {b.capacity}")
+    size = saved["size"]
+    if tuple(saved["rows"].shape) != (b.n, size, b.rows.shape[2]) or not 0 <= saved["ptr"] < b.capacity:
+        raise ValueError(f"state's buffer rows {tuple(saved['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})")
+
+
+def load_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
+    """Restore a `buffer_state` (checked by `check_buffer_state`) into `b`."""
+    size = int(saved["size"])
+    with torch.no_grad():
+        b.rows[:, :size].copy_(saved["rows"])
+    for k, v in b.host.items():
+        v[:, :size] = saved[k].numpy()
+    b.ptr, b.size = int(saved["ptr"]), size
 
 
 class SpecialistsRun:
@@ -306,25 +386,14 @@ class SpecialistsRun:
 
         The buffer rows are not copied when a full ring already lies on the CPU: they are the
         live ring, so save (or copy) the state before the next `step`."""
-        st, b = self.state, self.buffer
-        size = b.size
-        if size == b.capacity and b.rows.device.type == "cpu":
-            rows, host = b.rows.detach(), {k: torch.from_numpy(v) for k, v in b.host.items()}
-        else:  # the rows written so far, copied to the CPU
-            rows = b.rows[:, :size].to("cpu", copy=True)
-            host = {k: torch.from_numpy(v[:, :size].copy()) for k, v in b.host.items()}
         cuda = self.device.type == "cuda"
         return {
             "format": STATE_FORMAT,
             "format_version": STATE_VERSION,
             "jobs": [list(j) for j in self.jobs],
             "counters": {"t": self.t, "n_updates": self.n_updates},
-            "nets": _cpu({
-                "actor": st.actor.state_dict(), "actor_target": st.actor_target.state_dict(),
-                "critic": st.critic.state_dict(), "critic_target": st.critic_target.state_dict(),
-                "actor_opt": st.actor_opt.state_dict(), "critic_opt": st.critic_opt.state_dict(),
-            }),
-            "buffer": {"capacity": b.capacity, "ptr": b.ptr, "size": size, "rows": rows, **host},
+            "nets": nets_state(self.state),
+            "buffer": buffer_state(self.buffer),
             "loop": {
                 "obs": torch.from_numpy(self.obs.copy()),
                 "episode": torch.from_numpy(self.episode.copy()),
@@ -359,33 +428,12 @@ class SpecialistsRun:
             raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
         if [tuple(j) for j in state["jobs"]] != self.jobs:
             raise ValueError(f"state of specialists {state['jobs']}; this run trains {[list(j) for j in self.jobs]}")
-        b, saved_b = self.buffer, state["buffer"]
-        if saved_b["capacity"] != b.capacity:
-            raise ValueError(f"state's buffer capacity {saved_b['capacity']} != {b.capacity}")
-        size = saved_b["size"]
-        if tuple(saved_b["rows"].shape) != (b.n, size, b.rows.shape[2]) or not 0 <= saved_b["ptr"] < b.capacity:
-            raise ValueError(f"state's buffer rows {tuple(saved_b['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})")
+        check_buffer_state(self.buffer, state["buffer"])
         if self.t or self.n_updates:
             raise ValueError("load_state_dict needs a fresh run")
-        st, nets = self.state, state["nets"]
         try:
-            for name in ("actor", "actor_target", "critic", "critic_target"):
-                getattr(st, name).load_state_dict(nets[name])
-            with torch.no_grad():
-                b.rows[:, :size].copy_(saved_b["rows"])
-            for k, v in b.host.items():
-                v[:, :size] = saved_b[k].numpy()
-            b.ptr, b.size = int(saved_b["ptr"]), int(size)
-            if self.update.graphs and state["counters"]["n_updates"] > 0:
-                # The captured graphs read the optimizers' own state tensors: capture them now
-                # (on fresh optimizers, with the restored networks and buffer), then fill those
-                # tensors in place.
-                self.update.graph()
-                _copy_optimizer_state_(st.actor_opt, nets["actor_opt"])
-                _copy_optimizer_state_(st.critic_opt, nets["critic_opt"])
-            else:
-                st.actor_opt.load_state_dict(nets["actor_opt"])
-                st.critic_opt.load_state_dict(nets["critic_opt"])
+            load_buffer_state(self.buffer, state["buffer"])
+            load_nets_state(self.update, state["nets"], state["counters"]["n_updates"])
             for env, saved in zip(self.envs, state["envs"], strict=True):
                 restore_env_state(env, saved)
             loop = state["loop"]
@@ -481,6 +529,84 @@ def train_specialist(
     """One specialist alone: `train_specialists` with S = 1."""
     step = None if on_step is None else (lambda t, records: on_step(t, records[0]))
     return train_specialists([env], spec, cfg, [(seed, objective)], device, step)[0]
+
+
+# --------------------------------------------------------------- a TD3 agent fed from outside
+
+
+class TD3Learner:
+    """One TD3 agent with secondary critics that learns from transitions handed to it: the RL
+    agent inside PDERL and MOPDERL, whose episodes are run by the population's loop.
+
+    It is the specialists' machinery with S = 1 (a stacked network set, a `StackedReplay` on
+    the training device and `_Updater`), so it gets the same device path: on CUDA the buffer
+    lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
+    cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
+    with no host sync. On a CPU, rows are drawn with `rows_rng` (numpy).
+    """
+
+    def __init__(self, spec: EnvSpec, cfg: TrainSpecialistParams, state: StackedTD3, rows_rng: np.random.Generator,
+                 noise_seed: int, cuda_rows_seed: int, device: torch.device | str):
+        if state.n != 1:
+            raise ValueError(f"a TD3Learner trains one specialist, got a stacked set of {state.n}")
+        self.cfg, self.state, self.device = cfg, state, torch.device(device)
+        self.rows_rng = rows_rng
+        self.buffer = StackedReplay(1, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
+        self.update = _Updater(state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device)
+        self.objectives: list[int] = state.reward_index[0].tolist()
+        self.primary_member = int(state.primary_members[0])  # head 0 of its own objective
+        self.updates = 0
+
+    def add(self, obs, action, reward, next_obs, terminated: bool, truncated: bool, episode: int, step: int) -> None:
+        """Append one transition to the replay buffer."""
+        self.buffer.add(obs[None], action[None], np.asarray(reward)[None], next_obs[None],
+                        np.array([terminated]), np.array([truncated]), np.array([episode]), np.array([step]))
+
+    def train(self, n: int) -> None:
+        """n TD3 updates (the actor and targets on every policy_freq-th, counted over the run)."""
+        for _ in range(n):
+            self.updates += 1
+            self.update(update_actor=self.updates % self.cfg.policy_freq == 0)
+
+    def actor(self) -> Actor:
+        """A copy of the current actor, on the training device (to act with or copy from)."""
+        return self.state.actor.unstack(0).to(self.device)
+
+    def q_primary(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """The primary critic's head 0 (Q1, the head the actor ascends) at (obs (B, o), action (B, a)) -> (B,)."""
+        return self.state.critic.member(obs, action, self.primary_member)
+
+    def networks(self) -> tuple[Actor, Actor, CriticEnsemble, CriticEnsemble]:
+        """CPU copies of (actor, actor_target, critic, critic_target): the artifact formats."""
+        st = self.state
+        e = st.critic.n_members
+        return (st.actor.unstack(0), st.actor_target.unstack(0), st.critic.subset(0, e).cpu(),
+                st.critic_target.subset(0, e).cpu().requires_grad_(False))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, optimizers, buffer, RNG streams and the update count, as CPU tensors."""
+        u = self.update
+        return {
+            "updates": self.updates,
+            "nets": nets_state(self.state),
+            "buffer": buffer_state(self.buffer),
+            "rng": {"rows": copy.deepcopy(self.rows_rng.bit_generator.state), "noise": u.noise_gens[0].get_state(),
+                    "cuda_rows": u.row_gens[0].get_state() if u.on_cuda else None},
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a `state_dict` into a fresh learner (ValueError if it does not fit)."""
+        if self.updates:
+            raise ValueError("load_state_dict needs a fresh learner")
+        check_buffer_state(self.buffer, state["buffer"])
+        load_buffer_state(self.buffer, state["buffer"])
+        load_nets_state(self.update, state["nets"], state["updates"])
+        rng = state["rng"]
+        self.rows_rng.bit_generator.state = rng["rows"]
+        self.update.noise_gens[0].set_state(rng["noise"])
+        if self.update.on_cuda and rng["cuda_rows"] is not None:
+            self.update.row_gens[0].set_state(rng["cuda_rows"])
+        self.updates = int(state["updates"])
 
 
 # --------------------------------------------------------------------------- env state
