@@ -549,7 +549,9 @@ class PderlRun:
     # -- checkpoints ----------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything the run depends on from here, as CPU tensors and plain Python values."""
+        """Everything the run depends on from here, as CPU tensors and plain Python values. On
+        a CPU a full replay buffer is not copied (see `buffer_state`): save the state before
+        the next generation."""
         return {
             "format": STATE_FORMAT,
             "format_version": STATE_VERSION,
