@@ -6,7 +6,7 @@ import csv
 import io
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 import typer
@@ -33,8 +33,8 @@ RUN_VERSION = 1
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
 # train_specialist keys phase 2 does not read: the budget is mopderl.total_frames, the buffers
 # are already full (no start timesteps), the networks' shapes come from the artifacts, and
-# the run is unstacked and eager on mopderl.device.
-_UNUSED_TD3_KEYS = {"total_steps", "learning_starts", "hidden_sizes", "secondary_critics", "batched", "cuda_graphs", "device"}
+# the agents run on mopderl.device (cuda_graphs is read: the agents are TD3Learners).
+_UNUSED_TD3_KEYS = {"total_steps", "learning_starts", "hidden_sizes", "secondary_critics", "batched", "device"}
 
 
 def load_rl_agents(specialists: Path, objectives: list[int], spec_meta: dict, seed: int, buffers: list[dict]) -> tuple[list[AgentInit], list[Path]]:
@@ -113,12 +113,14 @@ def _write_run_file(path: Path, blob: dict) -> None:
         torch.save(blob, tmp)
 
 
-def load_checkpoint(progress_dir: Path, fp: str, run: MopderlRun) -> list[dict] | None:
-    """Restore `run` from the progress in `progress_dir` saved under fingerprint `fp`; returns
-    the history rows, or None (run untouched) if there is none that fits."""
+def load_checkpoint(progress_dir: Path, fp: str, make_run: Callable[[], MopderlRun]) -> tuple[MopderlRun, list[dict] | None]:
+    """A run (`make_run()`) restored from the progress in `progress_dir` saved under
+    fingerprint `fp`, and its history rows; or a fresh run and None if there is none that fits
+    (a restore that failed half-way is thrown away)."""
+    run = make_run()
     saved = load_progress(progress_dir, fp)
     if saved is None:
-        return None
+        return run, None
     items, small = saved
     path = progress_dir / small.get("run_file", "")
     try:
@@ -128,8 +130,8 @@ def load_checkpoint(progress_dir: Path, fp: str, run: MopderlRun) -> list[dict] 
         run.load_state_dict(blob["state"], [Member(**m) for m in items])
     except (ArtifactError, ValueError, KeyError, TypeError) as exc:
         typer.echo(f"{progress_dir}: cannot be resumed ({exc}); starting over", err=True)
-        return None
-    return small["history"]
+        return make_run(), None
+    return run, small["history"]
 
 
 @reports_errors
@@ -149,8 +151,8 @@ def mopderl(
 
     Params: sections `env`, `objectives` (every objective 0..m-1), `mopderl` (population,
     operators, phase-2 frame budget) and `train_specialist` (the RL agents' TD3
-    hyperparameters; its total_steps, learning_starts, hidden_sizes, batched, cuda_graphs and
-    device are not read). The population starts as every population actor of every
+    hyperparameters and cuda_graphs; its total_steps, learning_starts, hidden_sizes, batched
+    and device are not read). The population starts as every population actor of every
     specialist's policy set, each evaluated. Each generation makes mopderl.children
     distillation-crossover children of tournament-picked pairs (Pareto rank, then crowding),
     one child per RL agent distilled with its RL actor, and proximally mutated clones; every
@@ -203,9 +205,8 @@ def mopderl(
                          files + more + closure_files("stages.mopderl"))
         progress_dir = (resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}"
 
-        run = MopderlRun(spec, td3, cfg, seed, population, agents, device)
+        run, history = load_checkpoint(progress_dir, fp, lambda: MopderlRun(spec, td3, cfg, seed, population, agents, device))
         del agents
-        history = load_checkpoint(progress_dir, fp, run)
         written = len(run.members) if history is not None else 0
         if history is not None:
             typer.echo(f"resuming from generation {run.generation} ({run.frames} frames) of {progress_dir}", err=True)

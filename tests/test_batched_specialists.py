@@ -272,3 +272,22 @@ def test_td3_learner_on_cuda_graphs_eager_and_resume():
         for x, y in zip(runs[True].networks()[2].parameters(), other.networks()[2].parameters()):
             torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-5)
     assert resumed.updates == runs[True].updates == 30
+
+
+def test_restored_optimizers_keep_their_own_flags():
+    """A state saved under other optimizer flags (say eager, later resumed under CUDA graphs,
+    which need capturable=True) keeps the restoring optimizer's flags; only its state is read."""
+    spec, cfg = spec_of(), CFG
+    learner, _ = learner_and_reference(spec, cfg, torch.device("cpu"))
+    feed(learner, spec, 40)
+    learner.train(3)
+    saved = learner.state_dict()
+    for name in ("actor_opt", "critic_opt"):
+        for g in saved["nets"][name]["param_groups"]:
+            g["fused"] = False  # as if saved by a differently built optimizer
+    fresh, _ = learner_and_reference(spec, cfg, torch.device("cpu"))
+    fresh.load_state_dict(saved)
+    for opt in (fresh.state.actor_opt, fresh.state.critic_opt):
+        assert all(g["fused"] is True for g in opt.param_groups)
+    step = next(iter(fresh.state.critic_opt.state.values()))["step"]
+    assert float(step) == 3 and fresh.updates == 3

@@ -613,7 +613,9 @@ class MopderlRun:
 
     def state_dict(self) -> dict[str, Any]:
         """Everything the run depends on from here, as CPU tensors and plain values, except the
-        members themselves (`members`, which the caller saves; only their count is here)."""
+        members themselves (`members`, which the caller saves; only their count is here). On a
+        CPU the agents' full replay buffers are not copied (see `buffer_state`): save the
+        state before the next generation."""
 
         def ind_state(ind: Individual) -> dict[str, Any]:
             return {

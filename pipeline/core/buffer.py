@@ -192,7 +192,9 @@ class StackedReplay:
         self.rows = torch.zeros(n, capacity, width, device=self.device)
         on_cuda = self.device.type == "cuda"
         # Staging row for all S specialists; pinned on CUDA so its copy does not block the host.
+        # `_copied` marks the end of its last copy: the row is rewritten only after it.
         self._stage = torch.zeros(n, width, pin_memory=on_cuda) if on_cuda else None
+        self._copied = torch.cuda.Event() if on_cuda else None
         self.host = {
             "truncated": np.zeros((n, capacity), bool),
             "episode": np.zeros((n, capacity), np.int64),
@@ -204,6 +206,8 @@ class StackedReplay:
     def add(self, obs, action, reward, next_obs, terminated, truncated, episode, step) -> None:
         """Append one row per specialist: arrays with a leading S (obs (S, o), terminated (S,), ...)."""
         i = self.ptr
+        if self._copied is not None:
+            self._copied.synchronize()  # free when the step's action read has synced already
         stage = self._stage.numpy() if self._stage is not None else self.rows[:, i].numpy()
         c = self.cols
         stage[:, c["obs"]] = obs
@@ -212,9 +216,8 @@ class StackedReplay:
         stage[:, c["next_obs"]] = next_obs
         stage[:, c["terminated"]] = np.asarray(terminated, np.float32)[:, None]
         if self._stage is not None:
-            # Safe to reuse the staging row next step: the action read that starts the next
-            # step synchronises with the stream this copy is queued on.
             self.rows[:, i].copy_(self._stage, non_blocking=True)
+            self._copied.record()
         self.host["truncated"][:, i] = truncated
         self.host["episode"][:, i] = episode
         self.host["episode_step"][:, i] = step

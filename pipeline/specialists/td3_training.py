@@ -250,8 +250,13 @@ def load_nets_state(update: "_Updater", nets: dict[str, Any], n_updates: int) ->
         _copy_optimizer_state_(st.actor_opt, nets["actor_opt"])
         _copy_optimizer_state_(st.critic_opt, nets["critic_opt"])
     else:
-        st.actor_opt.load_state_dict(nets["actor_opt"])
-        st.critic_opt.load_state_dict(nets["critic_opt"])
+        for opt, saved in ((st.actor_opt, nets["actor_opt"]), (st.critic_opt, nets["critic_opt"])):
+            # load_state_dict also takes the saved param-group flags: keep this optimizer's
+            # capturable/fused (a state saved eagerly may be resumed under CUDA graphs)
+            flags = [{k: g[k] for k in ("capturable", "fused") if k in g} for g in opt.param_groups]
+            opt.load_state_dict(saved)
+            for g, f in zip(opt.param_groups, flags):
+                g.update(f)
 
 
 def buffer_state(b: StackedReplay) -> dict[str, Any]:
@@ -570,7 +575,8 @@ class TD3Learner:
 
     def actor(self) -> Actor:
         """A copy of the current actor, on the training device (to act with or copy from)."""
-        return self.state.actor.unstack(0).to(self.device)
+        with torch.random.fork_rng(devices=[]):  # building an Actor draws an init we overwrite
+            return self.state.actor.unstack(0).to(self.device)
 
     def q_primary(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """The primary critic's head 0 (Q1, the head the actor ascends) at (obs (B, o), action (B, a)) -> (B,)."""
@@ -580,8 +586,9 @@ class TD3Learner:
         """CPU copies of (actor, actor_target, critic, critic_target): the artifact formats."""
         st = self.state
         e = st.critic.n_members
-        return (st.actor.unstack(0), st.actor_target.unstack(0), st.critic.subset(0, e).cpu(),
-                st.critic_target.subset(0, e).cpu().requires_grad_(False))
+        with torch.random.fork_rng(devices=[]):
+            return (st.actor.unstack(0), st.actor_target.unstack(0).requires_grad_(False), st.critic.subset(0, e).cpu(),
+                    st.critic_target.subset(0, e).cpu().requires_grad_(False))
 
     def state_dict(self) -> dict[str, Any]:
         """Networks, optimizers, buffer, RNG streams and the update count, as CPU tensors."""
