@@ -28,7 +28,7 @@ for s in "${seeds[@]}"; do
       echo "$kind seed $s trained in $(( $(date +%s) - start )) s" | tee -a timings.txt
     fi
     run=$kind/seed$s
-    [ -f "extract/$run/population.pt" ] || mapex extract --seed "$s" --variant mapex --specialists "$spec" \
+    [ -f "extract/$run/population.pt" ] || mapex extract --seed "$s" --variant mapex --kind "$kind" --specialists "$spec" \
       --out "extract/$run" --resume-dir "resume/$run" --params "$params"
     [ -f "evaluate/$run/evaluated.csv" ] || mapex evaluate --seed "$s" --population "extract/$run/population.pt" \
       --out "evaluate/$run" --params "$params"
