@@ -602,6 +602,54 @@ def test_sigkilled_stage_resumes_from_shared_storage(device, graphs, tmp_path, w
     assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]
 
 
+def test_side_by_side_processes_give_the_one_at_a_time_bits(tmp_path, write_params, cli):
+    """processes: 2 trains each specialist alone in its own worker process: the same bytes as
+    batched: false, which trains them alone one after another in the stage's process."""
+    ref = run_stage(cli, tmp_path / "ref", write_params, {"batched": False})
+    assert ref.exit_code == 0, ref.stderr
+    two = run_stage(cli, tmp_path / "two", write_params, {"processes": 2})
+    assert two.exit_code == 0, two.stderr
+    assert_same_artifacts(tmp_path / "ref" / "out", tmp_path / "two" / "out")
+    assert sorted(p.name for p in (tmp_path / "two" / "out").iterdir()) == ["obj0", "obj1"]
+
+
+def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_params):
+    """processes: 2, and the `mapex` process gets SIGKILL once both workers have checkpointed:
+    the workers stop too (nothing is written after the kill), and the rerun resumes both to
+    the bytes of a run never stopped."""
+    root = Path(__file__).resolve().parents[1]
+    ts = {**RESUME["train_specialist"], "total_steps": 3000, "checkpoint_every": 500, "processes": 2}
+    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+
+    def command(out: Path) -> list[str]:
+        return [sys.executable, "-m", "stages.cli", "train-specialist", "--seed", "0", "--out", str(out), "--params", str(params)]
+
+    ref = subprocess.run(command(tmp_path / "ref"), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    out = tmp_path / "run"
+    ckpts = [out / "specialist_state_obj0.pt", out / "specialist_state_obj1.pt"]
+    proc = subprocess.Popen(command(out), cwd=tmp_path, env=env, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while not all(c.exists() for c in ckpts) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert all(c.exists() for c in ckpts), "the run ended before it could be killed mid-way"
+    time.sleep(3)  # a worker notices within one progress message (PROGRESS_EVERY steps)
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    time.sleep(2)
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before, "a worker kept writing after the kill"
+    steps = [torch.load(c, weights_only=True)["state"]["counters"]["t"] for c in ckpts]
+    assert all(500 <= t < 3000 for t in steps)
+    again = subprocess.run(command(out), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-3000:]
+    for c, t in zip(ckpts, steps):
+        assert f"resuming from step {t} of {c}" in again.stderr
+    assert_same_artifacts(tmp_path / "ref", out)
+    assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]
+
+
 def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, cli, monkeypatch):
     """A checkpoint written under other params is not resumed: the run trains from step 0,
     (with checkpoint_every 0) saves no checkpoint of its own, and removes the stale one and

@@ -35,6 +35,13 @@ class TrainSpecialistParams(Strict):
         description="train all specialists of a stage in one stacked process (each exactly as alone); "
         "false: one after another",
     )
+    processes: int = Field(
+        1,
+        ge=1,
+        description="worker processes the stage splits its specialists over, side by side (at most one per "
+        "objective; each uses MAPEX_TORCH_THREADS threads); the specialists of a process stack as `batched` says. "
+        "A specialist trained alone gives other bits than one stacked with another, so this changes the artifacts",
+    )
     cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
     checkpoint_every: int = Field(
         50_000,

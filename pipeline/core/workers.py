@@ -1,0 +1,109 @@
+"""Side-by-side worker processes inside one stage.
+
+A stage that splits its work into independent parts (the specialists of a seed, say) can run
+each part in its own process: on a CPU with cores to spare and small networks, two processes
+of one job each beat one process that does both (PyTorch's per-op overhead, not arithmetic,
+bounds a small update, and a second thread does not halve that overhead, a second process
+does).
+
+`run_side_by_side(fn, parts, on_message)` starts one spawned process per part, calls
+`fn(*part, send=send)` in it, relays what the part `send`s to `on_message` in this process,
+and returns when every part has finished. The first part that fails stops the others and
+raises `WorkerError` here. A worker whose parent has gone (the stage was killed) stops at its
+next `send`, so nothing outlives a killed stage for longer than one message interval; the
+work of a part must therefore be safe to kill, which is what the stages' atomic writes and
+resumable checkpoints are for.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import queue
+import traceback
+from typing import Any, Callable, Sequence
+
+
+class WorkerError(RuntimeError):
+    """A worker process failed: `part` is its index, `detail` its traceback (or exit code)."""
+
+    def __init__(self, part: int, message: str, detail: str) -> None:
+        super().__init__(message)
+        self.part, self.detail = part, detail
+
+
+class ParentGone(SystemExit):
+    """Raised in a worker whose parent process has exited."""
+
+
+def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int) -> None:
+    def send(*message: Any) -> None:
+        if os.getppid() != parent:
+            channel.cancel_join_thread()  # exit without flushing messages nobody will read
+            raise ParentGone(f"worker {index}: the stage process has gone; stopping")
+        channel.put((index, "message", message))
+
+    try:
+        fn(*args, send=send)
+    except ParentGone:
+        raise
+    except BaseException as exc:  # noqa: BLE001 - every failure must reach the parent
+        channel.put((index, "error", (f"{type(exc).__name__}: {exc}", traceback.format_exc())))
+        raise SystemExit(1) from None
+    channel.put((index, "done", None))
+
+
+def run_side_by_side(
+    fn: Callable[..., Any],
+    parts: Sequence[tuple],
+    on_message: Callable[[int, tuple], None] | None = None,
+    poll_s: float = 0.2,
+) -> None:
+    """Run fn(*parts[i], send=...) for every i, each in its own spawned process, at once.
+
+    fn must be importable (a module-level function) and its arguments picklable. What a part
+    passes to `send(*message)` reaches `on_message(i, message)` here, in order per part.
+    Raises WorkerError for the first part that fails (the others are terminated first).
+    """
+    ctx = mp.get_context("spawn")  # not fork: the parent may hold OpenMP or CUDA state
+    channel = ctx.Queue()
+    procs = [ctx.Process(target=_entry, args=(fn, i, tuple(args), channel, os.getpid()), daemon=True) for i, args in enumerate(parts)]
+    done: set[int] = set()
+
+    def handle(item) -> None:
+        index, kind, payload = item
+        if kind == "message":
+            if on_message is not None:
+                on_message(index, payload)
+        elif kind == "done":
+            done.add(index)
+        else:
+            message, detail = payload
+            raise WorkerError(index, f"part {index}: {message}", detail)
+
+    try:
+        for p in procs:
+            p.start()
+        while len(done) < len(procs):
+            try:
+                handle(channel.get(timeout=poll_s))
+                continue
+            except queue.Empty:
+                pass
+            for i, p in enumerate(procs):
+                if i not in done and not p.is_alive():
+                    # it may have exited right after its last message: read what is left first
+                    try:
+                        while True:
+                            handle(channel.get(timeout=poll_s))
+                    except queue.Empty:
+                        pass
+                    if i not in done:
+                        raise WorkerError(i, f"part {i}: its process exited with code {p.exitcode}", "")
+    finally:
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        for p in procs:
+            p.join()
+        channel.close()

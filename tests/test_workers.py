@@ -1,0 +1,114 @@
+"""pipeline.core.workers: parts in side-by-side processes, their messages relayed in order, the
+first failure stopping the rest, and workers that stop once their stage process is gone."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.core.workers import WorkerError, run_side_by_side
+
+# The part functions below run in spawned processes, which import them from this module.
+
+
+def count_part(name: str, n: int, *, send) -> None:
+    for i in range(n):
+        send(name, i)
+
+
+def failing_part(delay_s: float, *, send) -> None:
+    time.sleep(delay_s)
+    raise ValueError("objective 7 is out of range")
+
+
+def slow_part(marker: str, *, send) -> None:
+    send("started", os.getpid())
+    time.sleep(30)
+    Path(marker).write_text("finished")
+
+
+def slow_or_failing_part(kind: str, marker: str, *, send) -> None:
+    if kind == "slow":
+        slow_part(marker, send=send)
+    else:
+        failing_part(1.0, send=send)
+
+
+def dying_part(*, send) -> None:
+    os._exit(3)
+
+
+def forever_part(pid_file: str, *, send) -> None:
+    Path(pid_file).write_text(str(os.getpid()))
+    while True:
+        send("tick")
+        time.sleep(0.05)
+
+
+def test_messages_arrive_in_order_per_part():
+    got: dict[int, list] = {0: [], 1: []}
+    run_side_by_side(count_part, [("a", 50), ("b", 30)], lambda i, m: got[i].append(m))
+    assert got[0] == [("a", i) for i in range(50)]
+    assert got[1] == [("b", i) for i in range(30)]
+
+
+def test_a_failing_part_stops_the_others_and_names_itself(tmp_path):
+    marker = tmp_path / "finished"
+    started = time.monotonic()
+    with pytest.raises(WorkerError) as info:
+        run_side_by_side(slow_or_failing_part, [("slow", str(marker)), ("fail", "")])
+    assert info.value.part == 1
+    assert "ValueError: objective 7 is out of range" in str(info.value)
+    assert "Traceback" in info.value.detail and "failing_part" in info.value.detail
+    assert time.monotonic() - started < 25  # the slow part was stopped, not waited for
+    assert not marker.exists()
+
+
+def test_a_part_that_dies_without_a_word_is_a_failure():
+    with pytest.raises(WorkerError, match="exited with code 3") as info:
+        run_side_by_side(dying_part, [()], None)
+    assert info.value.part == 0
+
+
+def test_workers_stop_when_the_stage_process_is_killed(tmp_path):
+    """SIGKILL the process running run_side_by_side: its worker notices at its next send."""
+    pid_file = tmp_path / "worker.pid"
+    script = (
+        "import sys; sys.path.insert(0, sys.argv[1]); import test_workers as t; "
+        "from pipeline.core.workers import run_side_by_side; "
+        "run_side_by_side(t.forever_part, [(sys.argv[2],)])"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    stage = subprocess.Popen([sys.executable, "-c", script, str(Path(__file__).parent), str(pid_file)], env=env)
+    deadline = time.time() + 60
+    while not pid_file.exists() and time.time() < deadline:
+        time.sleep(0.05)
+    assert pid_file.exists(), "the worker never started"
+    time.sleep(0.2)  # let the pid be written in full
+    worker = int(pid_file.read_text())
+    stage.send_signal(signal.SIGKILL)
+    stage.wait()
+    deadline = time.time() + 10
+    while time.time() < deadline and _alive(worker):
+        time.sleep(0.05)
+    assert not _alive(worker), "the worker outlived its stage process"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie (exited, not yet reaped by init) counts as gone
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
