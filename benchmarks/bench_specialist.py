@@ -5,6 +5,8 @@ specialist), on --device cpu or cuda, in one run:
 
   (a) our TD3 specialist with secondary critics alone (2 objectives x 2 heads = 4 Q-networks);
   (b) K of them stacked in one process (`train_specialists`): aggregate and per-specialist;
+      with --processes P also K of them split over P side-by-side processes (K/P stacked in
+      each, as `train_specialist.processes` runs them), aggregate;
   (c) stable-baselines3's TD3 (2 Q-networks) on the same env reduced to one objective, with the
       same widths, batch, warm-up, thread count and device;
 
@@ -49,9 +51,9 @@ def clocks() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
-def bench_ours(args: argparse.Namespace, stack: int) -> tuple[tuple[float, float], int]:
-    """`stack` specialists (objectives alternating, seeds counting up) trained together; returns
-    ((wall s, CPU s) of the timed steps, Q-networks trained per specialist)."""
+def bench_ours(args: argparse.Namespace, stack: int, first: int = 0) -> tuple[tuple[float, float], int]:
+    """`stack` specialists (objectives alternating, seeds counting up, from the first-th) trained
+    together; returns ((wall s, CPU s) of the timed steps, Q-networks trained per specialist)."""
     cfg = TrainSpecialistParams(
         total_steps=args.warmup + args.steps,
         learning_starts=args.warmup,
@@ -63,7 +65,7 @@ def bench_ours(args: argparse.Namespace, stack: int) -> tuple[tuple[float, float
     )
     envs = [make_env(args.env, args.cap) for _ in range(stack)]
     spec = env_spec(envs[0], args.env, args.cap)
-    jobs = [(args.seed + s // spec.n_objectives, s % spec.n_objectives) for s in range(stack)]
+    jobs = [(args.seed + s // spec.n_objectives, s % spec.n_objectives) for s in range(first, first + stack)]
     start: list[tuple[float, float]] = []
 
     def on_step(t: int, _records) -> None:
@@ -77,6 +79,27 @@ def bench_ours(args: argparse.Namespace, stack: int) -> tuple[tuple[float, float
     for env in envs:
         env.close()
     return (end[0] - start[0][0], end[1] - start[0][1]), results[0].critic.n_members
+
+
+def bench_part(args: argparse.Namespace, stack: int, first: int, *, send) -> None:
+    """One process of a side-by-side run (pipeline.core.workers): its share, stacked."""
+    torch.set_num_threads(args.threads)
+    send(bench_ours(args, stack, first)[0])
+
+
+def bench_side_by_side(args: argparse.Namespace, stack: int, processes: int) -> tuple[float, float]:
+    """`stack` specialists split over `processes` processes at once (contiguous shares, sizes
+    differing by one at most); returns (aggregate steps/s, per CPU-second): each process's
+    timed steps over its own wall (CPU) time, summed."""
+    from pipeline.core.workers import run_side_by_side
+
+    sizes = [stack // processes + (i < stack % processes) for i in range(processes)]
+    parts = [(args, k, sum(sizes[:i])) for i, k in enumerate(sizes)]
+    clocks_of: dict[int, tuple[float, float]] = {}
+    run_side_by_side(bench_part, parts, lambda i, message: clocks_of.__setitem__(i, message[0]))
+    wall = sum(k * args.steps / clocks_of[i][0] for i, k in enumerate(sizes))
+    cpu = sum(k * args.steps / clocks_of[i][1] for i, k in enumerate(sizes))
+    return wall, cpu
 
 
 def bench_sb3(args: argparse.Namespace) -> tuple[float, float]:
@@ -137,7 +160,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3000, help="timed steps after the warm-up, one update each")
     parser.add_argument("--batch", type=int, default=256, help="minibatch size")
     parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden widths of actor and critics")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads, the same for every side")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads, the same for every side (and process)")
+    parser.add_argument("--processes", type=int, default=1,
+                        help="P > 1: also run each K split over P side-by-side processes (train_specialist.processes)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-secondary", action="store_true", help="ours without secondary critics (2 Q-networks)")
     parser.add_argument("--no-sb3", action="store_true", help="skip stable-baselines3")
@@ -161,6 +186,12 @@ def main() -> None:
         rows.append((f"ours x{k}", k, k * args.steps / wall, k * args.steps / cpu))
         print(f"ours x{k}: {n_q} Q-networks each, {wall:.1f} s wall: {k * args.steps / wall:.1f} steps/s aggregate, "
               f"{args.steps / wall:.1f} per specialist ({k * args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
+        if args.processes > 1 and k >= args.processes:
+            print(f"ours x{k} in {args.processes} processes: start ({load()})", flush=True)
+            rate, per_cpu = bench_side_by_side(args, k, args.processes)
+            rows.append((f"ours x{k} in {args.processes} processes", k, rate, per_cpu))
+            print(f"ours x{k} in {args.processes} processes: {rate:.1f} steps/s aggregate, {rate / k:.1f} per specialist "
+                  f"({per_cpu:.1f} per CPU-second of its processes) ({load()})", flush=True)
     if not args.no_sb3:
         print(f"sb3: start ({load()})", flush=True)
         wall, cpu = bench_sb3(args)

@@ -386,3 +386,30 @@ def test_check_matches_names_the_disagreeing_key():
     check_matches("a.pt", META, dict(META), "buffer")
     with pytest.raises(ArtifactError, match=r"a.pt: obs_dim = 5 does not match buffer \(obs_dim = 6\)"):
         check_matches("a.pt", META, META | {"obs_dim": 6}, "buffer")
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["fused", "plain"])
+def test_adam_step_is_bitwise_optimizer_step(fused):
+    """adam_step (the stacked update's shortcut past Optimizer.step's bookkeeping) leaves
+    parameters and Adam state with the very bits opt.step() does, step after step; a plain
+    (unfused) Adam, and the first step (no state yet), go through opt.step() itself."""
+    from pipeline.specialists.td3 import adam_step, clear_grads
+
+    torch.manual_seed(0)
+    nets = [CriticEnsemble(5, 2, [16, 16], 4) for _ in range(2)]
+    nets[1].load_state_dict(nets[0].state_dict())
+    opts = [torch.optim.Adam(n.parameters(), lr=3e-4, fused=fused) for n in nets]
+    x, a = torch.randn(32, 5), torch.randn(32, 2)
+    for step in range(6):
+        for i, (net, opt) in enumerate(zip(nets, opts)):
+            clear_grads(opt) if i else opt.zero_grad(set_to_none=True)
+            (net(x, a) ** 2).mean().backward()
+            adam_step(opt) if i else opt.step()
+        for p, q in zip(nets[0].parameters(), nets[1].parameters()):
+            assert torch.equal(p, q), step
+        for p, q in zip(nets[0].parameters(), nets[1].parameters()):
+            for key in ("step", "exp_avg", "exp_avg_sq"):
+                assert torch.equal(opts[0].state[p][key], opts[1].state[q][key]), (step, key)
+    assert all(p.grad is not None for p in nets[1].parameters())
+    clear_grads(opts[1])
+    assert all(p.grad is None for p in nets[1].parameters())

@@ -150,6 +150,63 @@ class StackedTD3:
         return self.reward_index.shape[0]
 
 
+def adam_step(opt: torch.optim.Optimizer) -> None:
+    """opt.step() for the stacked update's fused Adam on a CPU, minus Optimizer.step's per-call
+    bookkeeping (hooks, profiler ranges, the dynamo guard, per-parameter state checks and the
+    regrouping of tensors by device), which at the quickstart's 64-unit widths cost about a
+    tenth of a training step. It makes the calls opt.step() ends in for this case (the step
+    counters' increment, then torch._fused_adam_ with the group's hyperparameters), so the
+    bits are the same (tests/test_nets_td3.py). Any other case (not fused, not on the CPU,
+    capturable, AMSGrad, AdamW, a parameter without a gradient, no state yet) is opt.step()."""
+    groups = opt.param_groups
+    g = groups[0]
+    if (
+        len(groups) != 1
+        or not g.get("fused")
+        or g.get("capturable")
+        or g.get("amsgrad")
+        or g.get("differentiable")
+        or g.get("decoupled_weight_decay")
+        or type(opt) is not torch.optim.Adam
+        or opt._optimizer_step_pre_hooks
+        or opt._optimizer_step_post_hooks
+    ):
+        opt.step()
+        return
+    params = g["params"]
+    states = [opt.state.get(p) for p in params]
+    if not all(states) or any(p.grad is None or p.device.type != "cpu" or p.dtype != torch.float32 for p in params):
+        opt.step()
+        return
+    steps = [st["step"] for st in states]
+    beta1, beta2 = g["betas"]
+    torch._foreach_add_(steps, 1)
+    torch._fused_adam_(
+        params,
+        [p.grad for p in params],
+        [st["exp_avg"] for st in states],
+        [st["exp_avg_sq"] for st in states],
+        [],
+        steps,
+        amsgrad=False,
+        lr=g["lr"],
+        beta1=beta1,
+        beta2=beta2,
+        weight_decay=g["weight_decay"],
+        eps=g["eps"],
+        maximize=g["maximize"],
+        grad_scale=None,
+        found_inf=None,
+    )
+
+
+def clear_grads(opt: torch.optim.Optimizer) -> None:
+    """opt.zero_grad(set_to_none=True) without its profiler range."""
+    for g in opt.param_groups:
+        for p in g["params"]:
+            p.grad = None
+
+
 def stacked_targets(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float) -> torch.Tensor:
     """TD3 targets of every covered objective of every specialist -> (S, n_cov, B).
 
@@ -174,9 +231,9 @@ def stacked_critic_step(state: StackedTD3, batch: Batch, noise: torch.Tensor, ga
     q = state.critic.grouped(batch.obs, batch.action)  # (S * 2 * n_cov, B)
     y = y.repeat_interleave(2, dim=1).reshape(q.shape)  # both heads of an objective share its target
     loss = ((q - y) ** 2).mean(dim=1).sum()
-    state.critic_opt.zero_grad(set_to_none=True)
+    clear_grads(state.critic_opt)
     loss.backward()
-    state.critic_opt.step()
+    adam_step(state.critic_opt)
     return loss.detach()
 
 
@@ -186,11 +243,11 @@ def stacked_actor_step(state: StackedTD3, obs: torch.Tensor, tau: float) -> torc
     try:
         q = state.critic.grouped(obs, state.actor(obs), members=state.primary_members)  # (S, B)
         loss = -q.mean(dim=1).sum()
-        state.actor_opt.zero_grad(set_to_none=True)
+        clear_grads(state.actor_opt)
         loss.backward()
     finally:
         state.critic.requires_grad_(True)
-    state.actor_opt.step()
+    adam_step(state.actor_opt)
     polyak_update(state.critic, state.critic_target, tau)
     polyak_update(state.actor, state.actor_target, tau)
     return loss.detach()
