@@ -602,6 +602,24 @@ def test_sigkilled_stage_resumes_from_shared_storage(device, graphs, tmp_path, w
     assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]
 
 
+@pytest.mark.parametrize(
+    ("objectives", "processes", "batched", "expected"),
+    [
+        ([0, 1], 1, True, [[[0, 1]]]),
+        ([0, 1], 2, True, [[[0]], [[1]]]),
+        ([0, 1], 5, True, [[[0]], [[1]]]),  # at most one process per objective
+        ([0, 1, 2], 2, True, [[[0, 1]], [[2]]]),
+        ([0, 1, 2], 2, False, [[[0], [1]], [[2]]]),
+        ([1], 2, True, [[[1]]]),
+    ],
+)
+def test_plan_splits_objectives_into_contiguous_parts(objectives, processes, batched, expected):
+    from stages.train_specialist import plan
+
+    cfg = RESUME_CFG.model_copy(update={"processes": processes, "batched": batched})
+    assert plan(objectives, cfg) == expected
+
+
 def test_side_by_side_processes_give_the_one_at_a_time_bits(tmp_path, write_params, cli):
     """processes: 2 trains each specialist alone in its own worker process: the same bytes as
     batched: false, which trains them alone one after another in the stage's process."""
@@ -618,7 +636,7 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
     the workers stop too (nothing is written after the kill), and the rerun resumes both to
     the bytes of a run never stopped."""
     root = Path(__file__).resolve().parents[1]
-    ts = {**RESUME["train_specialist"], "total_steps": 3000, "checkpoint_every": 500, "processes": 2}
+    ts = {**RESUME["train_specialist"], "total_steps": 2000, "checkpoint_every": 400, "processes": 2}
     params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
 
@@ -636,12 +654,12 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert all(c.exists() for c in ckpts), "the run ended before it could be killed mid-way"
-    time.sleep(3)  # a worker notices within one progress message (PROGRESS_EVERY steps)
+    time.sleep(2)  # a worker notices within one progress message (PROGRESS_EVERY steps)
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
-    time.sleep(2)
+    time.sleep(1.5)
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before, "a worker kept writing after the kill"
     steps = [torch.load(c, weights_only=True)["state"]["counters"]["t"] for c in ckpts]
-    assert all(500 <= t < 3000 for t in steps)
+    assert all(400 <= t < 2000 for t in steps)
     again = subprocess.run(command(out), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-3000:]
     for c, t in zip(ckpts, steps):
