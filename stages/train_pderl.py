@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import sys
 from pathlib import Path
 from typing import Any, Optional
 
@@ -21,7 +22,8 @@ from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, progress, reports_errors
-from stages.train_specialist import save_rl_agent, specialist_meta
+from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
+from stages.train_specialist import Relay, save_rl_agent, specialist_meta
 
 CHECKPOINT = "pderl_state.pt"
 CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
@@ -29,7 +31,7 @@ CHECKPOINT_VERSION = 1
 
 # train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
 # RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
-_UNUSED_TD3_KEYS = {"total_steps", "batched", "device"}
+_UNUSED_TD3_KEYS = {"total_steps", "batched", "processes", "device"}
 
 
 @reports_errors
@@ -61,7 +63,8 @@ def train_pderl(
     evaluation). Progress is checkpointed to OUT/obj{K}/pderl_state.pt every
     train_pderl.checkpoint_every generations; a rerun with the same params, code, device and
     thread count resumes from it and ends with the same artifacts. It is deleted once the
-    artifacts are written.
+    artifacts are written. train_pderl.processes > 1 runs the objectives side by side in that
+    many worker processes (the same artifacts: each run is the same in any process).
     """
     raw = load_params(params)
     env_p = section(raw, "env", EnvParams, params)
@@ -82,8 +85,38 @@ def train_pderl(
         raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
     names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
     device = select_device(cfg.device)
+    parts = split_evenly(objectives, cfg.processes)
+    what = ", ".join(f"obj {k} ({names[k]})" for k in objectives)
+    bar = progress(cfg.total_frames * len(objectives), f"PDERL seed {seed}: {what}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""), unit="frame")
+    relay = Relay(bar, prefix="")
+    with bar:
+        if len(parts) == 1:
+            train_part(out, parts[0], names, seed, spec, env_p, td3, cfg, device, send=relay.message)
+        else:
+            warning = oversubscribed(len(parts), torch.get_num_threads())
+            if warning:
+                bar.write(warning, file=sys.stderr)
+            args = [(out, part, names, seed, spec, env_p, td3, cfg, device, torch.get_num_threads()) for part in parts]
+            try:
+                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i))
+            except WorkerError as exc:
+                if exc.detail:
+                    typer.echo(exc.detail.rstrip(), err=True)
+                objs = ", ".join(f"obj {k}" for k in parts[exc.part])
+                typer.echo(f"error: PDERL seed {seed}, {objs}: {exc}", err=True)
+                raise typer.Exit(code=1) from None
+        bar.total = bar.n  # the final evaluations overshoot the frame budget
+
+
+def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
+               cfg: TrainPderlParams, device, threads: int | None = None, *, send) -> None:
+    """The PDERL runs of `objectives`, one after another (in this process, or as one worker of
+    train_pderl.processes with `threads` torch threads); progress goes to `send` (stages.
+    train_specialist.Relay)."""
+    if threads is not None:
+        torch.set_num_threads(threads)
     for k in objectives:
-        train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device)
+        train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
 def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams, device) -> str:
@@ -92,7 +125,7 @@ def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpeci
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
-        "train_pderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+        "train_pderl": cfg.model_dump(exclude={"checkpoint_every", "device", "processes"}),
         "seed": seed,
         "objective": objective,
         "device": str(device),
@@ -101,9 +134,10 @@ def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpeci
     return fingerprint(config, closure_files("stages.train_pderl"))
 
 
-def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume)."""
-    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, lambda line: typer.echo(line, err=True))
+def load_checkpoint(path: Path, fp: str, say=None) -> dict[str, Any] | None:
+    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume);
+    why not goes to `say` (default: stderr)."""
+    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, say or (lambda line: typer.echo(line, err=True)))
 
 
 def save_checkpoint(path: Path, fp: str, run: PderlRun) -> None:
@@ -111,37 +145,35 @@ def save_checkpoint(path: Path, fp: str, run: PderlRun) -> None:
 
 
 def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
-              cfg: TrainPderlParams, device: torch.device) -> None:
-    """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts."""
+              cfg: TrainPderlParams, device: torch.device, send) -> None:
+    """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts.
+    Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
     fp = run_fingerprint(seed, k, env_p, td3, cfg, device)
     ckpt = checkpoint_dir(out) / CHECKPOINT  # beside the outputs, or on shared storage in a sweep
-    state = load_checkpoint(ckpt, fp)
+    state = load_checkpoint(ckpt, fp, lambda line: send("say", line))
     run = PderlRun(spec, td3, cfg, k, seed, device)
     if state is not None:
         try:
             run.load_state_dict(state)
-            typer.echo(f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt}", err=True)
+            send("say", f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt}")
         except ValueError as exc:  # right fingerprint, yet it does not fit: never trust it
-            typer.echo(f"{ckpt}: cannot be resumed ({exc}); starting over", err=True)
+            send("say", f"{ckpt}: cannot be resumed ({exc}); starting over")
             run = PderlRun(spec, td3, cfg, k, seed, device)
     del state
     env = make_env(env_p.id, env_p.max_episode_steps)
-    bar = progress(cfg.total_frames, f"PDERL seed {seed}: obj {k} ({name})", unit="frame")
-    bar.update(run.frames)
+    send("steps", run.frames)
 
     def on_episode(ep: EpisodeResult) -> None:
-        bar.update(ep.length)
+        send("steps", ep.length)
 
     def on_generation(run: PderlRun, rec: GenerationRecord) -> None:
-        bar.set_postfix_str(f"gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}", refresh=False)
+        send("returns", f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}")
         if rec.generation % cfg.checkpoint_every == 0:
             save_checkpoint(ckpt, fp, run)
 
     try:
-        with bar:
-            result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
-            bar.total = result.frames
-            bar.set_postfix_str(f"final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
+        result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
+        send("returns", f"obj {k} ({name}) final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
     finally:
         env.close()
     save_pderl(out, result, spec, env_p, td3, cfg, device)

@@ -21,7 +21,7 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
-from pipeline.core.workers import WorkerError, run_side_by_side
+from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -82,6 +82,9 @@ def train_specialist(
             train_part(out, parts[0], seed, spec, env_p, cfg, device, names, send=Relay(bar).message)
         else:
             relay = Relay(bar)
+            warning = oversubscribed(len(parts), torch.get_num_threads())
+            if warning:
+                bar.write(warning, file=sys.stderr)
             args = [(out, part, seed, spec, env_p, cfg, device, names, torch.get_num_threads()) for part in parts]
             try:
                 run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i))
@@ -98,13 +101,7 @@ def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[lis
     """How the stage trains `objectives`: parts (one process each, train_specialist.processes
     of them at most), each a list of groups trained one after another, the specialists of a
     group stacked together (all of the part's if batched, else one per group)."""
-    n = min(cfg.processes, len(objectives))
-    size, extra = divmod(len(objectives), n)
-    parts, start = [], 0
-    for i in range(n):  # contiguous, sizes differing by one at most
-        stop = start + size + (i < extra)
-        parts.append([int(k) for k in objectives[start:stop]])
-        start = stop
+    parts = split_evenly([int(k) for k in objectives], cfg.processes)
     return [[part] if cfg.batched else [[k] for k in part] for part in parts]
 
 
@@ -112,15 +109,15 @@ class Relay:
     """Shows on this process's progress bar and stderr what the parts report (`send`):
     ("steps", n), ("returns", text) and ("say", line)."""
 
-    def __init__(self, bar) -> None:
-        self.bar, self.returns = bar, {}
+    def __init__(self, bar, prefix: str = "return ") -> None:
+        self.bar, self.prefix, self.returns = bar, prefix, {}
 
     def message(self, kind: str, value, part: int = 0) -> None:
         if kind == "steps":
             self.bar.update(value)
         elif kind == "returns":
             self.returns[part] = value
-            self.bar.set_postfix_str("return " + "; ".join(v for _, v in sorted(self.returns.items())), refresh=False)
+            self.bar.set_postfix_str(self.prefix + "; ".join(v for _, v in sorted(self.returns.items())), refresh=False)
         else:
             self.bar.write(value, file=sys.stderr)
 

@@ -309,10 +309,11 @@ def stage(monkeypatch, write_params):
     app = typer.Typer()
     app.command()(train_pderl_stage)
 
-    def invoke(d: Path, overrides=None, objective: int = 1):
+    def invoke(d: Path, overrides=None, objective: int | list[int] = 1):
         over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "train_pderl": PDERL} | (overrides or {})
         params = write_params(d, over)
-        return CliRunner().invoke(app, ["--seed", "0", "--objective", str(objective), "--out", str(d / "out"), "--params", str(params)])
+        chosen = [a for k in ([objective] if isinstance(objective, int) else objective) for a in ("--objective", str(k))]
+        return CliRunner().invoke(app, ["--seed", "0", *chosen, "--out", str(d / "out"), "--params", str(params)])
 
     return invoke
 
@@ -389,6 +390,34 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     monkeypatch.setattr(PderlRun, "step_generation", real)
     res = stage(tmp_path / "stale", {"train_pderl": PDERL | {"mutation_std": 0.1}})
     assert res.exit_code == 0 and "starting over" in res.output and "resuming" not in res.output
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread, mapex's default. The workers take the stage's count, and two each on a
+    2-core machine oversubscribe it (measured several times slower)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeypatch, one_thread):
+    """train_pderl.processes: 2 runs the two objectives' PDERL runs in two worker processes at
+    once: each run is the one the stage's own process would make, bit for bit."""
+    import stages.train_pderl as stage_module
+
+    one = stage(tmp_path / "one", objective=[0, 1])
+    assert one.exit_code == 0, one.output
+    parts = []
+    real = stage_module.run_side_by_side
+    monkeypatch.setattr(stage_module, "run_side_by_side", lambda fn, args, *a: (parts.append([x[1] for x in args]), real(fn, args, *a)))
+    two = stage(tmp_path / "two", {"train_pderl": PDERL | {"processes": 2}}, objective=[0, 1])
+    assert two.exit_code == 0, two.output
+    assert parts == [[[0], [1]]]  # one worker per objective
+    for k in (0, 1):
+        same_bits(artifacts(tmp_path / "one" / "out" / f"obj{k}"), artifacts(tmp_path / "two" / "out" / f"obj{k}"))
+        assert not (tmp_path / "two" / "out" / f"obj{k}" / CHECKPOINT).exists()
 
 
 def test_stage_rejects_bad_params(tmp_path, stage):

@@ -403,3 +403,19 @@ def test_resume_root_gives_each_task_its_own_shared_progress_dir(tmp_path):
     other = sw.StageTask("hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
     assert sw.task_resume_dir(other) != sw.task_resume_dir(task)  # cells never share progress
     assert sw.task_resume_dir(sw.StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
+
+
+def test_stages_with_worker_processes_reserve_a_cpu_per_process():
+    """train_specialist.processes: 2 (the quickstart's params) makes a train_specialist task ask
+    Ray for 2 CPUs with 1 torch thread per process, unless the grid says otherwise; stages
+    without workers keep the defaults."""
+    params = {"train_specialist": {"processes": 2}, "train_pderl": {}}
+    assert sw.stage_processes(params, "train_specialist") == 2
+    assert sw.stage_processes(params, "train_pderl") == 1
+    assert sw.stage_processes(params, "extract") == 1
+    grid = sw.Grid(envs=["mo-hopper-2obj-v5"])
+    assert sw._resources(grid, "train_specialist", 0, 2) == (2.0, 0.0, 1)
+    assert sw._resources(grid, "extract", 0, 1) == (1.0, 0.0, 1)
+    given = sw.Grid(envs=["mo-hopper-2obj-v5"], resources={"train_specialist": {"cpus": 4}})
+    assert sw._resources(given, "train_specialist", 0, 2) == (4.0, 0.0, 2)  # 2 processes x 2 threads
+    assert sw._resources(given, "train_specialist", 1, 1)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads

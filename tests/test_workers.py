@@ -112,3 +112,13 @@ def _alive(pid: int) -> bool:
             return f.read().split(")")[-1].split()[0] != "Z"
     except FileNotFoundError:
         return False
+
+
+def test_oversubscription_is_named():
+    from pipeline.core.workers import oversubscribed
+
+    cores = len(os.sched_getaffinity(0))
+    assert oversubscribed(1, 1) is None
+    assert oversubscribed(cores, 1) is None
+    warning = oversubscribed(cores, 2)
+    assert warning is not None and f"{cores} processes x 2 torch threads on {cores} cores" in warning

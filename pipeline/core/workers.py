@@ -24,6 +24,28 @@ import traceback
 from typing import Any, Callable, Sequence
 
 
+def split_evenly(items: Sequence[Any], n: int) -> list[list[Any]]:
+    """items in min(n, len(items)) contiguous parts whose sizes differ by one at most."""
+    n = max(1, min(n, len(items)))
+    size, extra = divmod(len(items), n)
+    parts, start = [], 0
+    for i in range(n):
+        stop = start + size + (i < extra)
+        parts.append(list(items[start:stop]))
+        start = stop
+    return parts
+
+
+def oversubscribed(processes: int, threads: int) -> str | None:
+    """A warning when `processes` workers of `threads` torch threads each want more cores than
+    this machine has (OpenMP threads then wait on each other: measured several times slower)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if processes * threads <= cores:
+        return None
+    return (f"warning: {processes} processes x {threads} torch threads on {cores} cores: oversubscribed, "
+            f"expect it to be slow; lower MAPEX_TORCH_THREADS or processes")
+
+
 class WorkerError(RuntimeError):
     """A worker process failed: `part` is its index, `detail` its traceback (or exit code)."""
 

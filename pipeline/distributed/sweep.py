@@ -133,7 +133,9 @@ class ResourceSpec(_Strict):
     gpus: float | Literal["auto"] = Field(
         "auto", description="GPUs per task (fractions share one GPU); auto: 1 for the training stages when the cluster has a GPU, else 0"
     )
-    threads: int | None = Field(None, ge=1, description="MAPEX_TORCH_THREADS for the stage (default: cpus, at least 1)")
+    threads: int | None = Field(
+        None, ge=1, description="MAPEX_TORCH_THREADS for the stage (default: cpus, at least 1; shared among a stage's processes)"
+    )
 
     @field_validator("gpus")
     @classmethod
@@ -695,12 +697,27 @@ def write_lock(ws: Path, remote: str, targets: list[str] | None = None, remote_o
         shutil.rmtree(stub_dir, ignore_errors=True)
 
 
-def _resources(grid: Grid, stage: str, cluster_gpus: float) -> tuple[float, float, int]:
-    spec = grid.resources.get(stage, ResourceSpec())
+# Stages whose params section has `processes`: worker processes that train side by side.
+PROCESS_STAGES = ("train_specialist", "train_pderl")
+
+
+def stage_processes(params: dict[str, Any], stage: str) -> int:
+    """How many processes one task of `stage` runs at once under the cell's params (1 for a
+    stage without workers); the section's default is 1."""
+    if stage not in PROCESS_STAGES:
+        return 1
+    return max(1, int((params.get(stage) or {}).get("processes", 1)))
+
+
+def _resources(grid: Grid, stage: str, cluster_gpus: float, processes: int = 1) -> tuple[float, float, int]:
+    """(CPUs, GPUs, torch threads per process) of one task. A stage that runs `processes`
+    worker processes reserves that many CPUs unless the grid says otherwise, and its threads
+    default to the reserved CPUs shared among its processes."""
+    spec = grid.resources.get(stage, ResourceSpec(cpus=float(processes)))
     gpus = spec.gpus
     if gpus == "auto":
         gpus = 1.0 if cluster_gpus > 0 and stage in GPU_STAGES else 0.0
-    threads = spec.threads or max(1, int(spec.cpus))
+    threads = spec.threads or max(1, int(spec.cpus) // processes)
     return spec.cpus, float(gpus), threads
 
 
@@ -809,7 +826,7 @@ def run_sweep(
                 if it.signature in by_signature:
                     ref = by_signature[it.signature]
                 else:
-                    cpus, gpus, threads = _resources(grid, it.stage, cluster.get("GPU", 0))
+                    cpus, gpus, threads = _resources(grid, it.stage, cluster.get("GPU", 0), stage_processes(p.cell.params, it.stage))
                     task = StageTask(
                         p.cell.name, it.name, source, commit, p.cell.params_text, remote, it.pull, threads, gpus, scratch,
                         options, str(Path(resume_root).resolve()) if resume_root else None,

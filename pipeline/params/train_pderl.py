@@ -34,6 +34,13 @@ class TrainPderlParams(Strict):
         "started below the budget runs to its end, then a final evaluation of every actor follows",
     )
     population_size: int = Field(10, ge=2, description="actors in the population (paper: 10)")
+    processes: int = Field(
+        1,
+        ge=1,
+        description="worker processes the stage's objectives are split over, side by side (at most one per "
+        "objective; each uses MAPEX_TORCH_THREADS threads). Each PDERL run is the same in any process: the "
+        "artifacts do not change",
+    )
     elite_fraction: float = Field(
         0.1, gt=0, lt=1,
         description="fraction of the population kept unchanged as elites, at least one "
