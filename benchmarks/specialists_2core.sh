@@ -9,9 +9,10 @@ cd "$(dirname "$0")/.."
 passes=${1:-2}
 base=${2:-f0c7bf9}
 py=$(pwd)/.venv/bin/python
-old=$(mktemp -d)/base
+tmp=$(mktemp -d)
+old=$tmp/base
 git worktree add -f -q "$old" "$base"
-trap 'git worktree remove --force "$old"' EXIT
+trap 'git worktree remove --force "$old"; rm -rf "$tmp"' EXIT
 common=(--hidden 64 64 --warmup 500 --steps 2000)
 for r in $(seq "$passes"); do
   for t in 1 2; do

@@ -21,6 +21,20 @@ M = TypeVar("M", bound=BaseModel)
 PARAMS_OPTION = typer.Option(Path("params.yaml"), "--params", help="params file (validated before anything is read or written)")
 
 
+# The pipeline's input errors: one readable line and exit code 2, in a stage or in its workers.
+INPUT_ERRORS = (ParamsError, ArtifactError, EnvError)
+
+
+def worker_failed(exc, where: str) -> typer.Exit:
+    """Report a stage worker's failure (pipeline.core.workers.WorkerError) as the stage would
+    its own: an input error as one line and exit code 2, anything else with the worker's
+    traceback and exit code 1. Returns the Exit to raise."""
+    if exc.detail:
+        typer.echo(exc.detail.rstrip(), err=True)
+    typer.echo(f"error: {where}: {exc}", err=True)
+    return typer.Exit(code=2 if exc.expected else 1)
+
+
 def reports_errors(fn: F) -> F:
     """Turn the pipeline's input errors into one readable line on stderr and exit code 2."""
 
@@ -28,7 +42,7 @@ def reports_errors(fn: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
             return fn(*args, **kwargs)
-        except (ParamsError, ArtifactError, EnvError) as exc:
+        except INPUT_ERRORS as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from None
 

@@ -21,7 +21,7 @@ from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlRes
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
-from stages.common import PARAMS_OPTION, progress, reports_errors
+from stages.common import INPUT_ERRORS, PARAMS_OPTION, progress, reports_errors, worker_failed
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
 from stages.train_specialist import Relay, save_rl_agent, specialist_meta
 
@@ -98,13 +98,10 @@ def train_pderl(
                 bar.write(warning, file=sys.stderr)
             args = [(out, part, names, seed, spec, env_p, td3, cfg, device, torch.get_num_threads()) for part in parts]
             try:
-                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i))
+                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
             except WorkerError as exc:
-                if exc.detail:
-                    typer.echo(exc.detail.rstrip(), err=True)
                 objs = ", ".join(f"obj {k}" for k in parts[exc.part])
-                typer.echo(f"error: PDERL seed {seed}, {objs}: {exc}", err=True)
-                raise typer.Exit(code=1) from None
+                raise worker_failed(exc, f"PDERL seed {seed}, {objs}") from None
         bar.total = bar.n  # the final evaluations overshoot the frame budget
 
 

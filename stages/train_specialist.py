@@ -23,7 +23,7 @@ from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoin
 from pipeline.core.seeding import select_device
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import INPUT_ERRORS, PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, worker_failed
 
 CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"
 CHECKPOINT_VERSION = 1
@@ -87,13 +87,10 @@ def train_specialist(
                 bar.write(warning, file=sys.stderr)
             args = [(out, part, seed, spec, env_p, cfg, device, names, torch.get_num_threads()) for part in parts]
             try:
-                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i))
+                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
             except WorkerError as exc:
                 what = ", ".join(f"obj {k}" for group in parts[exc.part] for k in group)
-                if exc.detail:
-                    typer.echo(exc.detail.rstrip(), err=True)
-                typer.echo(f"error: specialists seed {seed}, {what}: {exc}", err=True)
-                raise typer.Exit(code=1) from None
+                raise worker_failed(exc, f"specialists seed {seed}, {what}") from None
     remove_stale_checkpoints(out, objectives)
 
 

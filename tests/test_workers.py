@@ -44,11 +44,41 @@ def dying_part(*, send) -> None:
     os._exit(3)
 
 
+def write_pid(pid_file: str) -> None:
+    tmp = Path(pid_file + ".tmp")
+    tmp.write_text(str(os.getpid()))
+    tmp.replace(pid_file)  # whole or absent
+
+
 def forever_part(pid_file: str, *, send) -> None:
-    Path(pid_file).write_text(str(os.getpid()))
+    write_pid(pid_file)
     while True:
         send("tick")
         time.sleep(0.05)
+
+
+def silent_part(pid_file: str, *, send) -> None:
+    """Works without a word (as a worker saving its artifacts does)."""
+    write_pid(pid_file)
+    time.sleep(60)
+
+
+def chatty_or_dying_part(kind: str, *, send) -> None:
+    if kind == "chatty":
+        for _ in range(2000):
+            send("tick")
+            time.sleep(0.01)
+    else:
+        time.sleep(0.5)
+        os._exit(3)
+
+
+class BadInput(ValueError):
+    pass
+
+
+def bad_input_part(*, send) -> None:
+    raise BadInput("params.yaml: train_specialist.processes must be >= 1, got 0")
 
 
 def test_messages_arrive_in_order_per_part():
@@ -76,13 +106,32 @@ def test_a_part_that_dies_without_a_word_is_a_failure():
     assert info.value.part == 0
 
 
-def test_workers_stop_when_the_stage_process_is_killed(tmp_path):
-    """SIGKILL the process running run_side_by_side: its worker notices at its next send."""
+def test_a_dead_worker_is_noticed_while_another_keeps_talking():
+    started = time.monotonic()
+    with pytest.raises(WorkerError, match="exited with code 3") as info:
+        run_side_by_side(chatty_or_dying_part, [("chatty",), ("dying",)])
+    assert info.value.part == 1
+    assert time.monotonic() - started < 15  # not after the chatty part's 20 s
+
+
+def test_an_expected_error_comes_without_a_traceback():
+    with pytest.raises(WorkerError) as info:
+        run_side_by_side(bad_input_part, [()], expected=(BadInput,))
+    assert info.value.expected and info.value.detail == ""
+    assert str(info.value) == "params.yaml: train_specialist.processes must be >= 1, got 0"
+
+
+@pytest.mark.parametrize("part", ["forever_part", "silent_part"], ids=["talking", "silent"])
+def test_workers_stop_when_the_stage_process_is_killed(part, tmp_path):
+    """SIGKILL the process running run_side_by_side: its worker stops too, at once on Linux
+    (the kernel kills it), else at its next send (only the talking one then)."""
+    if part == "silent_part" and not sys.platform.startswith("linux"):
+        pytest.skip("a silent worker is stopped by PR_SET_PDEATHSIG, Linux only")
     pid_file = tmp_path / "worker.pid"
     script = (
         "import sys; sys.path.insert(0, sys.argv[1]); import test_workers as t; "
         "from pipeline.core.workers import run_side_by_side; "
-        "run_side_by_side(t.forever_part, [(sys.argv[2],)])"
+        f"run_side_by_side(t.{part}, [(sys.argv[2],)])"
     )
     root = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": str(root)}
@@ -91,7 +140,6 @@ def test_workers_stop_when_the_stage_process_is_killed(tmp_path):
     while not pid_file.exists() and time.time() < deadline:
         time.sleep(0.05)
     assert pid_file.exists(), "the worker never started"
-    time.sleep(0.2)  # let the pid be written in full
     worker = int(pid_file.read_text())
     stage.send_signal(signal.SIGKILL)
     stage.wait()

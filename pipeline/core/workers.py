@@ -9,8 +9,8 @@ does).
 `run_side_by_side(fn, parts, on_message)` starts one spawned process per part, calls
 `fn(*part, send=send)` in it, relays what the part `send`s to `on_message` in this process,
 and returns when every part has finished. The first part that fails stops the others and
-raises `WorkerError` here. A worker whose parent has gone (the stage was killed) stops at its
-next `send`, so nothing outlives a killed stage for longer than one message interval; the
+raises `WorkerError` here. A worker whose parent has gone (the stage was killed) is killed by
+the kernel at once on Linux (PR_SET_PDEATHSIG), elsewhere it stops at its next `send`; the
 work of a part must therefore be safe to kill, which is what the stages' atomic writes and
 resumable checkpoints are for.
 """
@@ -20,6 +20,8 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import sys
+import time
 import traceback
 from typing import Any, Callable, Sequence
 
@@ -47,18 +49,38 @@ def oversubscribed(processes: int, threads: int) -> str | None:
 
 
 class WorkerError(RuntimeError):
-    """A worker process failed: `part` is its index, `detail` its traceback (or exit code)."""
+    """A worker process failed: `part` is its index; `detail` its traceback, or "" when the
+    failure was one of the caller's `expected` exception types (its message says it all) or
+    the process died without a word (the message gives its exit code)."""
 
-    def __init__(self, part: int, message: str, detail: str) -> None:
+    def __init__(self, part: int, message: str, detail: str = "", expected: bool = False) -> None:
         super().__init__(message)
-        self.part, self.detail = part, detail
+        self.part, self.detail, self.expected = part, detail, expected
 
 
 class ParentGone(SystemExit):
     """Raised in a worker whose parent process has exited."""
 
 
-def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int) -> None:
+def _die_with_parent(parent: int) -> None:
+    """On Linux, have the kernel SIGKILL this process as soon as its parent dies, whatever it is
+    doing (saving artifacts, say); elsewhere `send` notices at the next message."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+            import signal
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # it died before the flag was set
+        os._exit(1)
+
+
+def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int, expected: tuple[type, ...]) -> None:
+    _die_with_parent(parent)
+
     def send(*message: Any) -> None:
         if os.getppid() != parent:
             channel.cancel_join_thread()  # exit without flushing messages nobody will read
@@ -70,7 +92,9 @@ def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int
     except ParentGone:
         raise
     except BaseException as exc:  # noqa: BLE001 - every failure must reach the parent
-        channel.put((index, "error", (f"{type(exc).__name__}: {exc}", traceback.format_exc())))
+        known = isinstance(exc, expected)
+        detail = "" if known else traceback.format_exc()
+        channel.put((index, "error", (str(exc) if known else f"{type(exc).__name__}: {exc}", detail, known)))
         raise SystemExit(1) from None
     channel.put((index, "done", None))
 
@@ -79,17 +103,22 @@ def run_side_by_side(
     fn: Callable[..., Any],
     parts: Sequence[tuple],
     on_message: Callable[[int, tuple], None] | None = None,
+    expected: tuple[type, ...] = (),
     poll_s: float = 0.2,
 ) -> None:
     """Run fn(*parts[i], send=...) for every i, each in its own spawned process, at once.
 
     fn must be importable (a module-level function) and its arguments picklable. What a part
     passes to `send(*message)` reaches `on_message(i, message)` here, in order per part.
-    Raises WorkerError for the first part that fails (the others are terminated first).
+    Raises WorkerError for the first part that fails (the others are terminated first); for an
+    exception of a type in `expected` (bad input, say) without the worker's traceback.
     """
     ctx = mp.get_context("spawn")  # not fork: the parent may hold OpenMP or CUDA state
     channel = ctx.Queue()
-    procs = [ctx.Process(target=_entry, args=(fn, i, tuple(args), channel, os.getpid()), daemon=True) for i, args in enumerate(parts)]
+    procs = [
+        ctx.Process(target=_entry, args=(fn, i, tuple(args), channel, os.getpid(), tuple(expected)), daemon=True)
+        for i, args in enumerate(parts)
+    ]
     done: set[int] = set()
 
     def handle(item) -> None:
@@ -100,28 +129,35 @@ def run_side_by_side(
         elif kind == "done":
             done.add(index)
         else:
-            message, detail = payload
-            raise WorkerError(index, f"part {index}: {message}", detail)
+            message, detail, known = payload
+            raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known)
 
     try:
         for p in procs:
             p.start()
+        checked = time.monotonic()
         while len(done) < len(procs):
             try:
                 handle(channel.get(timeout=poll_s))
-                continue
             except queue.Empty:
                 pass
-            for i, p in enumerate(procs):
-                if i not in done and not p.is_alive():
-                    # it may have exited right after its last message: read what is left first
+            if time.monotonic() - checked < poll_s:
+                continue
+            # liveness on a clock, not only when the queue is quiet: busy siblings must not
+            # hide a worker that died (killed for memory, say)
+            checked = time.monotonic()
+            dead = [i for i, p in enumerate(procs) if i not in done and not p.is_alive()]
+            if dead:
+                # a process that exited normally flushed its last messages first: read them
+                until = time.monotonic() + 2.0
+                while time.monotonic() < until and any(i not in done for i in dead):
                     try:
-                        while True:
-                            handle(channel.get(timeout=poll_s))
+                        handle(channel.get(timeout=0.1))
                     except queue.Empty:
                         pass
+                for i in dead:
                     if i not in done:
-                        raise WorkerError(i, f"part {i}: its process exited with code {p.exitcode}", "")
+                        raise WorkerError(i, f"part {i}: its process exited with code {procs[i].exitcode}")
     finally:
         for p in procs:
             if p.is_alive():

@@ -713,12 +713,13 @@ def _resources(grid: Grid, stage: str, cluster_gpus: float, processes: int = 1) 
     """(CPUs, GPUs, torch threads per process) of one task. A stage that runs `processes`
     worker processes reserves that many CPUs unless the grid says otherwise, and its threads
     default to the reserved CPUs shared among its processes."""
-    spec = grid.resources.get(stage, ResourceSpec(cpus=float(processes)))
+    spec = grid.resources.get(stage, ResourceSpec())
+    cpus = spec.cpus if "cpus" in spec.model_fields_set else float(processes)
     gpus = spec.gpus
     if gpus == "auto":
         gpus = 1.0 if cluster_gpus > 0 and stage in GPU_STAGES else 0.0
-    threads = spec.threads or max(1, int(spec.cpus) // processes)
-    return spec.cpus, float(gpus), threads
+    threads = spec.threads or max(1, int(cpus) // processes)
+    return cpus, float(gpus), threads
 
 
 def _import_ray():

@@ -20,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.optim.optimizer as torch_optimizer
 from torch import nn
 
 from pipeline.core.buffer import Batch
@@ -170,6 +171,8 @@ def adam_step(opt: torch.optim.Optimizer) -> None:
         or type(opt) is not torch.optim.Adam
         or opt._optimizer_step_pre_hooks
         or opt._optimizer_step_post_hooks
+        or getattr(torch_optimizer, "_global_optimizer_pre_hooks", None)
+        or getattr(torch_optimizer, "_global_optimizer_post_hooks", None)
     ):
         opt.step()
         return
@@ -180,6 +183,11 @@ def adam_step(opt: torch.optim.Optimizer) -> None:
         return
     steps = [st["step"] for st in states]
     beta1, beta2 = g["betas"]
+    with torch.no_grad():  # as Optimizer.step
+        _fused_step(params, states, steps, g, float(beta1), float(beta2))
+
+
+def _fused_step(params, states, steps, g, beta1: float, beta2: float) -> None:
     torch._foreach_add_(steps, 1)
     torch._fused_adam_(
         params,
