@@ -7,12 +7,14 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
+import torch
 import typer
 from pydantic import BaseModel
 from tqdm import tqdm
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvError
+from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -25,14 +27,44 @@ PARAMS_OPTION = typer.Option(Path("params.yaml"), "--params", help="params file 
 INPUT_ERRORS = (ParamsError, ArtifactError, EnvError)
 
 
-def worker_failed(exc, where: str) -> typer.Exit:
-    """Report a stage worker's failure (pipeline.core.workers.WorkerError) as the stage would
+class Relay:
+    """Shows on a stage's progress bar and stderr what its parts report (`send`):
+    ("steps", n), ("returns", text: the part's latest, in the bar's postfix) and ("say", line)."""
+
+    def __init__(self, bar: tqdm, prefix: str = "return ") -> None:
+        self.bar, self.prefix, self.returns = bar, prefix, {}
+
+    def message(self, kind: str, value: Any, part: int = 0) -> None:
+        if kind == "steps":
+            self.bar.update(value)
+        elif kind == "returns":
+            self.returns[part] = value
+            self.bar.set_postfix_str(self.prefix + "; ".join(v for _, v in sorted(self.returns.items())), refresh=False)
+        else:
+            self.bar.write(value, file=sys.stderr)
+
+
+def run_parts(fn: Callable[..., None], parts: list[tuple], bar: tqdm, where: Callable[[int], str], prefix: str = "return ") -> None:
+    """Run fn(*parts[i], threads, send=...) for every part: here when there is one, else each in
+    its own worker process at once (pipeline.core.workers), with this process's torch thread
+    count. Progress goes to `bar` (Relay). A worker's failure is reported as the stage would
     its own: an input error as one line and exit code 2, anything else with the worker's
-    traceback and exit code 1. Returns the Exit to raise."""
-    if exc.detail:
-        typer.echo(exc.detail.rstrip(), err=True)
-    typer.echo(f"error: {where}: {exc}", err=True)
-    return typer.Exit(code=2 if exc.expected else 1)
+    traceback and exit code 1; `where(i)` names part i in that line."""
+    relay = Relay(bar, prefix)
+    threads = torch.get_num_threads()
+    if len(parts) == 1:
+        fn(*parts[0], threads, send=relay.message)
+        return
+    warning = oversubscribed(len(parts), threads)
+    if warning:
+        bar.write(warning, file=sys.stderr)
+    try:
+        run_side_by_side(fn, [(*args, threads) for args in parts], lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
+    except WorkerError as exc:
+        if exc.detail:
+            typer.echo(exc.detail.rstrip(), err=True)
+        typer.echo(f"error: {where(exc.part)}: {exc}", err=True)
+        raise typer.Exit(code=2 if exc.expected else 1) from None
 
 
 def reports_errors(fn: F) -> F:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import io
-import sys
 from pathlib import Path
 from typing import Any, Optional
 
@@ -21,9 +20,9 @@ from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlRes
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
-from stages.common import INPUT_ERRORS, PARAMS_OPTION, progress, reports_errors, worker_failed
-from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
-from stages.train_specialist import Relay, save_rl_agent, specialist_meta
+from pipeline.core.workers import split_evenly
+from stages.common import PARAMS_OPTION, progress, reports_errors, run_parts
+from stages.train_specialist import save_rl_agent, specialist_meta
 
 CHECKPOINT = "pderl_state.pt"
 CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
@@ -88,30 +87,18 @@ def train_pderl(
     parts = split_evenly(objectives, cfg.processes)
     what = ", ".join(f"obj {k} ({names[k]})" for k in objectives)
     bar = progress(cfg.total_frames * len(objectives), f"PDERL seed {seed}: {what}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""), unit="frame")
-    relay = Relay(bar, prefix="")
     with bar:
-        if len(parts) == 1:
-            train_part(out, parts[0], names, seed, spec, env_p, td3, cfg, device, send=relay.message)
-        else:
-            warning = oversubscribed(len(parts), torch.get_num_threads())
-            if warning:
-                bar.write(warning, file=sys.stderr)
-            args = [(out, part, names, seed, spec, env_p, td3, cfg, device, torch.get_num_threads()) for part in parts]
-            try:
-                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
-            except WorkerError as exc:
-                objs = ", ".join(f"obj {k}" for k in parts[exc.part])
-                raise worker_failed(exc, f"PDERL seed {seed}, {objs}") from None
+        run_parts(train_part, [(out, part, names, seed, spec, env_p, td3, cfg, device) for part in parts], bar,
+                  lambda i: f"PDERL seed {seed}, " + ", ".join(f"obj {k}" for k in parts[i]), prefix="")
         bar.total = bar.n  # the final evaluations overshoot the frame budget
 
 
 def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
-               cfg: TrainPderlParams, device, threads: int | None = None, *, send) -> None:
+               cfg: TrainPderlParams, device, threads: int, *, send) -> None:
     """The PDERL runs of `objectives`, one after another (in this process, or as one worker of
     train_pderl.processes with `threads` torch threads); progress goes to `send` (stages.
     train_specialist.Relay)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
     for k in objectives:
         train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device, send)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import io
-import sys
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -21,9 +20,9 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
-from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side, split_evenly
+from pipeline.core.workers import split_evenly
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
-from stages.common import INPUT_ERRORS, PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, worker_failed
+from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"
 CHECKPOINT_VERSION = 1
@@ -78,19 +77,8 @@ def train_specialist(
     parts = plan(objectives, cfg)
     bar = progress(cfg.total_steps * len(objectives), f"specialists seed {seed}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""))
     with bar:
-        if len(parts) == 1:
-            train_part(out, parts[0], seed, spec, env_p, cfg, device, names, send=Relay(bar).message)
-        else:
-            relay = Relay(bar)
-            warning = oversubscribed(len(parts), torch.get_num_threads())
-            if warning:
-                bar.write(warning, file=sys.stderr)
-            args = [(out, part, seed, spec, env_p, cfg, device, names, torch.get_num_threads()) for part in parts]
-            try:
-                run_side_by_side(train_part, args, lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
-            except WorkerError as exc:
-                what = ", ".join(f"obj {k}" for group in parts[exc.part] for k in group)
-                raise worker_failed(exc, f"specialists seed {seed}, {what}") from None
+        run_parts(train_part, [(out, part, seed, spec, env_p, cfg, device, names) for part in parts], bar,
+                  lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group))
     remove_stale_checkpoints(out, objectives)
 
 
@@ -102,29 +90,11 @@ def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[lis
     return [[part] if cfg.batched else [[k] for k in part] for part in parts]
 
 
-class Relay:
-    """Shows on this process's progress bar and stderr what the parts report (`send`):
-    ("steps", n), ("returns", text) and ("say", line)."""
-
-    def __init__(self, bar, prefix: str = "return ") -> None:
-        self.bar, self.prefix, self.returns = bar, prefix, {}
-
-    def message(self, kind: str, value, part: int = 0) -> None:
-        if kind == "steps":
-            self.bar.update(value)
-        elif kind == "returns":
-            self.returns[part] = value
-            self.bar.set_postfix_str(self.prefix + "; ".join(v for _, v in sorted(self.returns.items())), refresh=False)
-        else:
-            self.bar.write(value, file=sys.stderr)
-
-
 def train_part(out: Path, groups: list[list[int]], seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams, device,
-               names: Sequence[str], threads: int | None = None, *, send) -> None:
+               names: Sequence[str], threads: int, *, send) -> None:
     """Train and save the specialists (seed, k) of `groups`, one group after another (one part
     of `plan`: in this process, or a worker's whole job with `threads` torch threads)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
     for group in groups:
         what = ", ".join(f"obj {k} ({names[k]})" for k in group)
         results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)

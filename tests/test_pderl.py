@@ -405,7 +405,7 @@ def one_thread():
 def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeypatch, one_thread):
     """train_pderl.processes: 2 runs the two objectives' PDERL runs in two worker processes at
     once: each run is the one the stage's own process would make, bit for bit."""
-    import stages.train_pderl as stage_module
+    import stages.common as stage_module  # run_parts starts the workers
 
     one = stage(tmp_path / "one", objective=[0, 1])
     assert one.exit_code == 0, one.output

@@ -184,28 +184,24 @@ def adam_step(opt: torch.optim.Optimizer) -> None:
     steps = [st["step"] for st in states]
     beta1, beta2 = g["betas"]
     with torch.no_grad():  # as Optimizer.step
-        _fused_step(params, states, steps, g, float(beta1), float(beta2))
-
-
-def _fused_step(params, states, steps, g, beta1: float, beta2: float) -> None:
-    torch._foreach_add_(steps, 1)
-    torch._fused_adam_(
-        params,
-        [p.grad for p in params],
-        [st["exp_avg"] for st in states],
-        [st["exp_avg_sq"] for st in states],
-        [],
-        steps,
-        amsgrad=False,
-        lr=g["lr"],
-        beta1=beta1,
-        beta2=beta2,
-        weight_decay=g["weight_decay"],
-        eps=g["eps"],
-        maximize=g["maximize"],
-        grad_scale=None,
-        found_inf=None,
-    )
+        torch._foreach_add_(steps, 1)
+        torch._fused_adam_(
+            params,
+            [p.grad for p in params],
+            [st["exp_avg"] for st in states],
+            [st["exp_avg_sq"] for st in states],
+            [],
+            steps,
+            amsgrad=False,
+            lr=g["lr"],
+            beta1=float(beta1),
+            beta2=float(beta2),
+            weight_decay=g["weight_decay"],
+            eps=g["eps"],
+            maximize=g["maximize"],
+            grad_scale=None,
+            found_inf=None,
+        )
 
 
 def clear_grads(opt: torch.optim.Optimizer) -> None:
