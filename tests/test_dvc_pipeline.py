@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from tiny_params import TINY
+from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -106,22 +106,6 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
 
 # Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the
 # extraction variants from both, and the baselines (MORL/D when its optional extra is installed).
-PDERL_TINY = {
-    "total_frames": 240, "population_size": 3, "mini_buffer_size": 200, "crossover_transitions": 64,
-    "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32, "device": "cpu",
-}
-MOPDERL_TINY = {
-    "total_frames": 400, "population_size": 4, "children": 3, "eval_episodes": 1, "mini_buffer_size": 200,
-    "crossover_transitions": 64, "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32,
-    "rl_updates_per_frame": 0.1, "device": "cpu",
-}
-MORLD_TINY = {
-    "total_frames": 160, "exchange_every": 80, "pop_size": 2, "hidden_sizes": [16, 16], "batch_size": 32,
-    "learning_starts": 40, "buffer_size": 1000, "update_passes": 1, "front_eval_episodes": 1, "eval_episodes": 1,
-    "device": "cpu",
-}
-
-
 def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     try:
         import morl_baselines  # noqa: F401

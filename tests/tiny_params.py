@@ -24,3 +24,31 @@ TINY = {
     "score": {"distinct_tol": 0.02},
     "report": {"dpi": 60},
 }
+
+# The tiny sizes of the PDERL specialists and the two baselines, and TINY_ALL: every method of
+# the pipeline at once (TD3 and PDERL specialists, post-hoc critics from both, MOPDERL, MORL/D),
+# used by the one-chain test and by benchmarks/tiny_repro.sh (artifacts before/after a refactor).
+PDERL_TINY = {
+    "total_frames": 240, "population_size": 3, "mini_buffer_size": 200, "crossover_transitions": 64,
+    "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32, "device": "cpu",
+}
+MOPDERL_TINY = {
+    "total_frames": 400, "population_size": 4, "children": 3, "eval_episodes": 1, "mini_buffer_size": 200,
+    "crossover_transitions": 64, "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32,
+    "rl_updates_per_frame": 0.1, "device": "cpu",
+}
+MORLD_TINY = {
+    "total_frames": 160, "exchange_every": 80, "pop_size": 2, "hidden_sizes": [16, 16], "batch_size": 32,
+    "learning_starts": 40, "buffer_size": 1000, "update_passes": 1, "front_eval_episodes": 1, "eval_episodes": 1,
+    "device": "cpu",
+}
+TINY_ALL = {
+    **TINY,
+    "pderl_seeds": [0], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex", "warmup_only"],
+    "posthoc_from": ["td3", "pderl"], "mopderl_seeds": [0], "morld_seeds": [0],
+    "methods": ["mapex_td3", "warmup_only_td3", "mapex_pderl", "warmup_only_pderl", "mapex_posthoc_td3",
+                "mapex_posthoc_pderl", "mopderl", "morld"],
+    "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+    "train_pderl": PDERL_TINY, "mopderl": MOPDERL_TINY, "morld": MORLD_TINY,
+    "extract": {**TINY["extract"], "iterations": 1}, "evaluate": {"episodes": 1},
+}

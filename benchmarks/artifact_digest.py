@@ -1,0 +1,112 @@
+"""Digest of a pipeline's data/ directory, file by file, without what only records provenance.
+
+Used to show that a change which should not change behaviour (a refactor, a move, a
+formatting pass) leaves every artifact the same: run the same tiny preset before and after
+(benchmarks/tiny_repro.sh) and compare the digests this prints.
+
+What is hashed:
+- torch files (.pt): every tensor's dtype, shape and bytes, and every other value, walked in
+  key order; metadata keys named `provenance` (git commit, library versions, device) are
+  left out, since they differ between two checkouts of the same code by definition;
+- Zarr stores (.zarr): every array's dtype, shape and bytes and the attributes (less
+  `provenance`);
+- JSON files: the parsed document less `provenance` keys, canonically dumped;
+- everything else (CSV, Markdown, PNG): the raw bytes.
+
+Usage: python benchmarks/artifact_digest.py DATA_DIR [--keys-only] > digests.txt
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+import zarr
+
+SKIP_KEYS = {"provenance"}
+
+
+def _walk(h, obj) -> None:
+    if isinstance(obj, torch.Tensor):
+        t = obj.detach().cpu().contiguous()
+        h.update(f"T{t.dtype}{tuple(t.shape)}".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    elif isinstance(obj, np.ndarray):
+        h.update(f"A{obj.dtype}{obj.shape}".encode())
+        h.update(np.ascontiguousarray(obj).tobytes())
+    elif isinstance(obj, dict):
+        for k in sorted(obj, key=str):
+            if k in SKIP_KEYS:
+                continue
+            h.update(f"K{k!r}".encode())
+            _walk(h, obj[k])
+    elif isinstance(obj, (list, tuple)):
+        h.update(f"L{len(obj)}".encode())
+        for v in obj:
+            _walk(h, v)
+    else:
+        h.update(f"V{obj!r}".encode())
+
+
+def digest_pt(path: Path) -> str:
+    h = hashlib.sha256()
+    _walk(h, torch.load(path, map_location="cpu", weights_only=True))
+    return h.hexdigest()
+
+
+def digest_zarr(path: Path) -> str:
+    h = hashlib.sha256()
+    group = zarr.open_group(str(path), mode="r")
+    _walk(h, dict(group.attrs))
+    for name in sorted(group.array_keys()):
+        h.update(f"N{name}".encode())
+        _walk(h, np.asarray(group[name][...]))
+    return h.hexdigest()
+
+
+def digest_json(path: Path) -> str:
+    def strip(obj):
+        if isinstance(obj, dict):
+            return {k: strip(v) for k, v in obj.items() if k not in SKIP_KEYS}
+        if isinstance(obj, list):
+            return [strip(v) for v in obj]
+        return obj
+
+    return hashlib.sha256(json.dumps(strip(json.loads(path.read_text())), sort_keys=True).encode()).hexdigest()
+
+
+def digests(root: Path) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for path in sorted(root.rglob("*")):
+        rel = str(path.relative_to(root))
+        if any(part.endswith(".zarr") for part in path.relative_to(root).parts[:-1]):
+            continue  # inside a Zarr store: hashed as a whole
+        if path.is_dir() and path.suffix == ".zarr":
+            out[rel] = digest_zarr(path)
+        elif path.is_file() and path.suffix == ".pt":
+            out[rel] = digest_pt(path)
+        elif path.is_file() and path.suffix == ".json":
+            out[rel] = digest_json(path)
+        elif path.is_file():
+            out[rel] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+def main(argv: list[str]) -> int:
+    if not argv or not Path(argv[0]).is_dir():
+        print("usage: python benchmarks/artifact_digest.py DATA_DIR", file=sys.stderr)
+        return 2
+    table = digests(Path(argv[0]))
+    for rel, d in table.items():
+        print(f"{d}  {rel}")
+    total = hashlib.sha256("".join(f"{d}{r}" for r, d in table.items()).encode()).hexdigest()
+    print(f"{total}  (all {len(table)} files)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
