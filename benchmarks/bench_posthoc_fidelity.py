@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.critics.fidelity import score_critics  # noqa: E402
 from pipeline.params.fit_critics import FitCriticsParams  # noqa: E402
 from pipeline.critics.posthoc import fit_posthoc_critics  # noqa: E402
-from stages.fit_critics import load_specialist  # noqa: E402
+from pipeline.core.specialist import load_slot  # noqa: E402
 
 
 def main() -> None:
@@ -39,8 +39,9 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    spec = load_specialist(args.specialist, args.objective)
-    objectives = list(range(spec.attrs["n_objectives"]))
+    spec = load_slot(args.specialist, args.objective)
+    target = spec.actor if spec.actor_target is None else spec.actor_target
+    objectives = list(range(spec.buffer_attrs["n_objectives"]))
     cfg = FitCriticsParams(steps=args.steps, check_every=args.check_every, patience=10**9, tau=args.tau,
                            target_update_freq=args.target_update_freq, hidden_sizes=args.hidden, device="cpu")
     t0 = time.perf_counter()
@@ -49,12 +50,12 @@ def main() -> None:
 
     def error(critic) -> float:
         step[0] += args.check_every
-        rep = score_critics(spec.data, critic, objectives, spec.target_actor, cfg.gamma, args.episodes, 0.01)
+        rep = score_critics(spec.buffer, critic, objectives, target, cfg.gamma, args.episodes, 0.01)
         cols = [f"{f.rel_error:.3f} / {f.pearson:.3f} / {f.mean_q:9.1f} vs {f.mean_g:9.1f}" for f in rep.per_objective]
         print(f"{min(step[0], args.steps):7d} {time.perf_counter() - t0:7.1f}  " + "  ".join(cols), flush=True)
         return float(np.mean([f.rel_error for f in rep.per_objective]))
 
-    fit = fit_posthoc_critics(spec.data, spec.target_actor, objectives, cfg, np.random.default_rng(0),
+    fit = fit_posthoc_critics(spec.buffer, target, objectives, cfg, np.random.default_rng(0),
                               torch.Generator().manual_seed(0), "cpu", None, error)
     elapsed = time.perf_counter() - t0
     print(f"{fit.steps} steps in {elapsed:.1f} s ({fit.steps / elapsed:.0f} steps/s incl. checks, "

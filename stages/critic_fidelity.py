@@ -9,11 +9,11 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.checkpoint import check_matches, load_critics
-from pipeline.critics.fidelity import score_critics
+from pipeline.core.specialist import check_posthoc_buffer, load_slot
+from pipeline.critics.fidelity import fidelity_json, score_critics
 from pipeline.params import load_params, section
 from pipeline.params.critic_fidelity import CriticFidelityParams
 from stages.common import PARAMS_OPTION, reports_errors
-from stages.fit_critics import fidelity_json, load_specialist
 
 # Which params section of a critics file's meta holds the discount it was trained with.
 _GAMMA_SECTION = {"joint": "train_specialist", "posthoc": "fit_critics"}
@@ -50,22 +50,18 @@ def critic_fidelity(
     objective, and post-hoc critics must carry the checksums of this buffer.
     """
     fid = section(load_params(params), "critic_fidelity", CriticFidelityParams, params)
-    spec = load_specialist(specialist, objective)
+    spec = load_slot(specialist, objective)
     critics_path = critics if critics is not None else specialist / "critics.pt"
     online, _, meta = load_critics(critics_path)
-    check_matches(critics_path, meta, spec.attrs, str(spec.buffer_path))
+    check_matches(critics_path, meta, spec.buffer_attrs, str(spec.buffer_path))
     if meta.get("buffer_objective") != objective:
         raise ArtifactError(f"{critics_path}: critics of buffer objective {meta.get('buffer_objective')!r}, expected {objective}")
     policy_path = specialist / "policy.pt"
     if meta.get("seed") != spec.policy_meta.get("seed"):
         raise ArtifactError(f"{critics_path}: critics of seed {meta.get('seed')!r}, but {policy_path} is of seed {spec.policy_meta.get('seed')!r}")
     if meta.get("source") == "posthoc":
-        theirs, ours = meta.get("buffer_checksums"), spec.attrs.get("checksums", {})
-        if theirs is None:
-            raise ArtifactError(f"{critics_path}: post-hoc critics without 'buffer_checksums'; refit them with fit-critics")
-        if theirs != ours:
-            diff = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
-            raise ArtifactError(f"{critics_path}: fitted on a different buffer than {spec.buffer_path} (checksums differ: {diff})")
+        check_posthoc_buffer(critics_path, meta, spec.buffer_path, spec.buffer_attrs)
     gamma = trained_gamma(critics_path, meta)
-    report = score_critics(spec.data, online, meta["objectives"], spec.target_actor, gamma, fid.episodes, fid.tail_tolerance)
+    target = spec.actor if spec.actor_target is None else spec.actor_target
+    report = score_critics(spec.buffer, online, meta["objectives"], target, gamma, fid.episodes, fid.tail_tolerance)
     write_text_atomic(out, fidelity_json(report, objective, source=meta.get("source"), actor="target"))

@@ -5,25 +5,20 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Any
 
-import torch
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
-from pipeline.core.codedeps import closure_files
 from pipeline.core.envs import env_spec, make_env
 from pipeline.baselines.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_members, history_csv_rows, require_morl_baselines
 from pipeline.params.morld import MorldParams
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
+from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 CHECKPOINT = "morld_state.pt"
-CHECKPOINT_FORMAT = "mapex.morld_checkpoint"
-CHECKPOINT_VERSION = 1
 HISTORY_COLUMNS = ("exchange", "frames", "front_eval_frames", "trained_policy", "archive_size")
 
 
@@ -68,20 +63,15 @@ def morld(
     probe.close()
     device = select_device(cfg.device)
     config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "morld": cfg.model_dump(), "seed": seed}
-    fp = run_fingerprint(config, cfg, device)
+    # the library version is in the fingerprint: the run drives morl-baselines' internals
+    fp = run_fingerprint("morld", {**config, "morld": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+                                   "morl_baselines": _library_version()}, device)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt = checkpoint_dir(out) / CHECKPOINT  # beside the outputs, or on shared storage in a sweep
-
-    run = MorldRun(spec, cfg, seed, device)
-    state = load_checkpoint(ckpt, fp)
-    if state is not None:
-        try:
-            run.load_state_dict(state)
-            typer.echo(f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt}", err=True)
-        except (ValueError, KeyError, RuntimeError) as exc:  # right fingerprint, yet it does not fit: never trust it
-            typer.echo(f"{ckpt}: cannot be resumed ({exc}); starting over", err=True)
-            run = MorldRun(spec, cfg, seed, device)
-    del state
+    # beside the outputs, or on shared storage in a sweep
+    ckpt = Checkpoint(checkpoint_dir(out) / CHECKPOINT, fp, lambda line: typer.echo(line, err=True))
+    run, resumed = resume(ckpt, lambda: MorldRun(spec, cfg, seed, device))
+    if resumed:
+        typer.echo(f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt.path}", err=True)
 
     bar = progress(cfg.frames(), f"MORL/D seed {seed}", unit="frame")
     bar.update(run.frames)
@@ -91,7 +81,7 @@ def morld(
         bar.set_postfix_str(f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}", refresh=False)
         # the last exchange too: a run killed while its actors are evaluated need not train again
         if rec.exchange % cfg.checkpoint_every == 0 or run.done:
-            save_checkpoint(ckpt, fp, run)
+            ckpt.save(run.state_dict())
 
     with bar:
         run.train(on_exchange)
@@ -105,20 +95,9 @@ def morld(
     }
     save_population(out / "population.pt", members, meta)
     write_text_atomic(out / "history.csv", history_csv(run.history))
-    ckpt.unlink(missing_ok=True)
+    ckpt.clear()
     best = max(members, key=lambda m: m.returns[0])
     typer.echo(f"morld seed {seed}: {len(members)} actors; best on objective 0: {best.policy_name} {fmt_vec(best.returns)}", err=True)
-
-
-def run_fingerprint(config: dict[str, Any], cfg: MorldParams, device: torch.device) -> str:
-    """Everything a run's results depend on: params (not checkpoint_every, device: given
-    separately), seed, device, thread count, the library version and every code file the
-    stage runs (as in pipeline/core/resume.py)."""
-    full = {
-        **config, "morld": cfg.model_dump(exclude={"checkpoint_every", "device"}),
-        "device": str(device), "threads": torch.get_num_threads(), "morl_baselines": _library_version(),
-    }
-    return fingerprint(full, closure_files("stages.morld"))
 
 
 def _library_version() -> str | None:
@@ -128,15 +107,6 @@ def _library_version() -> str | None:
         return metadata.version("morl-baselines")
     except metadata.PackageNotFoundError:
         return None
-
-
-def load_checkpoint(path: Path, fp: str) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume)."""
-    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, lambda line: typer.echo(line, err=True))
-
-
-def save_checkpoint(path: Path, fp: str, run: MorldRun) -> None:
-    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def history_csv(history: list[ExchangeRecord]) -> str:

@@ -11,22 +11,19 @@ import torch
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
-from pipeline.core.codedeps import closure_files
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from pipeline.core.policyset import save_policy_set
-from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
+from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from stages.common import PARAMS_OPTION, progress, reports_errors, run_parts
-from stages.train_specialist import save_rl_agent, specialist_meta
 
 CHECKPOINT = "pderl_state.pt"
-CHECKPOINT_FORMAT = "mapex.pderl_checkpoint"
-CHECKPOINT_VERSION = 1
 
 # train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
 # RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
@@ -103,47 +100,28 @@ def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec
         train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
-def run_fingerprint(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams, device) -> str:
-    """Everything a PDERL run's results depend on: params it reads, seed, objective, device,
-    thread count and every code file the stage runs (as in pipeline/core/resume.py)."""
-    config = {
+def run_config(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams) -> dict[str, Any]:
+    """What a PDERL run depends on besides code, device and threads (pipeline.core.resume.
+    run_fingerprint): the params it reads, seed and objective."""
+    return {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
         "train_pderl": cfg.model_dump(exclude={"checkpoint_every", "device", "processes"}),
         "seed": seed,
         "objective": objective,
-        "device": str(device),
-        "threads": torch.get_num_threads(),
     }
-    return fingerprint(config, closure_files("stages.train_pderl"))
-
-
-def load_checkpoint(path: Path, fp: str, say=None) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume);
-    why not goes to `say` (default: stderr)."""
-    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, say or (lambda line: typer.echo(line, err=True)))
-
-
-def save_checkpoint(path: Path, fp: str, run: PderlRun) -> None:
-    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
               cfg: TrainPderlParams, device: torch.device, send) -> None:
     """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts.
     Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
-    fp = run_fingerprint(seed, k, env_p, td3, cfg, device)
-    ckpt = checkpoint_dir(out) / CHECKPOINT  # beside the outputs, or on shared storage in a sweep
-    state = load_checkpoint(ckpt, fp, lambda line: send("say", line))
-    run = PderlRun(spec, td3, cfg, k, seed, device)
-    if state is not None:
-        try:
-            run.load_state_dict(state)
-            send("say", f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt}")
-        except ValueError as exc:  # right fingerprint, yet it does not fit: never trust it
-            send("say", f"{ckpt}: cannot be resumed ({exc}); starting over")
-            run = PderlRun(spec, td3, cfg, k, seed, device)
-    del state
+    fp = run_fingerprint("train_pderl", run_config(seed, k, env_p, td3, cfg), device)
+    # beside the outputs, or on shared storage in a sweep
+    ckpt = Checkpoint(checkpoint_dir(out) / CHECKPOINT, fp, lambda line: send("say", line))
+    run, resumed = resume(ckpt, lambda: PderlRun(spec, td3, cfg, k, seed, device))
+    if resumed:
+        send("say", f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path}")
     env = make_env(env_p.id, env_p.max_episode_steps)
     send("steps", run.frames)
 
@@ -153,7 +131,7 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
     def on_generation(run: PderlRun, rec: GenerationRecord) -> None:
         send("returns", f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}")
         if rec.generation % cfg.checkpoint_every == 0:
-            save_checkpoint(ckpt, fp, run)
+            ckpt.save(run.state_dict())
 
     try:
         result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
@@ -161,7 +139,7 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
     finally:
         env.close()
     save_pderl(out, result, spec, env_p, td3, cfg, device)
-    ckpt.unlink(missing_ok=True)
+    ckpt.clear()
 
 
 def save_pderl(out: Path, result: PderlResult, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
@@ -172,7 +150,7 @@ def save_pderl(out: Path, result: PderlResult, spec: EnvSpec, env_p: EnvParams, 
     params = {"train_specialist": td3.model_dump(), "train_pderl": cfg.model_dump()}
     meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
     meta |= {"trainer": "pderl", "env_frames": result.frames}
-    save_rl_agent(out, meta, k, result)
+    save_specialist(out, meta, k, result)
     save_policy_set(
         out / "policies.pt",
         [result.actor, *result.actors],

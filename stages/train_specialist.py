@@ -5,27 +5,22 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 import typer
 
-from pipeline.core.artifacts import TMP_SUFFIX, write_text_atomic
-from pipeline.core.buffer import save_buffer
-from pipeline.core.checkpoint import save_critics, save_policy
-from pipeline.core.codedeps import closure_files
+from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.core.provenance import provenance
-from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
+from pipeline.core.specialist import save_specialist, specialist_meta
+from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.workers import split_evenly
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
-CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"
-CHECKPOINT_VERSION = 1
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 PROGRESS_EVERY = 250  # env steps (of all specialists of a group) between progress messages
 
@@ -99,10 +94,8 @@ def train_part(out: Path, groups: list[list[int]], seed: int, spec, env_p: EnvPa
         what = ", ".join(f"obj {k} ({names[k]})" for k in group)
         results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
         for result in results:
-            save_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
-        ckpt = checkpoint_path(out, group)
-        ckpt.unlink(missing_ok=True)
-        ckpt.with_name(ckpt.name + TMP_SUFFIX).unlink(missing_ok=True)  # one a kill cut short
+            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+        Checkpoint(checkpoint_path(out, group), "", print).clear()  # and one a kill cut short
 
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
@@ -121,31 +114,18 @@ def remove_stale_checkpoints(out: Path, trained: Sequence[int]) -> None:
             path.unlink(missing_ok=True)
 
 
-def run_fingerprint(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpecialistParams, device) -> str:
-    """Everything the run of specialists (seed, k) for k in `group`, stacked, depends on:
-    the params it reads, seed, objectives, device, thread count and every code file the stage
-    runs. Not checkpoint_every (when to save changes nothing saved), device (the device it
-    resolved to is here), batched or processes (the group is: a group trains the same in a
-    worker process as in the stage's own)."""
-    config = {
+def run_config(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpecialistParams) -> dict[str, Any]:
+    """What the run of specialists (seed, k) for k in `group`, stacked, depends on besides code,
+    device and threads (pipeline.core.resume.run_fingerprint): the params it reads, seed and
+    objectives. Not checkpoint_every (when to save changes nothing saved), device (the device
+    it resolved to is in the fingerprint), batched or processes (the group is: a group trains
+    the same in a worker process as in the stage's own)."""
+    return {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "train_specialist": cfg.model_dump(exclude={"checkpoint_every", "device", "batched", "processes"}),
         "seed": seed,
         "objectives": list(group),
-        "device": str(device),
-        "threads": torch.get_num_threads(),
     }
-    return fingerprint(config, closure_files("stages.train_specialist"))
-
-
-def load_checkpoint(path: Path, fp: str, say: Callable[[str], None] | None = None) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None (pipeline.core.resume);
-    why not goes to `say` (default: stderr)."""
-    return load_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, say or (lambda line: typer.echo(line, err=True)))
-
-
-def save_checkpoint(path: Path, fp: str, run: SpecialistsRun) -> None:
-    save_run_checkpoint(path, CHECKPOINT_FORMAT, CHECKPOINT_VERSION, fp, run.state_dict())
 
 
 def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams,
@@ -154,27 +134,20 @@ def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: 
     fits, checkpointing every cfg.checkpoint_every steps. Progress goes to `send` (see Relay),
     in batches of about PROGRESS_EVERY steps."""
     jobs = [(seed, k) for k in group]
-    fp = run_fingerprint(seed, group, env_p, cfg, device)
-    ckpt = checkpoint_path(out, group)
+    fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, cfg), device)
+    ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
 
     def fresh() -> SpecialistsRun:
         return SpecialistsRun([make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, cfg, jobs, device)
 
-    run = fresh()
-    problem = env_checkpoint_problem(run.envs[0])
+    probe = make_env(env_p.id, env_p.max_episode_steps)
+    problem = env_checkpoint_problem(probe)
+    probe.close()
     if cfg.checkpoint_every and problem is not None:
         send("say", f"train_specialist.checkpoint_every: checkpoints off for env {env_p.id} ({problem})")
-    state = load_checkpoint(ckpt, fp, lambda line: send("say", line)) if problem is None else None
-    if state is not None:
-        try:
-            run.load_state_dict(state)
-            send("say", f"{what}: resuming from step {run.t} of {ckpt}")
-        except ValueError as exc:  # right fingerprint, yet it does not fit: never trust it
-            send("say", f"{ckpt}: cannot be resumed ({exc}); starting over")
-            for env in run.envs:
-                env.close()
-            run = fresh()
-    del state
+    run, resumed = resume(ckpt, fresh) if problem is None else (fresh(), False)
+    if resumed:
+        send("say", f"{what}: resuming from step {run.t} of {ckpt.path}")
     send("steps", run.t * len(jobs))
     pending = [0]
 
@@ -187,57 +160,17 @@ def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: 
         if ended:
             send("returns", "; ".join(ended))
 
-    def on_checkpoint(run: SpecialistsRun) -> None:
-        save_checkpoint(ckpt, fp, run)
-
     try:
-        return continue_training(run, on_step, on_checkpoint if problem is None else None)
+        return continue_training(run, on_step, (lambda run: ckpt.save(run.state_dict())) if problem is None else None)
     finally:
         for env in run.envs:
             env.close()
 
 
-def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) -> dict:
-    """Metadata every specialist artifact carries (TD3 and PDERL alike; extraction cross-checks it)."""
-    return {
-        "env_id": spec.env_id,
-        "obs_dim": spec.obs_dim,
-        "act_dim": spec.act_dim,
-        "n_objectives": spec.n_objectives,
-        "max_episode_steps": spec.max_episode_steps,
-        "action_low": list(spec.action_low),
-        "action_high": list(spec.action_high),
-        "hidden_sizes": list(hidden_sizes),
-        "seed": seed,
-        "params": {"env": env_p.model_dump(), **params},
-        "provenance": provenance(device),
-    }
-
-
-def save_rl_agent(out: Path, meta: dict, objective: int, result) -> None:
-    """Write an RL agent's buffer.zarr, policy.pt and critics.pt (each atomically) into `out`.
-
-    `result` has buffer, actor, actor_target, critic, critic_target and objectives
-    (a SpecialistResult, or a PderlResult for PDERL's RL agent)."""
-    save_buffer(
-        out / "buffer.zarr",
-        result.buffer,
-        {key: meta[key] for key in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
-        | {"objective": objective},
-    )
-    save_policy(out / "policy.pt", result.actor, meta | {"objective": objective}, result.actor_target)
-    save_critics(
-        out / "critics.pt",
-        result.critic,
-        result.critic_target,
-        meta | {"buffer_objective": objective, "objectives": result.objectives, "source": "joint"},
-    )
-
-
-def save_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
+def save_td3_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
     """Write one specialist's four artifacts (each atomically) into `out`."""
     meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()}, device)
-    save_rl_agent(out, meta, result.objective, result)
+    save_specialist(out, meta, result.objective, result)
     write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
 
 

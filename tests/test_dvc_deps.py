@@ -62,3 +62,45 @@ def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
         )
     finally:
         cd.module_closure.cache_clear()
+
+
+# The shell's one rule: a stage module imports the library and the shared stage helpers, never
+# another stage (the `mapex` entry point, which registers every stage, is the exception).
+SHARED_STAGE_MODULES = {"stages.common"}
+
+
+def stage_imports(path: Path) -> set[str]:
+    import ast
+
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found |= {f"{node.module}.{a.name}" for a in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+    return {name for name in found if name.startswith("stages.") and (ROOT / (name.replace(".", "/") + ".py")).is_file()}
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "stages").glob("*.py")), ids=lambda p: p.name)
+def test_no_stage_imports_another_stage(path):
+    if path.name in ("cli.py", "__init__.py", "common.py"):
+        return
+    others = stage_imports(path) - SHARED_STAGE_MODULES
+    assert not others, f"stages/{path.name} imports {sorted(others)}: move what it needs into pipeline/ (stages import pipeline only)"
+
+
+def test_stage_import_check_sees_an_import_of_another_stage(tmp_path):
+    """The check above is not blind: a stage that imports another is caught, in both spellings."""
+    bad = tmp_path / "bad.py"
+    bad.write_text("from stages.extract import extract\nimport stages.report\nfrom stages.common import progress\n")
+    assert stage_imports(bad) - SHARED_STAGE_MODULES == {"stages.extract", "stages.report"}
+
+
+@pytest.mark.parametrize("name", ["train_specialist", "train_pderl", "mopderl", "fit_critics", "morld"])
+def test_an_edit_to_extraction_code_reruns_no_training_stage(name):
+    """MAPEX's own code (pipeline/extraction/) is no dep of the specialists, the post-hoc
+    critics or the baselines: editing it must not rerun them (nor void their checkpoints).
+    tests/test_dvc_pipeline.py checks the same with `dvc status` after a real edit."""
+    deps = sorted(d for d in code_deps(STAGES[name]) if d.startswith("pipeline/extraction/"))
+    assert not deps, f"stage {name} depends on {deps}"

@@ -142,3 +142,13 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     if "morld" in baselines:
         assert "| MORL/D |" in report
     assert ran(run([str(BIN / "dvc"), "repro"], root)) == set()
+
+    # an edit to MAPEX's code (pipeline/extraction/) leaves the specialists, the post-hoc
+    # critics and the baselines up to date: only extraction and what reads its fronts rerun
+    with open(root / "pipeline" / "extraction" / "mapex.py", "a") as fh:
+        fh.write("\n# an edit\n")
+    status = json.loads(subprocess.run([str(BIN / "dvc"), "status", "--json"], cwd=root, capture_output=True, text=True,
+                                       env={**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}).stdout)
+    stale = {name.split("@")[0] for name in status}
+    assert "extract" in stale and "extract_posthoc" in stale
+    assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale

@@ -157,7 +157,7 @@ def test_posthoc_critics_of_another_buffer_are_refused(specs, tmp_path, mapex, w
     posthoc = write_posthoc(specs, tmp_path / "posthoc")
     rewrite_meta(posthoc / "obj1" / "critics.pt", buffer_checksums={"obs": "00000000"})
     r = extract(mapex, write_params, tmp_path, specs, posthoc=posthoc, variant="mapex_posthoc")
-    assert_refused(r, tmp_path, "obj1/critics.pt was fitted on another buffer than", "obj1/buffer.zarr", "'obs'")
+    assert_refused(r, tmp_path, "obj1/critics.pt was fitted on a different buffer than", "obj1/buffer.zarr", "'obs'")
 
 
 def test_posthoc_critics_without_buffer_checksums_are_refused(specs, tmp_path, mapex, write_params):

@@ -16,7 +16,7 @@ import yaml
 
 from pipeline.core.population import load_population
 from pipeline.core.resume import FORMAT as RESUME_FORMAT
-from pipeline.core.resume import load_progress, save_progress
+from pipeline.core.resume import Checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -160,7 +160,7 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     assert saved["format"] == RESUME_FORMAT
     done = saved["n_items"] - 2
     # each finished policy is its own file, written once
-    assert len(list(state_file.parent.glob("item_*.pt"))) >= saved["n_items"]
+    assert len(list(state_file.parent.glob("state.item_*.pt"))) >= saved["n_items"]
     assert 1 <= done < 8 * k and done % k == 0  # whole iterations only
     assert not (tmp_path / "out" / "population.pt").exists()  # nothing final written by the killed run
     # rerun: resumes from the checkpoint and ends with the same artifacts
@@ -175,21 +175,22 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
 def test_changed_params_start_over_instead_of_resuming(specialists, tmp_path):
     from dataclasses import asdict
 
-    progress = tmp_path / "progress"
-    n = save_progress(progress, "fingerprint-a", [{"x": 1}, {"x": 2}], 0, {"history": []})
-    n = save_progress(progress, "fingerprint-a", [{"x": 3}], n, {"history": [1]})
-    assert n == 3
-    assert load_progress(progress, "fingerprint-a") == ([{"x": 1}, {"x": 2}, {"x": 3}], {"history": [1]})
-    assert load_progress(progress, "fingerprint-b") is None
-    (progress / "item_00001.pt").unlink()  # a lost item invalidates the progress
-    assert load_progress(progress, "fingerprint-a") is None
+    said: list[str] = []
+    ckpt = Checkpoint(tmp_path / "progress" / "state.pt", "fingerprint-a", said.append)
+    ckpt.save({"log": [{"x": 1}, {"x": 2}], "history": []})
+    ckpt.save({"log": [{"x": 1}, {"x": 2}, {"x": 3}], "history": [1]})
+    assert len(list((tmp_path / "progress").glob("state.item_*.pt"))) == 3  # each entry written once
+    assert Checkpoint(ckpt.path, "fingerprint-a", said.append).load() == {"log": [{"x": 1}, {"x": 2}, {"x": 3}], "history": [1]}
+    assert Checkpoint(ckpt.path, "fingerprint-b", said.append).load() is None and "changed since it was written" in said[-1]
+    (tmp_path / "progress" / "state.item_00001.pt").unlink()  # a lost entry invalidates the checkpoint
+    assert Checkpoint(ckpt.path, "fingerprint-a", said.append).load() is None and "cannot be read" in said[-1]
     # end to end: a finished run's state planted as the checkpoint of a run with another beta
     params_a = write_params(tmp_path / "a.yaml", beta=1.0)
     r = mapex(*extract_cmd(specialists, tmp_path / "a", params_a, tmp_path / "resume_a"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     members_a, _ = load_population(tmp_path / "a" / "population.pt")
     planted = tmp_path / "resume_b" / "extract" / "mapex_td3" / "seed0"
-    save_progress(planted, "stale", [asdict(m) for m in members_a], 0, {"history": []})
+    Checkpoint(planted / "state.pt", "stale", print).save({"log": [asdict(m) for m in members_a], "history": []})
     params_b = write_params(tmp_path / "b.yaml", beta=0.3)
     r = mapex(*extract_cmd(specialists, tmp_path / "b", params_b, tmp_path / "resume_b"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
@@ -230,9 +231,9 @@ def test_reference_point_is_not_an_input_of_extraction(specialists, tmp_path):
     progress = resume / "extract" / "mapex_td3" / "seed0"
     assert torch.load(progress / "state.pt", weights_only=True)["n_items"] == 2 + 3
     # mark the first child's saved record (returns_std steers nothing) to tell a resumed run from a fresh one
-    item = torch.load(progress / "item_00002.pt", weights_only=True)
+    item = torch.load(progress / "state.item_00002.pt", weights_only=True)
     item["item"]["returns_std"] = [-1.0, -1.0]
-    torch.save(item, progress / "item_00002.pt")
+    torch.save(item, progress / "state.item_00002.pt")
     params_b = tmp_path / "b.yaml"
     params_b.write_text(yaml.safe_dump({**TINY, "env": {k: v for k, v in TINY["env"].items() if k != "reference_point"}}))
     r = mapex(*extract_cmd(specialists, tmp_path / "out", params_b, resume), cwd=tmp_path)

@@ -23,7 +23,7 @@ from pipeline.core.nets import Actor
 from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.critics.posthoc import fit_posthoc_critics
 from stages.cli import app
-from stages.fit_critics import load_specialist
+from pipeline.core.specialist import load_slot
 
 FAST = dict(batch_size=64, lr=1e-2, gamma=0.5, tau=0.1, target_update_freq=1, hidden_sizes=[32, 32], device="cpu")
 
@@ -341,11 +341,11 @@ def test_posthoc_and_joint_critics_share_one_format(run_dir):
 
 
 def test_stage_fits_with_the_specialists_target_actor(run_dir):
-    spec = load_specialist(run_dir / "spec", 0)
+    spec = load_slot(run_dir / "spec", 0)
     saved = torch.load(run_dir / "spec" / "policy.pt", weights_only=True)
-    for key, value in spec.target_actor.state_dict().items():
+    for key, value in spec.actor_target.state_dict().items():
         assert torch.equal(value, saved["actor_target"][key])
-    assert not torch.equal(spec.target_actor.net[0].weight, spec.actor.net[0].weight)
+    assert not torch.equal(spec.actor_target.net[0].weight, spec.actor.net[0].weight)
 
 
 def bad_specialist(run_dir: Path, tmp_path: Path, kind: str) -> Path:

@@ -192,9 +192,9 @@ def test_resume_with_policy_sets(trained, specs, tmp_path, mapex, write_params):
     assert r.returncode != 0
     progress = tmp_path / "resume_sets" / "extract" / "mapex_td3" / "seed0"
     assert torch.load(progress / "state.pt", weights_only=True)["n_items"] == 6 + 2 * 2
-    item = torch.load(progress / "item_00006.pt", weights_only=True)  # the first child
+    item = torch.load(progress / "state.item_00006.pt", weights_only=True)  # the first child
     item["item"]["returns_std"] = [-1.0, -1.0]  # steers nothing: tells a resumed run from a fresh one
-    torch.save(item, progress / "item_00006.pt")
+    torch.save(item, progress / "state.item_00006.pt")
     r = extract(mapex, write_params, tmp_path, specs, name="sets", children_per_iteration=2)
     assert r.returncode == 0, r.stderr
     members, _ = load_population(tmp_path / "sets" / "population.pt")

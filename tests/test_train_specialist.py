@@ -27,7 +27,9 @@ from pipeline.core.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics
 from pipeline.core.envs import env_spec, make_env
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3_training import SpecialistsRun, continue_training, env_state, restore_env_state, train_specialist
-from stages.train_specialist import CHECKPOINT_FORMAT, load_checkpoint
+from pipeline.core.resume import FORMAT as CHECKPOINT_FORMAT
+from pipeline.core.resume import FORMAT_VERSION as CHECKPOINT_VERSION
+from pipeline.core.resume import Checkpoint
 
 CAP = 100  # the tiny preset's episode cap
 TOTAL = 350  # its total_steps
@@ -707,7 +709,7 @@ def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, c
     foreign = tmp_path / "out" / "specialist_state_obj1-obj2.pt"  # objective 2 is not trained here: kept
     foreign.write_bytes(b"old")
     saves: list[int] = []
-    monkeypatch.setattr(stage, "save_checkpoint", lambda path, fp, run: saves.append(run.t))
+    monkeypatch.setattr(stage.Checkpoint, "save", lambda self, state: saves.append(state))
     counter.clear()
     changed = run_stage(cli, tmp_path, write_params, {"tau": 0.01, "checkpoint_every": 0})
     assert changed.exit_code == 0, changed.stderr
@@ -720,11 +722,17 @@ def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, c
 
 def test_unreadable_or_foreign_checkpoints_are_ignored(tmp_path):
     bad = tmp_path / "specialist_state_obj0.pt"
+    said: list[str] = []
+
+    def load_checkpoint(path, fp):
+        return Checkpoint(path, fp, said.append).load()
+
     bad.write_bytes(b"not a zip file")
-    assert load_checkpoint(bad, "fp") is None
+    assert load_checkpoint(bad, "fp") is None and "cannot be read" in said[-1]
     torch.save({"format": "something.else", "format_version": 1}, bad)
-    assert load_checkpoint(bad, "fp") is None
-    torch.save({"format": CHECKPOINT_FORMAT, "format_version": 1, "fingerprint": "old", "state": {}}, bad)
-    assert load_checkpoint(bad, "fp") is None
+    assert load_checkpoint(bad, "fp") is None and "not a mapex.checkpoint" in said[-1]
+    torch.save({"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": "old", "state": {}}, bad)
+    assert load_checkpoint(bad, "fp") is None and "changed since it was written" in said[-1]
     assert load_checkpoint(bad, "old") == {}
-    assert load_checkpoint(tmp_path / "missing.pt", "fp") is None
+    n = len(said)
+    assert load_checkpoint(tmp_path / "missing.pt", "fp") is None and len(said) == n  # no checkpoint yet: nothing to say

@@ -97,7 +97,7 @@ import torch
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
-from pipeline.core.pareto import pareto_mask
+from pipeline.core.pareto import normalised_hypervolume, pareto_mask
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
@@ -335,6 +335,8 @@ class GenerationRecord:
     front_size: int  # rank-0 individuals of the population after selection
     updates: list[int] = field(default_factory=list)  # TD3 updates so far, per agent
     rl_returns: list[list[float]] = field(default_factory=list)  # this generation's exploration episodes
+    # hypervolume of the archive's training-time fitness scaled to [0, 1] by its own range (reference 0)
+    archive_hv_norm: float = 0.0
 
 
 def hidden_sizes_of(actor: Actor) -> list[int]:
@@ -529,7 +531,7 @@ class MopderlRun:
         self._update_archive(self.population)
         self.generation = 0
         rec = GenerationRecord(0, self.frames, len(self.population), len(self.archive), len(self.archive), self._front_size(),
-                               [ag.updates for ag in self.agents], [])
+                               [ag.updates for ag in self.agents], [], normalised_hypervolume(self.archive_returns()))
         self.history.append(rec)
         return rec
 
@@ -605,17 +607,17 @@ class MopderlRun:
                 on_episode(ep)
         self.train_agents()
         rec = GenerationRecord(self.generation, self.frames, len(new), entered, len(self.archive), self._front_size(),
-                               [ag.updates for ag in self.agents], rl_returns)
+                               [ag.updates for ag in self.agents], rl_returns, normalised_hypervolume(self.archive_returns()))
         self.history.append(rec)
         return rec
 
     # -- checkpoints ----------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Everything the run depends on from here, as CPU tensors and plain values, except the
-        members themselves (`members`, which the caller saves; only their count is here). On a
-        CPU the agents' full replay buffers are not copied (see `buffer_state`): save the
-        state before the next generation."""
+        """Everything the run depends on from here, as CPU tensors and plain values; the members
+        as an append-only "log" (pipeline.core.resume writes each entry once). On a CPU the
+        agents' full replay buffers are not copied (see `buffer_state`): save the state before
+        the next generation."""
 
         def ind_state(ind: Individual) -> dict[str, Any]:
             return {
@@ -648,15 +650,17 @@ class MopderlRun:
                 "mutation": self.mutation_gen.get_state(),
             },
             "history": [asdict(r) for r in self.history],
+            "log": [asdict(m) for m in self.members],
         }
 
-    def load_state_dict(self, state: dict[str, Any], members: list[Member]) -> None:
-        """Restore a `state_dict` of a run of the same spec, params and seed, with the members it
-        had then. Raises ValueError if it cannot be of this run."""
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a `state_dict` of a run of the same spec, params and seed. Raises ValueError
+        if it cannot be of this run."""
         if state.get("format") != STATE_FORMAT or state.get("format_version") != STATE_VERSION:
             raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
         if state["seed"] != self.seed:
             raise ValueError(f"state of seed {state['seed']}; this run is seed {self.seed}")
+        members = [Member(**m) for m in state["log"]]
         if state["n_members"] != len(members):
             raise ValueError(f"state counts {state['n_members']} members, {len(members)} given")
         if [a["objective"] for a in state["agents"]] != [ag.objective for ag in self.agents]:

@@ -50,16 +50,22 @@ def actor_from_meta(meta: dict[str, Any]) -> Actor:
     return Actor(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
 
 
-def load_policy(path: str | Path) -> tuple[Actor, dict[str, Any]]:
-    """Load an actor (in eval mode, on CPU) and its metadata."""
+def load_policy(path: str | Path, target: bool = False):
+    """Load an actor (in eval mode, on CPU) and its metadata: (actor, meta), or with `target`
+    (actor, meta, target actor), the target None where the file holds none (a child's)."""
     obj = torch_load_checked(path, POLICY_FORMAT, FORMAT_VERSION)
     meta = obj["meta"]
-    actor = actor_from_meta(meta)
-    try:
-        actor.load_state_dict(obj["actor"])
-    except (RuntimeError, KeyError) as exc:
-        raise ArtifactError(f"{path}: actor weights do not match its metadata ({exc})") from None
-    return actor.eval(), meta
+    nets = []
+    for key in ("actor", "actor_target") if target and "actor_target" in obj else ("actor",):
+        actor = actor_from_meta(meta)
+        try:
+            actor.load_state_dict(obj[key])
+        except (RuntimeError, KeyError) as exc:
+            raise ArtifactError(f"{path}: {key} weights do not match its metadata ({exc})") from None
+        nets.append(actor.eval())
+    if not target:
+        return nets[0], meta
+    return nets[0], meta, nets[1] if len(nets) > 1 else None
 
 
 def save_critics(path: str | Path, online: CriticEnsemble, target: CriticEnsemble, meta: dict[str, Any]) -> None:

@@ -42,3 +42,17 @@ def hypervolume(points: np.ndarray, ref: np.ndarray | list[float]) -> float:
 def ideal_box_volume(ideal: np.ndarray, ref: np.ndarray) -> float:
     """Volume of the box between the reference point and the ideal point (both (m,))."""
     return float(np.prod(np.clip(np.asarray(ideal, float) - np.asarray(ref, float), 0.0, None)))
+
+
+def population_scale(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-objective (low, span) of the population's returns (n, m); a zero span becomes 1."""
+    lo = returns.min(axis=0)
+    span = returns.max(axis=0) - lo
+    return lo, np.where(span > 0, span, 1.0)
+
+
+def normalised_hypervolume(returns: np.ndarray) -> float:
+    """Hypervolume of the returns scaled to [0, 1] by the population's own per-objective range,
+    reference at 0: needs no reference point (shown while running; moves when the range does)."""
+    lo, span = population_scale(returns)
+    return hypervolume((returns - lo) / span, np.zeros(returns.shape[1]))

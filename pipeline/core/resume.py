@@ -1,17 +1,21 @@
-"""Resumable runs: a fingerprint of everything a run depends on, and its saved progress.
+"""The one resume path of every long stage: a fingerprint rule, a checkpoint, resume-or-start-over.
 
-A stage that checkpoints after each unit of work stores the fingerprint with its progress; a
-rerun resumes only if the fingerprint matches, so a changed param, input, code file, device
-or thread count starts over instead of continuing stale state. The code files are every
-in-project file the stage imports (`pipeline.core.codedeps.closure_files`), the same list DVC's
-deps hold, so no hand-kept list can miss one.
+Every run the stages drive (TD3 specialists, PDERL, MOPDERL, MORL/D, MAPEX extraction) is a
+library object with `state_dict()` and `load_state_dict(state)`. A stage checkpoints it with
+a `Checkpoint` under `run_fingerprint(...)`, the one rule for what a run depends on: its
+params, its input files, every code file the stage imports (`closure_files`, the same list
+DVC's deps hold, so no hand-kept list can miss one), the device and the torch thread count
+(which can change the last bits of results). A rerun resumes (`resume`) only if the
+fingerprint matches and the state fits the run; anything else starts over, saying why.
 
-Layout of a progress directory: one file per finished item (`item_00000.pt`, ...), each
-written once, and `state.pt` (fingerprint, item count, small extra state) rewritten after
-each item. Writing items separately keeps the cost of a checkpoint constant: rewriting every
-policy at every iteration would grow quadratically (hundreds of GB over a paper-scale run).
-`state.pt` is replaced only after the item it counts is on disk, so it never names a
-missing item.
+A checkpoint file holds {"format": "mapex.checkpoint", "format_version", "fingerprint",
+"state", "n_items"}, written atomically and streamed (no in-memory copy of big buffers). A
+state may hold a "log": a list that only grows (the members of an extraction or MOPDERL run).
+Its entries are written once each, to files of their own beside the checkpoint
+(`<stem>.item_00000.pt`, ...), before the checkpoint that counts them, so the cost of a
+checkpoint stays constant (rewriting every policy at every iteration would grow
+quadratically: hundreds of GB over a paper-scale run) and a checkpoint never names a missing
+entry.
 """
 
 from __future__ import annotations
@@ -19,22 +23,24 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence, TypeVar
 
-from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_checked, torch_save_atomic
+from pipeline.core.artifacts import TMP_SUFFIX, ArtifactError, atomic_path, torch_load_checked, torch_save_atomic
+from pipeline.core.codedeps import closure_files
 
 # Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
 # to one directory per stage item, so a retry on another node resumes where a dead one stopped.
 RESUME_ROOT_ENV = "MAPEX_RESUME_ROOT"
 
-FORMAT = "mapex.resume"
-ITEM_FORMAT = "mapex.resume_item"
-FORMAT_VERSION = 2
+FORMAT = "mapex.checkpoint"
+ITEM_FORMAT = "mapex.checkpoint_item"
+FORMAT_VERSION = 3
+
+R = TypeVar("R")
 
 
-def fingerprint(config: dict[str, Any], files: list[str | Path]) -> str:
+def fingerprint(config: dict[str, Any], files: Sequence[str | Path]) -> str:
     """sha256 over a canonical JSON of `config` and the bytes of each file, in order."""
     h = hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode())
     for f in files:
@@ -45,44 +51,103 @@ def fingerprint(config: dict[str, Any], files: list[str | Path]) -> str:
     return h.hexdigest()
 
 
-def _item_path(directory: Path, i: int) -> Path:
-    return directory / f"item_{i:05d}.pt"
+def run_fingerprint(stage: str, config: dict[str, Any], device, inputs: Sequence[str | Path] = ()) -> str:
+    """The fingerprint of a run of stage `stage` (its module stages/<stage>.py): `config` (the
+    params it reads and its seed and objectives; not settings that change nothing saved, such
+    as checkpoint_every), the device it resolved to, the torch thread count, the bytes of its
+    input files and of every code file the stage imports."""
+    import torch
+
+    full = {**config, "device": str(device), "threads": torch.get_num_threads()}
+    return fingerprint(full, [*inputs, *closure_files(f"stages.{stage}")])
 
 
-def load_progress(directory: str | Path, expected: str) -> tuple[list[dict[str, Any]], dict[str, Any]] | None:
-    """(items, extra state) saved in `directory` under fingerprint `expected`, else None.
+class Checkpoint:
+    """The checkpoint of one run at `path` under fingerprint `fp`; `say` tells the user why a
+    checkpoint is not resumed."""
 
-    Unreadable or mismatched progress is discarded, never trusted.
-    """
-    directory = Path(directory)
-    try:
-        obj = torch_load_checked(directory / "state.pt", FORMAT, FORMAT_VERSION)
-        if obj.get("fingerprint") != expected:
+    def __init__(self, path: str | Path, fp: str, say: Callable[[str], None]) -> None:
+        self.path, self.fp, self.say = Path(path), fp, say
+        self.written = 0  # log entries on disk that the checkpoint of this fingerprint counts
+
+    def _item(self, i: int) -> Path:
+        return self.path.with_name(f"{self.path.stem}.item_{i:05d}.pt")
+
+    def _items(self) -> list[Path]:
+        return sorted(self.path.parent.glob(f"{self.path.stem}.item_*.pt"))
+
+    def load(self) -> dict[str, Any] | None:
+        """The state saved under this fingerprint (its log restored), else None: a missing,
+        unreadable, foreign or stale checkpoint is never trusted. Memory-mapped: buffer rows
+        are read from the file as they are copied into the run, not held twice."""
+        if not self.path.exists():
             return None
-        items = [torch_load_checked(_item_path(directory, i), ITEM_FORMAT, FORMAT_VERSION)["item"] for i in range(obj["n_items"])]
-    except (ArtifactError, KeyError):
-        return None
-    return items, obj["state"]
+        try:
+            import torch
+
+            obj = torch.load(self.path, map_location="cpu", weights_only=True, mmap=True)
+        except Exception as exc:  # truncated, corrupt, not a torch file
+            self.say(f"{self.path}: ignored, starting over (cannot be read: {type(exc).__name__}: {exc})")
+            return None
+        if not isinstance(obj, dict) or obj.get("format") != FORMAT or obj.get("format_version") != FORMAT_VERSION:
+            self.say(f"{self.path}: ignored, starting over (not a {FORMAT} v{FORMAT_VERSION} file)")
+            return None
+        if obj.get("fingerprint") != self.fp:
+            self.say(f"{self.path}: params, inputs, code, device, threads or libraries changed since it was written; starting over")
+            return None
+        state, n = obj.get("state"), obj.get("n_items", 0)
+        if n:
+            try:
+                state = {**state, "log": [torch_load_checked(self._item(i), ITEM_FORMAT, FORMAT_VERSION)["item"] for i in range(n)]}
+            except (ArtifactError, KeyError) as exc:
+                self.say(f"{self.path}: ignored, starting over (an entry it counts cannot be read: {exc})")
+                return None
+        self.written = n
+        return state
+
+    def save(self, state: dict[str, Any]) -> None:
+        """Write `state` atomically: its log entries not yet on disk first (each once), then
+        the checkpoint that counts them."""
+        import torch
+
+        log = state.get("log")
+        rest = {k: v for k, v in state.items() if k != "log"}
+        if log is not None:
+            if self.written == 0:
+                for old in self._items():  # entries of an earlier run must not linger
+                    old.unlink(missing_ok=True)
+            for i in range(self.written, len(log)):
+                torch_save_atomic({"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "item": log[i]}, self._item(i))
+        obj = {"format": FORMAT, "format_version": FORMAT_VERSION, "fingerprint": self.fp, "state": rest,
+               "n_items": 0 if log is None else len(log)}
+        with atomic_path(self.path) as tmp:
+            torch.save(obj, tmp)
+        self.written = obj["n_items"]
+
+    def clear(self) -> None:
+        """Remove the checkpoint, its log entries and what a kill left half-written."""
+        for path in (self.path, self.path.with_name(self.path.name + TMP_SUFFIX), *self._items()):
+            path.unlink(missing_ok=True)
+        self.written = 0
 
 
-def save_progress(directory: str | Path, fp: str, new_items: list[dict[str, Any]], start: int, state: dict[str, Any]) -> int:
-    """Write `new_items` as items start, start+1, ... (each once), then the state that counts
-    them; returns the new item count. start = 0 begins a fresh progress directory."""
-    directory = Path(directory)
-    if start == 0:
-        clear_progress(directory)  # stale items of another fingerprint must not linger
-    for i, item in enumerate(new_items, start=start):
-        torch_save_atomic({"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "item": item}, _item_path(directory, i))
-    n = start + len(new_items)
-    torch_save_atomic(
-        {"format": FORMAT, "format_version": FORMAT_VERSION, "fingerprint": fp, "n_items": n, "state": state},
-        directory / "state.pt",
-    )
-    return n
-
-
-def clear_progress(directory: str | Path) -> None:
-    shutil.rmtree(directory, ignore_errors=True)
+def resume(ckpt: Checkpoint, fresh: Callable[[], R]) -> tuple[R, bool]:
+    """A run made by `fresh()`, restored from `ckpt` if it holds a state of this fingerprint
+    that the run accepts; else (the message says why) a fresh run. Returns (run, resumed).
+    A run whose restore failed half-way is thrown away (closed if it has `close`)."""
+    run = fresh()
+    state = ckpt.load()
+    if state is None:
+        return run, False
+    try:
+        run.load_state_dict(state)
+    except (ValueError, KeyError, RuntimeError, TypeError, ArtifactError) as exc:  # right fingerprint, yet it does not fit
+        ckpt.say(f"{ckpt.path}: cannot be resumed ({exc}); starting over")
+        if hasattr(run, "close"):
+            run.close()
+        ckpt.written = 0
+        return fresh(), False
+    return run, True
 
 
 def resume_root(default: str | Path) -> Path:
@@ -96,40 +161,3 @@ def checkpoint_dir(out: str | Path) -> Path:
     OUT itself, or $MAPEX_RESUME_ROOT/<OUT's name> when set (shared storage)."""
     root = os.environ.get(RESUME_ROOT_ENV)
     return Path(root) / Path(out).name if root else Path(out)
-
-
-# One-file checkpoints of a whole run (training stages: TD3 and PDERL specialists, MORL/D):
-# {"format", "format_version", "fingerprint", "state"}, written streamed and atomically.
-
-
-def load_run_checkpoint(path: str | Path, fmt: str, version: int, fp: str, log: Callable[[str], None]) -> dict[str, Any] | None:
-    """The run state saved at `path` under fingerprint `fp`, else None: a missing, unreadable,
-    foreign or stale checkpoint is never trusted (`log` says why it is ignored). Memory-mapped:
-    buffer rows are read from the file as they are copied into the run, not held twice."""
-    path = Path(path)
-    if not path.exists():
-        return None
-    try:
-        import torch
-
-        obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception as exc:  # truncated, corrupt, not a torch file
-        log(f"{path}: ignored, starting over (cannot be read: {type(exc).__name__}: {exc})")
-        return None
-    if not isinstance(obj, dict) or obj.get("format") != fmt or obj.get("format_version") != version:
-        log(f"{path}: ignored, starting over (not a {fmt} v{version} file)")
-        return None
-    if obj.get("fingerprint") != fp:
-        log(f"{path}: params, code, device, threads or libraries changed since it was written; starting over")
-        return None
-    return obj.get("state")
-
-
-def save_run_checkpoint(path: str | Path, fmt: str, version: int, fp: str, state: dict[str, Any]) -> None:
-    """Write a run checkpoint atomically, streamed to the file (no in-memory copy of its buffers)."""
-    import torch
-
-    obj = {"format": fmt, "format_version": version, "fingerprint": fp, "state": state}
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-

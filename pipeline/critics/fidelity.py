@@ -22,6 +22,7 @@ last episodes are used because they are closest to the final pi_k.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import asdict, dataclass
 from typing import Any, Protocol, Sequence
@@ -160,3 +161,14 @@ def score_critics(
         q[:, a : a + chunk] = critic.twin_min(obs, policy(obs)).double().cpu().numpy()
     per = [_stats(int(m), q[j], g[:, m]) for j, m in enumerate(objectives)]
     return FidelityReport(float(gamma), horizon, n_episodes, per)
+
+
+def fidelity_json(report: FidelityReport, buffer_objective: int, **extra: Any) -> str:
+    """Fidelity JSON text (DVC metrics); no NaN: undefined statistics are null."""
+    return json.dumps({"buffer_objective": buffer_objective, **extra, **report.to_dict()}, indent=2) + "\n"
+
+
+def mean_rel_error(report: FidelityReport) -> float:
+    """The post-hoc fit's stopping rule: mean normalised error over the covered objectives (inf if undefined)."""
+    errs = [f.rel_error for f in report.per_objective]
+    return float(np.mean(errs)) if errs and all(e is not None for e in errs) else float("inf")

@@ -52,18 +52,11 @@ import numpy as np
 import torch
 
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
-from pipeline.core.pareto import pareto_mask
+from pipeline.core.pareto import pareto_mask, population_scale
 from pipeline.core.seeding import torch_generator
 
 
 # ---------------------------------------------------------------- step 1: gaps and weights
-
-
-def population_scale(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-objective (low, span) of the population's returns (n, m); a zero span becomes 1."""
-    lo = returns.min(axis=0)
-    span = returns.max(axis=0) - lo
-    return lo, np.where(span > 0, span, 1.0)
 
 
 def front_edges(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,167 @@
+"""MAPEX Algorithm 1's outer loop as a run, shaped like the other algorithms' runs.
+
+`ExtractionRun` holds the population Pi (its members: every starting policy, then every
+child), the specialists' buffers D_k and critics Q^(k)_m, and the history of the run.
+`start()` evaluates the starting policies; each `step()` is one iteration of Algorithm 1's
+while loop: the whole population's returns choose parents and target weights, each of
+`children_per_iteration` children is trained on its own hybrid buffer (pipeline.extraction.
+mapex.make_children) and evaluated, and joins the population. `state_dict()` /
+`load_state_dict()` save and restore the run between iterations (the members as an
+append-only log, see pipeline.core.resume), so a resumed run ends bitwise as an
+uninterrupted one on the same machine.
+
+Random streams: member i is evaluated on evaluation stream i (seed, EVAL_STREAM, i); child c
+(counted from 1 over the run) draws from derive_seeds(seed, EXTRACT_TAG, c), so with one
+child per iteration child c has the streams iteration c always had.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import asdict
+from typing import Any, Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from pipeline.core.nets import CriticEnsemble
+from pipeline.core.pareto import normalised_hypervolume, pareto_mask
+from pipeline.core.population import Member, actor_state, member_actor
+from pipeline.core.seeding import derive_seeds
+from pipeline.core.specialist import StartingPolicy
+from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies, evaluate_policy
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
+from pipeline.params.extract import ExtractParams
+
+EXTRACT_TAG = 0xE87AC7
+EVAL_STREAM = 0  # evaluation seeds of extraction; the evaluate stage uses fresh streams
+HISTORY_FIELDS = ["iteration", "population", "front_size", "env_samples"]
+
+
+def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
+    """Streams of the run's children first .. first + k - 1 (counted from 1): child c's depend on
+    (seed, c) alone, so with K = 1 child c has the streams iteration c always had."""
+    return [ChildSeeds(*derive_seeds(seed, EXTRACT_TAG, c, n=3)) for c in range(first, first + k)]
+
+
+def child_config(cfg: ExtractParams) -> ChildConfig:
+    """The `extract` params that shape one child's training."""
+    return ChildConfig(
+        tuple(cfg.hidden_sizes), cfg.child_buffer_size, cfg.weight_norm, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size,
+        AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute,
+                        cfg.advantage_norm),
+    )
+
+
+def history_row(iteration: int, members: Sequence[Member]) -> dict[str, int]:
+    returns = np.array([m.returns for m in members])
+    return {"iteration": iteration, "population": len(members), "front_size": int(pareto_mask(returns).sum()),
+            "env_samples": members[-1].env_samples}
+
+
+def history_csv(rows: Sequence[dict]) -> str:
+    """history.csv: population, front size and env samples after each iteration (0 = the start)."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
+    w.writeheader()
+    w.writerows(rows)
+    return buf.getvalue()
+
+
+class ExtractionRun:
+    """Algorithm 1 over one seed's specialists (see the module docstring).
+
+    cfg: the resolved `extract` params (a variant's changes already applied, e.g. epochs 0 for
+    warmup_only). meta: env_id, obs_dim, act_dim, n_objectives, action_low, action_high (what
+    a child's actor is rebuilt from). envs: cfg.eval_episodes * cfg.children_per_iteration envs.
+    """
+
+    def __init__(self, starts: Sequence[StartingPolicy], buffers: Sequence[dict[str, np.ndarray]],
+                 critics: Sequence[CriticEnsemble], cfg: ExtractParams, meta: dict[str, Any], seed: int,
+                 envs: Sequence[gym.Env], device: torch.device) -> None:
+        self.starts, self.buffers, self.cfg, self.meta, self.seed = list(starts), list(buffers), cfg, meta, seed
+        self.critics = [c.to(device) for c in critics]
+        self.envs, self.device = list(envs), device
+        self.child_cfg = child_config(cfg)
+        self.k = cfg.children_per_iteration
+        self.actors = [s.actor.to(device) for s in self.starts]  # the population's actors, member by member
+        self.members: list[Member] = []
+        self.history: list[dict[str, int]] = []
+        self.last: list[EvalResult] = []  # the last iteration's children's evaluations
+
+    @property
+    def n_start(self) -> int:
+        return len(self.starts)
+
+    @property
+    def iteration(self) -> int:
+        """Iterations done (0 before the first child)."""
+        return max(len(self.members) - self.n_start, 0) // self.k
+
+    @property
+    def done(self) -> bool:
+        return self.iteration >= self.cfg.iterations
+
+    @property
+    def samples(self) -> int:
+        """Env frames spent on evaluation so far (the only env interaction of extraction)."""
+        return self.members[-1].env_samples if self.members else 0
+
+    def _seeds(self, member: int) -> list[int]:
+        return eval_seeds(self.seed, EVAL_STREAM, member, self.cfg.eval_episodes)
+
+    def _member(self, res: EvalResult, actor, **origin) -> Member:
+        return Member(**origin, returns=res.mean.tolist(), returns_std=res.std.tolist(), eval_episodes=self.cfg.eval_episodes,
+                      env_samples=self.samples + res.env_samples, actor=actor_state(actor))
+
+    def start(self) -> None:
+        """Evaluate the starting policies: they become members 0 .. n_start - 1 (a TD3
+        specialist's single policy is member k)."""
+        if self.members:
+            raise RuntimeError("start runs once, before any iteration")
+        for i, (s, actor) in enumerate(zip(self.starts, self.actors)):
+            res = evaluate_policy(actor, self.envs, self._seeds(i))
+            self.members.append(self._member(res, actor, origin="specialist", objective=s.objective, iteration=0, parents=[],
+                                             target_weight=None, hidden_sizes=s.hidden_sizes, policy_name=s.name))
+        self.history.append(history_row(0, self.members))
+
+    def step(self, on_step: Callable[[], None] | None = None) -> None:
+        """One iteration: parents and target weights from the whole population, k children
+        trained and evaluated, each joining the population."""
+        it = self.iteration + 1
+        returns = np.array([m.returns for m in self.members])
+        seeds = child_seeds(self.seed, len(self.members) - self.n_start + 1, self.k)
+        children = make_children(returns, self.actors, self.buffers, self.critics, self.child_cfg, seeds, self.device)
+        ids = range(len(self.members), len(self.members) + self.k)
+        self.last = evaluate_policies([a for a, _ in children], self.envs, [self._seeds(i) for i in ids])
+        for (child, rec), res in zip(children, self.last):
+            self.members.append(self._member(res, child, origin="child", objective=None, iteration=it, parents=list(rec.parents),
+                                             target_weight=rec.weight.tolist(), hidden_sizes=list(self.cfg.hidden_sizes),
+                                             policy_name=None))
+            self.actors.append(child)
+        self.history.append(history_row(it, self.members))
+
+    def normalised_hypervolume(self) -> float:
+        return normalised_hypervolume(np.array([m.returns for m in self.members]))
+
+    def state_dict(self) -> dict[str, Any]:
+        """The members (as an append-only log) and the history: everything the run continues from."""
+        return {"log": [asdict(m) for m in self.members], "history": list(self.history)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a `state_dict` of a run of the same starting policies and params; raises
+        ValueError if it is not the starting policies plus whole iterations."""
+        members = [Member(**m) for m in state["log"]]
+        if len(members) < self.n_start or (len(members) - self.n_start) % self.k:
+            raise ValueError(f"{len(members)} members are not the {self.n_start} starting policies plus whole iterations of {self.k}")
+        self.members, self.history = members, list(state["history"])
+        self.actors = self.actors[: self.n_start] + [member_actor(m, self.meta).to(self.device) for m in members[self.n_start :]]
+
+
+def variant_config(cfg: ExtractParams, variant: str) -> ExtractParams:
+    """The `extract` params as variant `variant` runs them: warmup_only is Algorithm 1 with
+    epochs = 0 (regression onto the mean parent action only); mapex and mapex_posthoc change
+    nothing here (they differ in the critics they read)."""
+    return cfg.model_copy(update={"epochs": 0}) if variant == "warmup_only" else cfg
