@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The 2-core CPU figures of README "Speed on a 2-core CPU": quickstart-size specialists
+# The 2-core CPU figures of docs/benchmarks.md, "Specialist training at 64 units": quickstart-size specialists
 # (64 units) one alone, stacked, and side by side in processes, against the one-specialist-
 # per-process code of commit f0c7bf9 (before stacking), in alternating passes.
 #   bash benchmarks/specialists_2core.sh [PASSES] [BASE_COMMIT]

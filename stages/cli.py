@@ -43,7 +43,7 @@ def main() -> None:
     """MAPEX: extract Pareto fronts of continuous-control policies from single-objective specialists.
 
     Each subcommand is one DVC stage (see dvc.yaml); hyperparameters come from params.yaml.
-    Torch uses MAPEX_TORCH_THREADS CPU threads (default 1; see README, "Threads").
+    Torch uses MAPEX_TORCH_THREADS CPU threads (default 1; see docs/manual.md, "Threads").
     """
     # One thread by default: at the quickstart's 64-unit widths a second thread only adds
     # synchronisation (measured 6x slower on a busy 2-core machine), and a fixed count keeps

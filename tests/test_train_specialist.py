@@ -343,7 +343,7 @@ PAPER_ENVS = ["mo-hopper-2obj-v5", "mo-halfcheetah-v5", "mo-ant-2obj-v5", "mo-wa
 
 # The same checks on CUDA, where the update runs as captured graphs (or eagerly) and the
 # minibatch rows come from device generators. Results on CUDA are reproducible up to the GPU's
-# reduction kernels (README, "On a GPU"), so the restored run is compared with the tolerance
+# reduction kernels (docs/manual.md, "On a GPU"), so the restored run is compared with the tolerance
 # of the graphs-vs-eager test, not bit for bit. The CPU case runs everywhere and checks these
 # tests themselves; the CUDA cases skip without a GPU (benchmarks/device/check.sh runs them).
 
