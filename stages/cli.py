@@ -26,6 +26,7 @@ COMMANDS = {
     "morld": "stages.morld",
     "sweep": "stages.sweep",
     "grid-report": "stages.grid_report",
+    "sync-params": "stages.sync_params",
 }
 
 app = typer.Typer(

@@ -9,6 +9,8 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from pipeline.params.methods import derived_lists
+from pipeline.params.sync import synced_text
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 
@@ -182,22 +184,47 @@ def test_repository_params_file_validates():
     assert cfg.learning_starts < cfg.total_steps
 
 
-def test_run_params_methods_must_be_what_the_lists_produce():
+def test_run_lists_are_derived_from_methods_and_checked():
     ok = {"seeds": [0, 1], "pderl_seeds": [0, 1], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex"],
           "posthoc_from": ["pderl"], "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"]}
     assert section(ok, "", RunParams).posthoc_from == ["pderl"]
-    # a method nobody produces, and a produced method left out: both name the list to fix
-    with pytest.raises(ParamsError, match=r"produce \['mapex_td3', 'mapex_pderl', 'mapex_posthoc_pderl'\]: set methods"):
+    assert derived_lists(ok["methods"], ok["seeds"]) == {k: v for k, v in ok.items() if k not in ("seeds", "methods")} | {
+        "mopderl_seeds": [], "morld_seeds": []}
+    # a derived list that disagrees with methods names the list and the command that fixes it
+    with pytest.raises(ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: run `mapex sync-params`"):
         section({**ok, "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_td3"]}, "", RunParams)
-    with pytest.raises(ParamsError, match="set methods to that list"):
-        section({**ok, "methods": ["mapex_td3", "mapex_pderl"]}, "", RunParams)
-    # MAPEX-PostHoc is chosen by posthoc_from (its own stage), not as an extraction variant
-    with pytest.raises(ParamsError, match=r"extract_variants = .*mapex_posthoc is chosen by `posthoc_from`"):
-        section({**ok, "extract_variants": ["mapex", "mapex_posthoc"]}, "", RunParams)
-    with pytest.raises(ParamsError, match=r"unknown variants \['mapex_awr'\]"):
-        section({**ok, "extract_variants": ["mapex_awr"]}, "", RunParams)
-    # post-hoc critics for PDERL specialists need PDERL specialists
-    with pytest.raises(ParamsError, match="posthoc_from: pderl: PDERL specialists are needed; set pderl_seeds to"):
-        section({**ok, "pderl_seeds": [], "extract_from": ["td3"], "methods": ["mapex_td3", "mapex_posthoc_pderl"]}, "", RunParams)
+    with pytest.raises(ParamsError, match=r"pderl_seeds = \[\], but .* make it \[0, 1\]"):
+        section({**ok, "pderl_seeds": []}, "", RunParams)
+    # PDERL specialists that no method reads may still be trained
+    assert section({"seeds": [0], "pderl_seeds": [0], "methods": ["mapex_td3", "warmup_only_td3"]}, "", RunParams).pderl_seeds == [0]
+    # stage extract runs a matrix of variants x kinds: a method set that is not a full product is refused
+    with pytest.raises(ParamsError, match=r"so add \['warmup_only_pderl'\]"):
+        section({**ok, "methods": ["mapex_td3", "warmup_only_td3", "mapex_pderl"]}, "", RunParams)
+    with pytest.raises(ParamsError, match=r"unknown methods \['mapex_awr_td3'\]"):
+        section({**ok, "methods": ["mapex_awr_td3"]}, "", RunParams)
     with pytest.raises(ParamsError, match="posthoc_from"):
         section({**ok, "posthoc_from": ["sac"]}, "", RunParams)
+
+
+def test_sync_params_writes_the_derived_block_and_keeps_the_rest():
+    text = ("# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
+            "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n")
+    synced = synced_text(text)
+    raw = yaml.safe_load(synced)
+    assert section(raw, "", RunParams).mopderl_seeds == [0, 1]
+    assert raw["extract_from"] == ["pderl"] and raw["pderl_seeds"] == [0, 1] and raw["extract"] == {"beta": 0.5}
+    assert synced.startswith("# my comment\nseeds: [0, 1]   # two seeds\nmethods:") and "stale" not in synced
+    assert synced_text(synced) == synced  # syncing twice changes nothing
+    # a changed method list rewrites the block in place
+    again = yaml.safe_load(synced_text(synced.replace("warmup_only_pderl, mopderl", "warmup_only_pderl")))
+    assert again["mopderl_seeds"] == [] and again["extract"] == {"beta": 0.5}
+    with pytest.raises(ValueError, match="f.yaml: unknown methods"):
+        synced_text("methods: [nope]\n", "f.yaml")
+
+
+def test_every_preset_syncs_to_a_valid_params_file():
+    for path in sorted((REPO / "presets").rglob("*.yaml")):
+        if path.name == "reference_points.yaml":
+            continue
+        raw = yaml.safe_load(synced_text(path.read_text(), str(path)))
+        section(raw, "", RunParams, path)

@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from pipeline.params.methods import derived_lists
+
 
 class Strict(BaseModel):
     """Base for every params model: unknown keys are errors, values are frozen."""
@@ -24,57 +26,39 @@ class EnvParams(Strict):
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
 
-# Extraction variants (stage extract --variant): what each changes in section `extract`.
-EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
-# The variants that read the critics trained jointly with the specialists (stage extract,
-# list extract_variants). mapex_posthoc reads critics fitted post hoc and has its own stage
-# (extract_posthoc, list posthoc_from), so that extraction with joint critics does not depend
-# on post-hoc critics: DVC deps cannot depend on a matrix value.
-JOINT_VARIANTS = ("mapex", "warmup_only")
-# Kinds of specialists extraction can start from: td3 (stage train_specialist) and pderl
-# (stage train_pderl), under data/specialists/<kind>/seedS.
-SPECIALIST_KINDS = ("td3", "pderl")
-BASELINES = ("mopderl", "morld")
-
-
-def method_name(variant: str, kind: str) -> str:
-    """The method an extraction variant from one kind of specialists is: mapex_td3, mapex_posthoc_pderl, ..."""
-    return f"{variant}_{kind}"
+GENERATED_BEGIN = "# --- generated from `methods` and `seeds` by `mapex sync-params`: do not edit ---"
+GENERATED_END = "# --- end of generated lists ---"
 
 
 class RunParams(Strict):
-    """The top-level lists dvc.yaml fans stages out over, checked to agree with each other.
-
-    DVC cannot filter a matrix, so each producing stage has its own list, and `methods` (what
-    evaluate, score and report compare) must be exactly what those lists produce: every
-    extraction variant from every kind in `extract_from` (named variant_kind), mapex_posthoc
-    from every kind in `posthoc_from`, plus each baseline whose seed list is not empty. The
-    check names the list to change.
+    """The top-level lists: what to run (`seeds`, `objectives`, `methods`, written by hand) and
+    the run lists dvc.yaml fans its producing stages out over, derived from `methods` and
+    `seeds` (pipeline.params.methods.derived_lists) and written into params.yaml's generated
+    block by `mapex sync-params`. DVC cannot filter a matrix, hence the derived lists; a file
+    whose lists disagree with `methods` (edited by hand, or not re-synced) is an error naming
+    the list and the command that fixes it.
     """
 
     seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run of every method")
     objectives: list[int] = Field([0, 1], min_length=1, description="objective indices, one specialist each")
-    pderl_seeds: list[int] = Field(
-        [], description="seeds of stage train_pderl (PDERL specialists): [] or the same list as `seeds`"
-    )
-    extract_from: list[Literal["td3", "pderl"]] = Field(
-        ["td3"], min_length=1, description="kinds of specialists the extract stage starts from (td3, pderl)"
-    )
-    extract_variants: list[str] = Field(
-        ["mapex", "warmup_only"], description="extraction variants run from each kind in extract_from, with the specialists' "
-        "joint critics: mapex, warmup_only (the ablation: no advantage-weighted phase)"
-    )
-    posthoc_from: list[Literal["td3", "pderl"]] = Field(
-        [], description="kinds of specialists to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc "
-        "from (stage extract_posthoc, method mapex_posthoc_<kind>); [] skips both"
-    )
-    mopderl_seeds: list[int] = Field([], description="seeds of the MOPDERL baseline (stage mopderl): [] or `seeds`")
-    morld_seeds: list[int] = Field([], description="seeds of the MORL/D baseline (stage morld): [] or `seeds`")
     methods: list[str] = Field(
         ["mapex_td3", "warmup_only_td3"], min_length=1,
-        description="what evaluate, score and report compare, one data/fronts/<method>/seedS each: <variant>_<kind> for "
-        "each extraction variant and kind, plus mopderl and morld when their seed lists are set",
+        description="what runs and is compared, one data/fronts/<method>/seedS each: <variant>_<kind> (variants mapex, "
+        "mapex_posthoc, warmup_only; kinds td3, pderl), mopderl, morld (pipeline/params/methods.py)",
     )
+    # derived (generated block): see pipeline.params.methods.derived_lists
+    pderl_seeds: list[int] = Field([], description="derived: seeds of stage train_pderl (PDERL specialists)")
+    extract_from: list[Literal["td3", "pderl"]] = Field(
+        ["td3"], min_length=1, description="derived: kinds of specialists stage extract starts from (td3, pderl)"
+    )
+    extract_variants: list[Literal["mapex", "warmup_only"]] = Field(
+        ["mapex", "warmup_only"], description="derived: variants stage extract runs from each kind, with the joint critics"
+    )
+    posthoc_from: list[Literal["td3", "pderl"]] = Field(
+        [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
+    )
+    mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
+    morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
 
     @field_validator("seeds", "objectives", "pderl_seeds", "mopderl_seeds", "morld_seeds")
     @classmethod
@@ -92,37 +76,15 @@ class RunParams(Strict):
             raise ValueError(f"entries must be unique, got {v}")
         return v
 
-    @field_validator("extract_variants")
-    @classmethod
-    def _joint_variants(cls, v: list[str]) -> list[str]:
-        if "mapex_posthoc" in v:
-            raise ValueError("mapex_posthoc is chosen by `posthoc_from` (the kinds of specialists to fit post-hoc critics "
-                             "for, e.g. [td3]), not by extract_variants; remove it here")
-        bad = [x for x in v if x not in JOINT_VARIANTS]
-        if bad:
-            raise ValueError(f"unknown variants {bad}: expected entries of {list(JOINT_VARIANTS)}")
-        return v
-
-    def produced_methods(self) -> list[str]:
-        """The methods the producer lists make."""
-        out = [method_name(v, k) for k in self.extract_from for v in self.extract_variants]
-        out += [method_name("mapex_posthoc", k) for k in self.posthoc_from]
-        return out + [b for b, seeds in (("mopderl", self.mopderl_seeds), ("morld", self.morld_seeds)) if seeds]
-
     @model_validator(mode="after")
     def _consistent(self) -> "RunParams":
-        for key in ("pderl_seeds", "mopderl_seeds", "morld_seeds"):
-            v = getattr(self, key)
-            if v and sorted(v) != sorted(self.seeds):
-                raise ValueError(f"{key} = {v}: must be [] or the same seeds as `seeds` ({self.seeds}), since every method "
-                                 f"is evaluated on every seed")
-        needs_pderl = [m for m in ("pderl" in self.extract_from and "extract_from: pderl",
-                                   "pderl" in self.posthoc_from and "posthoc_from: pderl",
-                                   self.mopderl_seeds and "mopderl_seeds") if m]
-        if needs_pderl and not self.pderl_seeds:
-            raise ValueError(f"{' and '.join(needs_pderl)}: PDERL specialists are needed; set pderl_seeds to {self.seeds}")
-        produced = self.produced_methods()
-        if sorted(self.methods) != sorted(produced):
-            raise ValueError(f"methods = {self.methods}, but extract_from x extract_variants, posthoc_from and the baselines' seed lists "
-                             f"produce {produced}: set methods to that list (or change those lists)")
+        want = derived_lists(self.methods, self.seeds)
+        for key, value in want.items():
+            given = getattr(self, key)
+            same = sorted(given) == sorted(value)
+            if key == "pderl_seeds" and not value and sorted(given) == sorted(self.seeds):
+                same = True  # PDERL specialists no method reads may still be trained
+            if not same:
+                raise ValueError(f"{key} = {given}, but methods {self.methods} and seeds {self.seeds} make it {value}: "
+                                 "run `mapex sync-params` (it rewrites the generated lists of params.yaml)")
         return self

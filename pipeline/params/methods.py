@@ -1,0 +1,102 @@
+"""The methods this pipeline can run and compare: one table that params validation, the
+derived run lists of params.yaml (`mapex sync-params`) and the report all read.
+
+A method is what `methods` in params.yaml lists and what data/fronts/<method>/ holds: an
+extraction variant run from one kind of specialists (`mapex_td3` is variant `mapex` from TD3
+specialists), or a baseline. Its `variant` is what `mapex extract --variant` takes (None for a
+baseline), its `kind` the specialists it starts from (None for MORL/D, which starts from
+nothing), its `stage` the dvc.yaml stage that writes its front.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+
+class Method(NamedTuple):
+    name: str  # in params.yaml's `methods`, data/fronts/<name>/, every artifact's "method" key
+    variant: str | None  # extraction variant (mapex, mapex_posthoc, warmup_only); None for a baseline
+    kind: str | None  # the specialists it starts from: td3, pderl; None if none
+    label: str  # its name in the report (the paper's where it has one)
+    colour: str  # its colour in the report's figures (matplotlib)
+    stage: str  # the dvc.yaml stage writing data/fronts/<name>/
+
+
+# In the report's usual order: the paper's MAPEX first.
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("mapex_pderl", "mapex", "pderl", "MAPEX", "tab:blue", "extract"),
+    Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "MAPEX-PostHoc", "tab:cyan", "extract_posthoc"),
+    Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "extract"),
+    Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
+    Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
+    Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
+    Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
+    Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
+)}
+
+# Extraction variants (stage extract --variant): what each changes in section `extract`.
+EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
+# The variants that read the critics trained jointly with the specialists (stage extract).
+# mapex_posthoc reads critics fitted post hoc and has its own stage (extract_posthoc), so that
+# extraction with joint critics does not depend on post-hoc critics: DVC deps cannot depend
+# on a matrix value.
+JOINT_VARIANTS = ("mapex", "warmup_only")
+# Kinds of specialists extraction can start from: td3 (stage train_specialist) and pderl
+# (stage train_pderl), under data/specialists/<kind>/seedS.
+SPECIALIST_KINDS = ("td3", "pderl")
+BASELINES = tuple(m.name for m in METHODS.values() if m.variant is None)
+# The report's rows for the starting policies alone (no method made them).
+SPECIALISTS_LABELS = {"specialists_pderl": "PDERL specialists only", "specialists_td3": "TD3 specialists only"}
+
+
+def method_name(variant: str, kind: str) -> str:
+    """The method an extraction variant from one kind of specialists is: mapex_td3, mapex_posthoc_pderl, ..."""
+    return f"{variant}_{kind}"
+
+
+def label(method: str) -> str:
+    """The method's name in the report (its own name if it is not in the table)."""
+    m = METHODS.get(method)
+    return m.label if m else SPECIALISTS_LABELS.get(method, method)
+
+
+def colour(method: str) -> str:
+    m = METHODS.get(method)
+    return m.colour if m else "grey"
+
+
+def specialist_kind(method: str) -> str | None:
+    """The kind of specialists a method starts from ('pderl', 'td3'), None if none or unknown."""
+    m = METHODS.get(method)
+    return m.kind if m else None
+
+
+def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
+    """The run lists dvc.yaml fans its producing stages out over, derived from `methods` and
+    `seeds` (DVC cannot filter a matrix, so each producing stage needs a list of its own):
+    pderl_seeds, extract_from, extract_variants, posthoc_from, mopderl_seeds, morld_seeds.
+
+    extract runs every joint variant of `extract_variants` from every kind of `extract_from`
+    (a matrix), so the methods of stage extract must form that whole product; raises
+    ValueError naming the missing method otherwise. Unknown methods raise ValueError too."""
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
+    chosen = [METHODS[m] for m in methods]
+    extract = [m for m in chosen if m.stage == "extract"]
+    kinds = [k for k in SPECIALIST_KINDS if any(m.kind == k for m in extract)]
+    variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
+    missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
+    if missing:
+        raise ValueError(f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
+                         f"(a DVC matrix), so add {missing} (or drop the methods that need them)")
+    posthoc = [k for k in SPECIALIST_KINDS if method_name("mapex_posthoc", k) in methods]
+    needs_pderl = any(m.kind == "pderl" for m in chosen)
+    return {
+        "pderl_seeds": list(seeds) if needs_pderl else [],
+        "extract_from": kinds,
+        "extract_variants": variants,
+        "posthoc_from": posthoc,
+        "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
+        "morld_seeds": list(seeds) if "morld" in methods else [],
+    }

@@ -1,0 +1,67 @@
+"""Write the derived run lists into a params file: the text behind `mapex sync-params`.
+
+A user lists what to run once (`methods`, with `seeds`); the lists dvc.yaml fans its
+producing stages out over follow from them (pipeline.params.methods.derived_lists) and live
+in a generated block of params.yaml, between GENERATED_BEGIN and GENERATED_END, right after
+`methods`. Syncing replaces that block (or, in an older file, the hand-written one-line
+entries of those keys) and leaves every other line, comments included, as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import yaml
+
+from pipeline.params.common import GENERATED_BEGIN, GENERATED_END, RunParams
+from pipeline.params.methods import derived_lists
+
+DERIVED_KEYS = ("pderl_seeds", "extract_from", "extract_variants", "posthoc_from", "mopderl_seeds", "morld_seeds")
+
+
+def generated_block(methods: list[str], seeds: list[int]) -> str:
+    lists = derived_lists(methods, seeds)
+    lines = [f"{key}: {json.dumps(lists[key])}" for key in DERIVED_KEYS]
+    return "\n".join([GENERATED_BEGIN, *lines, GENERATED_END]) + "\n"
+
+
+def synced_text(text: str, where: str = "params.yaml") -> str:
+    """`text` (a params file) with its generated block rewritten from its `methods` and `seeds`.
+
+    Raises ValueError naming `where` if the file is not a mapping, lists an unknown method or a
+    set of methods that dvc.yaml's matrices cannot run, or writes a derived key over several
+    lines outside the generated block (which this rewrite cannot remove safely)."""
+    raw = yaml.safe_load(text)
+    if not isinstance(raw, dict):
+        raise ValueError(f"{where}: expected a mapping of sections at the top level")
+    defaults = RunParams.model_fields
+    methods = raw.get("methods", defaults["methods"].default)
+    seeds = raw.get("seeds", defaults["seeds"].default)
+    try:
+        block = generated_block(list(methods), list(seeds))
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+    lines = text.splitlines(keepends=True)
+    if GENERATED_BEGIN + "\n" in lines:  # replace the block in place
+        start = lines.index(GENERATED_BEGIN + "\n")
+        end = next((i for i in range(start, len(lines)) if lines[i].rstrip("\n") == GENERATED_END), None)
+        if end is None:
+            raise ValueError(f"{where}: the generated block has no end line ({GENERATED_END!r})")
+        return "".join(lines[:start]) + block + "".join(lines[end + 1 :])
+    kept = []
+    key_line = re.compile(r"^(%s)\s*:(.*)$" % "|".join(DERIVED_KEYS))
+    for line in lines:
+        m = key_line.match(line)
+        if m:
+            value = m.group(2).split("#", 1)[0].strip()
+            if not value.startswith("["):
+                raise ValueError(f"{where}: {m.group(1)} is written over several lines; delete it (it is derived from methods)")
+            continue
+        kept.append(line)
+    at = next((i for i, line in enumerate(kept) if re.match(r"^methods\s*:", line)), None)
+    if at is None:  # no methods line: the block goes after seeds, or at the top
+        at = next((i for i, line in enumerate(kept) if re.match(r"^seeds\s*:", line)), -1)
+    while at >= 0 and at + 1 < len(kept) and kept[at + 1].startswith((" ", "\t", "-")):
+        at += 1  # a methods list over several lines
+    return "".join(kept[: at + 1]) + block + "".join(kept[at + 1 :])
