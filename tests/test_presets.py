@@ -14,6 +14,7 @@ import yaml
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
 from pipeline.params.registry import section_models
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
+from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +49,24 @@ def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
         assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
         assert ts == TrainSpecialistParams(total_steps=ts.total_steps)  # everything else: the paper's TD3 table
         assert env.max_episode_steps == 750
+
+
+# PDERL's reference code copies the RL actor into the population every generation on Hopper,
+# Walker2d and Ant, every 10 generations on the other envs (train_pderl.rl_sync_period).
+RL_SYNC_PERIOD = {"mo-halfcheetah-v5": 10, "mo-swimmer-v5": 10, "mo-hopper-2obj-v5": 1, "mo-walker2d-v5": 1, "mo-ant-2obj-v5": 1}
+
+
+def test_presets_set_pderls_rl_sync_period_of_their_env():
+    """Every preset that configures train_pderl (the five paper presets at least) sets
+    rl_sync_period explicitly, to its env's value in PDERL's code: the default, 1, is right
+    for three of the five envs only."""
+    configured = [p for p in sorted((ROOT / "presets").rglob("*.yaml")) if "train_pderl" in yaml.safe_load(p.read_text())]
+    assert set(PRESETS) <= set(configured)
+    for path in configured:
+        raw = load_params(path)
+        env = section(raw, "env", EnvParams, path)
+        assert "rl_sync_period" in raw["train_pderl"], path
+        assert section(raw, "train_pderl", TrainPderlParams, path).rl_sync_period == RL_SYNC_PERIOD[env.id], path
 
 
 def test_payoff_preset_is_the_issue_settings():
