@@ -15,13 +15,14 @@ from pipeline.core.buffer import save_buffer
 from pipeline.core.checkpoint import save_critics, save_policy
 from pipeline.core.codedeps import closure_files
 from pipeline.core.envs import env_spec, make_env, objective_names
+from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import checkpoint_dir, fingerprint, load_run_checkpoint, save_run_checkpoint
 from pipeline.core.seeding import select_device
 from pipeline.core.workers import split_evenly
-from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
+from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_FORMAT = "mapex.specialist_checkpoint"

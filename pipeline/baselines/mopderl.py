@@ -49,7 +49,7 @@ Choices where MOPDERL (paper, the authors' public code) is ambiguous, or where w
   restored from the specialists' artifacts (actor and target actor, critic ensemble and its
   target, replay buffer) with fresh Adam optimizers: the artifacts hold no optimizer state.
   Their hyperparameters are train_specialist's. TD3's start timesteps do not apply here (the
-  buffers are full). Each is a `TD3Learner` (pipeline/specialists/td3_training.py), as
+  buffers are full). Each is a `TD3Learner` (pipeline/specialists/td3_learner.py), as
   PDERL's agent: on CUDA its buffer lives on the GPU and its updates replay as CUDA graphs.
 - The critic of a crossover (`crossover_critic`) follows the authors' code: when the parents'
   types differ, the worse-placed parent's type (the child starts from the better parent and
@@ -103,7 +103,8 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.specialists.td3_training import TD3Learner, stack_td3
+from pipeline.specialists.td3_learner import TD3Learner
+from pipeline.specialists.td3_training import stack_td3
 
 MOPDERL_TAG = 0x4D4F5044  # "MOPD": separates MOPDERL's streams from every other use of a seed
 STATE_FORMAT = "mapex.mopderl_state"
