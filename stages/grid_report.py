@@ -12,9 +12,9 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.params import EnvParams, RunParams, load_params, section
-from pipeline.reporting.report import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
+from pipeline.reporting.grid import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
+from pipeline.reporting.runs import check_comparable, load_runs
 from stages.common import reports_errors
-from stages.report import check_comparable, load_runs
 
 
 def load_cell(ws: Path) -> Cell:

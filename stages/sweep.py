@@ -1,6 +1,6 @@
 """`mapex sweep`: run a grid of pipeline runs on Ray, a shared DVC remote holding the artifacts.
 
-Not a DVC stage: it drives DVC. The library is pipeline/distributed/sweep.py; the guide is docs/sweeps.md.
+Not a DVC stage: it drives DVC. The library is pipeline/distributed/ (run_sweep in driver.py); the guide is docs/sweeps.md.
 Ray is an optional extra (pip install -e ".[sweep]") imported only when a sweep runs.
 """
 
@@ -11,7 +11,8 @@ from typing import Optional
 
 import typer
 
-from pipeline.distributed.sweep import SweepError, run_sweep
+from pipeline.distributed.driver import run_sweep
+from pipeline.distributed.errors import SweepError
 from stages.common import reports_errors
 
 

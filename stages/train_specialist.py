@@ -12,13 +12,14 @@ import typer
 
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, objective_names
+from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.workers import split_evenly
-from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training, env_checkpoint_problem
+from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together

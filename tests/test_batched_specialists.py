@@ -18,7 +18,8 @@ from pipeline.core.buffer import Batch, StackedReplay, batch_at
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import TD3Learner, init_stacked, init_td3, run_seeds, stack_td3, train_specialists
+from pipeline.specialists.td3_learner import TD3Learner
+from pipeline.specialists.td3_training import init_stacked, init_td3, run_seeds, stack_td3, train_specialists
 from pipeline.specialists.td3 import TD3State, stacked_update, td3_update
 
 ENV, CAP = "mo-swimmer-v5", 25

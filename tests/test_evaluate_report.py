@@ -22,8 +22,10 @@ from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, load_population, member_actor, save_population
-from pipeline.reporting.report import (Run, fmt_num, frames_to_reach, hv_verdict, provenance_table, sample_efficiency_table,
-                             specialist_groups, specialist_kind, specialist_metrics, verdict_outcome, verdicts)
+from pipeline.reporting.runs import Run, specialist_kind
+from pipeline.reporting.tables import (fmt_num, frames_to_reach, provenance_table, sample_efficiency_table, specialist_groups,
+                                       specialist_metrics)
+from pipeline.reporting.verdicts import hv_verdict, verdict_outcome, verdicts
 from stages.grid_report import grid_report
 from stages.evaluate import evaluate
 from stages.report import report

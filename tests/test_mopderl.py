@@ -1,4 +1,4 @@
-"""MOPDERL phase 2 (pipeline/baselines/mopderl.py, stages/mopderl.py).
+"""MOPDERL phase 2 (pipeline/baselines/mopderl.py, its NSGA-II tools in pipeline/baselines/nsga2.py, stages/mopderl.py).
 
 NSGA-II pieces on hand-checkable points; the tournament and critic rules; the frame and
 update accounting of a generation and bitwise checkpoint resumption, on synthetic RL agents;
@@ -25,8 +25,10 @@ from pipeline.baselines.mopderl import (
     AgentInit,
     MopderlRun,
     StartingActor,
-    archive_update,
     crossover_critic,
+)
+from pipeline.baselines.nsga2 import (
+    archive_update,
     crowding_distance,
     nondominated_ranks,
     nsga2_scores,

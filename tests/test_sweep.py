@@ -1,4 +1,4 @@
-"""`mapex sweep` (pipeline/distributed/sweep.py) on a local two-node Ray cluster and a local-directory DVC
+"""`mapex sweep` (pipeline/distributed/) on a local two-node Ray cluster and a local-directory DVC
 remote, with the real dvc.yaml on a tiny preset in a temporary git + DVC copy of the project.
 
 Checks: grid files are validated with errors naming file and key; the DAG and each cell's
@@ -24,7 +24,11 @@ import yaml
 from tiny_params import TINY
 from typer.testing import CliRunner
 
-from pipeline.distributed import sweep as sw
+from pipeline.distributed.driver import _resources, stage_processes
+from pipeline.distributed.errors import GridError
+from pipeline.distributed.grid import Grid, load_grid, plan_cells
+from pipeline.distributed.task import DIE_ONCE_ENV, StageTask, task_resume_dir
+from pipeline.distributed.workspace import checkout_cell, stage_items
 from stages.sweep import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,27 +94,27 @@ def test_grid_errors_name_file_and_key(tmp_path, source):
 
     def plan(grid: dict):
         path = write_grid(tmp_path / "grid.yaml", grid)
-        return sw.plan_cells(sw.load_grid(path), path, source, commit)
+        return plan_cells(load_grid(path), path, source, commit)
 
-    with pytest.raises(sw.GridError, match=r"grid.yaml: invalid grid:\n[\s\S]*  env: unknown key"):
+    with pytest.raises(GridError, match=r"grid.yaml: invalid grid:\n[\s\S]*  env: unknown key"):
         plan({"env": ["mo-hopper-2obj-v5"]})
-    with pytest.raises(sw.GridError, match=r"envs: required key is missing"):
+    with pytest.raises(GridError, match=r"envs: required key is missing"):
         plan({"seeds": [0]})
-    with pytest.raises(sw.GridError, match=r"seeds = \[0, 0\]"):
+    with pytest.raises(GridError, match=r"seeds = \[0, 0\]"):
         plan({"envs": ["mo-hopper-2obj-v5"], "seeds": [0, 0]})
-    with pytest.raises(sw.GridError, match=r"envs.0.params = 3: Input should be a valid dictionary"):
+    with pytest.raises(GridError, match=r"envs.0.params = 3: Input should be a valid dictionary"):
         plan({"envs": [{"id": "mo-hopper-2obj-v5", "params": 3}]})
-    with pytest.raises(sw.GridError, match=r"resources.extract.gpus"):
+    with pytest.raises(GridError, match=r"resources.extract.gpus"):
         plan({"envs": ["mo-hopper-2obj-v5"], "resources": {"extract": {"gpus": -1}}})
-    with pytest.raises(sw.GridError, match=r"envs.0.preset: presets/paper/nope.yaml is not in commit"):
+    with pytest.raises(GridError, match=r"envs.0.preset: presets/paper/nope.yaml is not in commit"):
         plan({"envs": ["presets/paper/nope.yaml"]})
     # a params value the stages would reject is caught before anything runs, naming cell and key
-    with pytest.raises(sw.GridError, match=r"cell mo-hopper-2obj-v5.bad: invalid params:\n  extract.iterations = -1"):
+    with pytest.raises(GridError, match=r"cell mo-hopper-2obj-v5.bad: invalid params:\n  extract.iterations = -1"):
         plan({"envs": ["mo-hopper-2obj-v5"], "overrides": {"ok": {}, "bad": {"extract": {"iterations": -1}}}})
-    with pytest.raises(sw.GridError, match=r"cells \['mo-hopper-2obj-v5'\] appear more than once"):
+    with pytest.raises(GridError, match=r"cells \['mo-hopper-2obj-v5'\] appear more than once"):
         plan({"envs": ["mo-hopper-2obj-v5", {"id": "mo-hopper-2obj-v5", "params": {"seeds": [1]}}]})
-    with pytest.raises(sw.GridError, match="grid file not found"):
-        sw.load_grid(tmp_path / "missing.yaml")
+    with pytest.raises(GridError, match="grid file not found"):
+        load_grid(tmp_path / "missing.yaml")
     # through the command: one line on stderr, exit 2
     path = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "sedes": [0]})
     result = run_cli(path, "--remote", tmp_path / "remote", "--repo", source, "--dry-run")
@@ -126,7 +130,7 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
         "overrides": {"joint": {}, "posthoc": {"extract_variants": [], "posthoc_from": ["td3"], "methods": ["mapex_posthoc_td3"]}},
     }
     path = write_grid(tmp_path / "grid.yaml", grid)
-    cells = {c.name: c.params for c in sw.plan_cells(sw.load_grid(path), path, source, commit)}
+    cells = {c.name: c.params for c in plan_cells(load_grid(path), path, source, commit)}
     assert list(cells) == ["cheetah.joint", "cheetah.posthoc", "mo-hopper-2obj-v5.joint", "mo-hopper-2obj-v5.posthoc"]
     assert cells["cheetah.joint"]["extract"]["iterations"] == 3
     assert cells["cheetah.joint"]["extract"]["beta"] == TINY["extract"]["beta"]  # the rest of the base stays
@@ -148,7 +152,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert yaml.safe_load((ws / "params.yaml").read_text())["env"]["id"] == "mo-hopper-2obj-v5"
     assert not (ws / "dvc.lock").exists()
 
-    items = {i.name: i for i in sw.stage_items(ws)}
+    items = {i.name: i for i in stage_items(ws)}
     listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
     assert set(items) == set(listed.stdout.split())
     assert items["critic_fidelity@0-td3-1"].upstream == ("train_specialist@0",)
@@ -158,10 +162,10 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
     order = list(items)
     assert all(order.index(u) < order.index(n) for n, i in items.items() for u in i.upstream)
-    sub = [i.name for i in sw.stage_items(ws, ["extract@0-td3-mapex"])]
+    sub = [i.name for i in stage_items(ws, ["extract@0-td3-mapex"])]
     assert sorted(sub) == ["extract@0-td3-mapex", "train_specialist@0"]  # posthoc_from: [] -> no post-hoc fits
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
-        sw.stage_items(ws, ["nope"])
+        stage_items(ws, ["nope"])
     bad = write_grid(tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}})
     result = run_cli(bad, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run")
     assert result.exit_code == 2 and "resources: ['evaluation'] are not dvc.yaml stages" in result.output
@@ -171,7 +175,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     params = yaml.safe_load((ws / "params.yaml").read_text())
     params["extract"]["beta"] = 0.5
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    changed = {i.name: i for i in sw.stage_items(ws)}
+    changed = {i.name: i for i in stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
     assert same == {"train_specialist@0"} | {n for n in items if n.startswith("critic_fidelity")}
 
@@ -179,10 +183,10 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     # extraction still does not, so a post-hoc refit never reruns it
     params.update(posthoc_from=["td3"], methods=[*params["methods"], "mapex_posthoc_td3"])
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    assert sorted(i.name for i in sw.stage_items(ws, ["extract@0-td3-mapex"])) == ["extract@0-td3-mapex", "train_specialist@0"]
-    assert sorted(i.name for i in sw.stage_items(ws, ["extract_posthoc@0-td3"])) == [
+    assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == ["extract@0-td3-mapex", "train_specialist@0"]
+    assert sorted(i.name for i in stage_items(ws, ["extract_posthoc@0-td3"])) == [
         "extract_posthoc@0-td3", "fit_critics@0-td3-0", "fit_critics@0-td3-1", "train_specialist@0"]
-    assert {"critic_fidelity_posthoc@0-td3-0", "evaluate@0-mapex_posthoc_td3"} <= {i.name for i in sw.stage_items(ws)}
+    assert {"critic_fidelity_posthoc@0-td3-0", "evaluate@0-mapex_posthoc_td3"} <= {i.name for i in stage_items(ws)}
 
 
 def test_a_cell_dvc_cannot_read_is_refused_before_anything_runs(tmp_path, source):
@@ -201,10 +205,10 @@ def test_core_install_does_not_need_ray():
         "        raise ImportError('no ray')\n"
         "    return real(name, *a, **k)\n"
         "builtins.__import__ = block\n"
-        "import pipeline.distributed.sweep, stages.sweep\n"
+        "import pipeline.distributed.driver, pipeline.distributed.errors, stages.sweep\n"
         "try:\n"
-        "    pipeline.distributed.sweep._import_ray()\n"
-        "except pipeline.distributed.sweep.SweepError as e:\n"
+        "    pipeline.distributed.driver._import_ray()\n"
+        "except pipeline.distributed.errors.SweepError as e:\n"
         "    print(e)\n"
     )
     r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
@@ -229,14 +233,14 @@ def cluster(tmp_path_factory):
     from ray.cluster_utils import Cluster
 
     marker = tmp_path_factory.mktemp("fault") / "died"
-    os.environ[sw.DIE_ONCE_ENV] = f"{DIES}={marker}"  # inherited by the nodes' workers
+    os.environ[DIE_ONCE_ENV] = f"{DIES}={marker}"  # inherited by the nodes' workers
     try:
         c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
         c.add_node(num_cpus=1)
         c.wait_for_nodes()
         ray.init(address=c.address, log_to_driver=False)
     finally:
-        del os.environ[sw.DIE_ONCE_ENV]
+        del os.environ[DIE_ONCE_ENV]
     yield marker
     ray.shutdown()
     c.shutdown()
@@ -250,10 +254,10 @@ def swept(cluster, source, tmp_path_factory):
     base = tmp_path_factory.mktemp("sweep")
     grid = write_grid(base / "grid.yaml", GRID)
     commit = git(source, "rev-parse", "HEAD")
-    (cell,) = sw.plan_cells(sw.load_grid(grid), grid, source, commit)
+    (cell,) = plan_cells(load_grid(grid), grid, source, commit)
     serial = base / "serial"
     git(base, "clone", "-q", str(source), str(serial))
-    sw.checkout_cell(serial, commit, cell.params_text)
+    checkout_cell(serial, commit, cell.params_text)
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(serial), "MAPEX_TORCH_THREADS": "1"}
     log = open(base / "serial.log", "w")
     proc = subprocess.Popen([str(BIN / "dvc"), "repro"], cwd=serial, env=env, stdout=log, stderr=subprocess.STDOUT)
@@ -398,11 +402,11 @@ def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_pat
 
 
 def test_resume_root_gives_each_task_its_own_shared_progress_dir(tmp_path):
-    task = sw.StageTask("hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
-    assert sw.task_resume_dir(task) == tmp_path / "hopper.a" / "extract_0-td3-mapex"
-    other = sw.StageTask("hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
-    assert sw.task_resume_dir(other) != sw.task_resume_dir(task)  # cells never share progress
-    assert sw.task_resume_dir(sw.StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
+    task = StageTask("hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    assert task_resume_dir(task) == tmp_path / "hopper.a" / "extract_0-td3-mapex"
+    other = StageTask("hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    assert task_resume_dir(other) != task_resume_dir(task)  # cells never share progress
+    assert task_resume_dir(StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
 
 
 def test_stages_with_worker_processes_reserve_a_cpu_per_process():
@@ -410,12 +414,12 @@ def test_stages_with_worker_processes_reserve_a_cpu_per_process():
     Ray for 2 CPUs with 1 torch thread per process, unless the grid says otherwise; stages
     without workers keep the defaults."""
     params = {"train_specialist": {"processes": 2}, "train_pderl": {}}
-    assert sw.stage_processes(params, "train_specialist") == 2
-    assert sw.stage_processes(params, "train_pderl") == 1
-    assert sw.stage_processes(params, "extract") == 1
-    grid = sw.Grid(envs=["mo-hopper-2obj-v5"])
-    assert sw._resources(grid, "train_specialist", 0, 2) == (2.0, 0.0, 1)
-    assert sw._resources(grid, "extract", 0, 1) == (1.0, 0.0, 1)
-    given = sw.Grid(envs=["mo-hopper-2obj-v5"], resources={"train_specialist": {"cpus": 4}})
-    assert sw._resources(given, "train_specialist", 0, 2) == (4.0, 0.0, 2)  # 2 processes x 2 threads
-    assert sw._resources(given, "train_specialist", 1, 1)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads
+    assert stage_processes(params, "train_specialist") == 2
+    assert stage_processes(params, "train_pderl") == 1
+    assert stage_processes(params, "extract") == 1
+    grid = Grid(envs=["mo-hopper-2obj-v5"])
+    assert _resources(grid, "train_specialist", 0, 2) == (2.0, 0.0, 1)
+    assert _resources(grid, "extract", 0, 1) == (1.0, 0.0, 1)
+    given = Grid(envs=["mo-hopper-2obj-v5"], resources={"train_specialist": {"cpus": 4}})
+    assert _resources(given, "train_specialist", 0, 2) == (4.0, 0.0, 2)  # 2 processes x 2 threads
+    assert _resources(given, "train_specialist", 1, 1)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads

@@ -25,8 +25,9 @@ from pipeline.core.artifacts import torch_load_checked
 from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
 from pipeline.core.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
 from pipeline.core.envs import env_spec, make_env
+from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import SpecialistsRun, continue_training, env_state, restore_env_state, train_specialist
+from pipeline.specialists.td3_training import SpecialistsRun, continue_training, train_specialist
 from pipeline.core.resume import FORMAT as CHECKPOINT_FORMAT
 from pipeline.core.resume import FORMAT_VERSION as CHECKPOINT_VERSION
 from pipeline.core.resume import Checkpoint
@@ -406,7 +407,7 @@ def test_env_state_refuses_envs_it_cannot_restore():
     with a reason (the stage then trains without checkpoints and says why)."""
     import gymnasium as gym
 
-    from pipeline.specialists.td3_training import EnvStateError, env_checkpoint_problem
+    from pipeline.core.envstate import EnvStateError, env_checkpoint_problem
 
     pendulum = gym.make("Pendulum-v1")
     assert "not a MuJoCo env" in env_checkpoint_problem(pendulum)

@@ -1,0 +1,209 @@
+"""Per-cell workspaces: git clones of the code commit with a cell's params.yaml (the driver's
+workspace of each cell and the workers' scratch clones), the DVC remote and command in them, the
+cell's stage items read from DVC's own DAG, and the driver's checks and writes in a cell's
+workspace (up to date or not, its final dvc.lock restored from the remote's run-cache)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pipeline.distributed.errors import SweepError
+from pipeline.distributed.grid import Cell
+
+CELL_KEY = "mapex.sweepcell"  # git config key marking a directory as a sweep cell workspace
+
+
+def _git(cwd: Path | str, *args: str, env: dict[str, str] | None = None, input: str | None = None) -> str:
+    r = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, env=env, input=input)
+    if r.returncode != 0:
+        raise SweepError(f"git {' '.join(args)} (in {cwd}) failed: {r.stderr.strip() or r.stdout.strip()}")
+    return r.stdout
+
+
+def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
+    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml, no dvc.lock."""
+    _git(clone, "checkout", "--quiet", "--force", "--detach", commit)
+    (clone / "params.yaml").write_text(params_text)
+    (clone / "dvc.lock").unlink(missing_ok=True)
+
+
+def _has_commit(clone: Path, commit: str) -> bool:
+    return subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=clone, capture_output=True).returncode == 0
+
+
+def _fetch_commit(clone: Path, source: str, commit: str) -> None:
+    """Make `commit` available in `clone`: fetched from `source` by name if no branch has it."""
+    if not _has_commit(clone, commit):
+        _git(clone, "fetch", "--quiet", source)
+    if not _has_commit(clone, commit):
+        _git(clone, "fetch", "--quiet", source, commit)
+
+
+def _clone_at(source: str, commit: str, dest: Path) -> None:
+    """`git clone` source into dest, with `commit` available there."""
+    _git(dest.parent, "clone", "--quiet", "--no-checkout", source, str(dest))
+    _fetch_commit(dest, source, commit)
+
+
+def configure_remote(workspace: Path, remote: str, options: tuple[tuple[str, str], ...] = ()) -> None:
+    """Point the workspace's DVC at the shared remote (.dvc/config.local, which git ignores), with
+    the remote's extra settings (e.g. endpointurl, access_key_id for an S3-compatible server)."""
+    extra = "".join(f"    {k} = {v}\n" for k, v in options)
+    (workspace / ".dvc" / "config.local").write_text(
+        f"[core]\n    remote = mapex-sweep\n['remote \"mapex-sweep\"']\n    url = {remote}\n{extra}"
+    )
+
+
+def _dvc_bin() -> str:
+    here = Path(sys.executable).with_name("dvc")
+    return str(here) if here.is_file() else "dvc"
+
+
+def _run_dvc(cwd: Path, env: dict[str, str], *args: str) -> str:
+    r = subprocess.run([_dvc_bin(), *args], cwd=cwd, env=env, capture_output=True, text=True)
+    out = r.stdout + r.stderr
+    if r.returncode != 0:
+        tail = "\n".join(out.strip().splitlines()[-40:])
+        raise RuntimeError(f"dvc {' '.join(args)} exited with {r.returncode}:\n{tail}")
+    return out
+
+
+@dataclass(frozen=True)
+class StageItem:
+    """One stage item of a cell's DAG, as DVC sees it."""
+
+    name: str  # dvc addressing, e.g. extract@0-td3-mapex
+    stage: str  # dvc.yaml stage name, e.g. extract
+    upstream: tuple[str, ...]  # direct upstream items
+    pull: tuple[str, ...]  # upstream outputs inside a folder dep (pulled before `dvc repro --pull`)
+    signature: str  # what DVC's run-cache key depends on besides code: cmd, declared params, upstream
+
+
+def stage_items(workspace: Path, targets: list[str] | None = None) -> list[StageItem]:
+    """The cell's stage items in a topological order, from DVC's own index (dvc.yaml + params):
+    all of them, or `targets` (stage names or items, as `dvc repro` takes them) and their upstream."""
+    import networkx as nx
+    from dvc.dependency.param import ParamsDependency
+    from dvc.repo import Repo
+
+    items = []
+    signatures: dict[str, str] = {}
+    with Repo(str(workspace)) as repo:
+        graph = repo.index.graph  # edges point from a stage to the stages it depends on
+        root = repo.root_dir
+        if targets:
+            keep = set()
+            for t in targets:
+                hits = [s for s in graph if s.name == t or s.name.split("@")[0] == t]
+                if not hits:
+                    raise ValueError(f"target {t!r} is no stage or stage item of dvc.yaml (have {sorted({s.name.split('@')[0] for s in graph})})")
+                for s in hits:
+                    keep |= {s} | nx.descendants(graph, s)
+            graph = graph.subgraph(keep)
+        # Ray starts ready tasks roughly in submission order: the longest chain of dependents first
+        # (the critical path: training before the fidelity checks that nothing waits for).
+        height: dict[Any, int] = {}
+        for stage in nx.topological_sort(graph):  # dependents before their upstream
+            height[stage] = 1 + max((height[d] for d in graph.predecessors(stage)), default=0)
+        for stage in nx.lexicographical_topological_sort(graph.reverse(copy=False), key=lambda s: (-height[s], s.name)):
+            ups = sorted(graph.successors(stage), key=lambda s: s.name)
+            # `dvc repro --pull` pulls a missing dep that is an upstream output (or inside one)
+            # itself; a dep that is a folder holding outputs (report's data/evaluate) it cannot,
+            # so the task pulls those outputs first.
+            pull = set()
+            for dep in stage.deps:
+                for up in ups:
+                    for out in up.outs:
+                        if out.fs_path != dep.fs_path and out.fs.isin(out.fs_path, dep.fs_path):
+                            pull.add(os.path.relpath(out.fs_path, root))
+            params = {
+                os.path.relpath(d.fs_path, root): d.read_params() for d in stage.deps if isinstance(d, ParamsDependency)
+            }
+            key = json.dumps(
+                {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
+                sort_keys=True, default=str,
+            )
+            signatures[stage.name] = hashlib.sha256(key.encode()).hexdigest()
+            items.append(StageItem(
+                stage.name, stage.name.split("@")[0], tuple(u.name for u in ups), tuple(sorted(pull)), signatures[stage.name],
+            ))
+    return items
+
+
+def prepare_workspace(ws: Path, cell: Cell, source: str, commit: str, targets: list[str] | None = None) -> bool:
+    """Make `ws` the cell's checkout (see checkout_cell); return whether it is up to date.
+
+    Up to date: it already was that checkout, with a dvc.lock that matches its files (`dvc
+    status` clean), i.e. an earlier sweep completed this cell. A workspace that changes commit
+    or params loses its outputs and dvc.lock (untracked files), keeping its DVC cache.
+    """
+    if ws.exists():
+        if _git_config(ws, CELL_KEY) != cell.name:
+            raise SweepError(f"{ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir")
+        _fetch_commit(ws, source, commit)
+    else:
+        ws.parent.mkdir(parents=True, exist_ok=True)
+        _clone_at(source, commit, ws)
+        _git(ws, "config", CELL_KEY, cell.name)
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ws, capture_output=True, text=True).stdout.strip()
+    params = ws / "params.yaml"
+    if (
+        head == commit and params.is_file() and params.read_text() == cell.params_text
+        and (ws / "dvc.lock").is_file() and _dvc_status_clean(ws, targets)
+    ):
+        return True
+    _git(ws, "checkout", "--quiet", "--force", "--detach", commit)
+    _git(ws, "clean", "-ffdxq", "-e", "/.dvc/cache/", "-e", "/.dvc/tmp/")
+    checkout_cell(ws, commit, cell.params_text)
+    return False
+
+
+def _git_config(ws: Path, key: str) -> str | None:
+    r = subprocess.run(["git", "config", "--get", key], cwd=ws, capture_output=True, text=True)
+    return r.stdout.strip() if r.returncode == 0 else None
+
+
+def _dvc_status_clean(ws: Path, targets: list[str] | None = None) -> bool:
+    from dvc.repo import Repo
+
+    try:
+        with Repo(str(ws)) as repo:
+            # targets as path:name, since DVC resolves a bare name against the working directory
+            full = [f"{Path(repo.root_dir) / 'dvc.yaml'}:{t}" for t in targets] if targets else None
+            return not repo.status(targets=full, with_deps=True)
+    except Exception:  # noqa: BLE001 - a workspace DVC cannot read is simply not up to date
+        return False
+
+
+def write_lock(ws: Path, remote: str, targets: list[str] | None = None, remote_options: tuple[tuple[str, str], ...] = ()) -> str:
+    """`dvc repro --pull` in the cell workspace: every stage restored from the remote's run-cache,
+    dvc.lock written once. `mapex` is shadowed by a failing stub, so nothing is recomputed here."""
+    configure_remote(ws, remote, remote_options)
+    (ws / "dvc.lock").unlink(missing_ok=True)
+    stub_dir = Path(tempfile.mkdtemp(prefix="mapex-sweep-stub-"))
+    try:
+        stub = stub_dir / "mapex"
+        stub.write_text(
+            "#!/bin/sh\necho \"mapex sweep: this stage's run is not in the remote's run-cache; "
+            "the driver does not compute stages (rerun the sweep)\" >&2\nexit 3\n"
+        )
+        stub.chmod(0o755)
+        env = dict(os.environ)
+        env["PATH"] = f"{stub_dir}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+        # With targets, DVC orders a small subgraph by iterating a set of stages, i.e. by Python's
+        # per-process string hashes; a fixed seed makes the lock's stage order repeatable (a
+        # serial `PYTHONHASHSEED=0 dvc repro <targets>` writes the same bytes). Without targets
+        # the order is dvc.yaml's and the seed changes nothing.
+        env["PYTHONHASHSEED"] = "0"
+        return _run_dvc(ws, env, "repro", "--pull", *(targets or []))
+    finally:
+        shutil.rmtree(stub_dir, ignore_errors=True)

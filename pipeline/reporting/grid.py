@@ -1,0 +1,138 @@
+"""The grid report (`mapex grid-report`): one report across the cells of a sweep, each a
+workspace with its env and scored runs: Table 1 with a row per cell, the seeds behind each
+cell, the provenance of every cell's runs, and fronts and hypervolume-vs-frames per cell."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from pipeline.reporting.figures import COLOURS, _band, _front_line, _panels, _shared_legend, step_values
+from pipeline.reporting.runs import Run, label, variants_in
+from pipeline.reporting.tables import (
+    PROVENANCE_COLUMNS,
+    PROVENANCE_STAGES,
+    TABLE_METRICS,
+    _md_table,
+    _run_list,
+    fmt_mean_sem,
+    provenance_cells,
+    specialist_groups,
+    specialist_metrics,
+)
+
+
+@dataclass
+class Cell:
+    """One grid cell of a sweep: a workspace with its env and its scored runs."""
+
+    name: str  # the sweep's cell name (env, or env.override_set)
+    env_id: str
+    runs: list[Run]
+
+
+def grid_table(cells: list[Cell]) -> str:
+    """The paper's Table 1 across a grid: one row per cell (env), a column group per metric, a
+    column per method (and the specialists of each kind) found in any cell; mean ± SEM over seeds."""
+    all_runs = [r for c in cells for r in c.runs]
+    groups = [*variants_in(all_runs), *specialist_groups(all_runs)]
+    header = ["Environment"] + [f"{title} {label(g)}" for _, title in TABLE_METRICS for g in groups]
+    rows = []
+    for c in cells:
+        cells_row = [c.name if c.name == c.env_id else f"{c.name} ({c.env_id})"]
+        for key, _ in TABLE_METRICS:
+            for g in groups:
+                ms = (specialist_metrics(c.runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
+                      else [r.metrics["front"] for r in c.runs if r.variant == g])
+                cells_row.append(fmt_mean_sem([m[key] for m in ms]) if ms else "")
+        rows.append(cells_row)
+    return _md_table(header, rows)
+
+
+def grid_seeds_table(cells: list[Cell]) -> str:
+    """Which seeds each cell's methods were scored on (a cell's mean ± SEM is over these)."""
+    rows = []
+    for c in cells:
+        for v in variants_in(c.runs):
+            seeds = sorted(r.seed for r in c.runs if r.variant == v)
+            rows.append([c.name, label(v), ", ".join(map(str, seeds))])
+    return _md_table(["cell", "method", "seeds"], rows)
+
+
+def grid_provenance_table(cells: list[Cell]) -> str:
+    """Per cell and stage record (extract = the population's producer, evaluate, score): what
+    produced the runs; runs with identical provenance share a row."""
+    rows = []
+    for c in cells:
+        for stage in PROVENANCE_STAGES:
+            groups: dict[tuple[str, ...], list[Run]] = {}
+            for r in sorted(c.runs, key=lambda r: (r.seed, r.variant)):
+                groups.setdefault(provenance_cells((r.provenance or {}).get(stage)), []).append(r)
+            rows += [[c.name, stage, _run_list(rs), *cells] for cells, rs in groups.items()]
+    return _md_table(["cell", "stage", "runs", *PROVENANCE_COLUMNS], rows)
+
+
+def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
+    """One panel per cell: every method's re-evaluated front, one line per seed (same colour)."""
+    fig, _, axes = _panels(len(cells), width, 0.9)
+    for ax, c in zip(axes, cells):
+        for v in variants_in(c.runs):
+            for i, r in enumerate(sorted((r for r in c.runs if r.variant == v), key=lambda r: r.seed)):
+                _front_line(ax, r.returns[r.on_front, :2], color=COLOURS.get(v, "grey"), lw=1.1, alpha=0.8,
+                            label=label(v) if i == 0 else None)
+        ax.set_title(c.name, fontsize="medium")
+        ax.set_xlabel("objective 0")
+        ax.set_ylabel("objective 1")
+        ax.grid(alpha=0.3)
+    _shared_legend(fig, axes)
+    fig.suptitle("Re-evaluated fronts per cell (one line per seed)")
+    return fig
+
+
+def grid_history_figure(cells: list[Cell], width: float) -> Figure:
+    """One panel per cell: re-evaluated hypervolume against cumulative env frames after the
+    specialists, mean ± SEM over seeds per method."""
+    fig, _, axes = _panels(len(cells), width, 0.8)
+    for ax, c in zip(axes, cells):
+        for v in variants_in(c.runs):
+            rs = [r for r in c.runs if r.variant == v]
+            x = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
+            curves = np.stack([step_values(r.history["env_samples"], r.history["hypervolume"], x) for r in rs])
+            _band(ax, x, curves, COLOURS.get(v, "grey"), label(v), len(rs))
+        ax.set_title(c.name, fontsize="medium")
+        ax.set_xlabel("env frames after the specialists")
+        ax.set_ylabel("hypervolume (re-evaluated)")
+        ax.grid(alpha=0.3)
+    _shared_legend(fig, axes)
+    fig.suptitle("Hypervolume against env frames, per cell")
+    return fig
+
+
+def grid_markdown(cells: list[Cell], figures: dict[str, str]) -> str:
+    """report.md across a grid: Table 1 (one row per cell), the seeds behind each cell, figures, provenance."""
+    lines = [
+        "# MAPEX grid report",
+        "",
+        f"- cells: {', '.join(c.name for c in cells)}",
+        f"- methods: {', '.join(f'{label(v)} ({v})' for v in variants_in([r for c in cells for r in c.runs]))}",
+        "",
+        "## Table 1 across the grid",
+        "",
+        "Mean ± SEM over each cell's seeds of the re-evaluated final fronts (the definitions are those "
+        "of each cell's own report, data/report/report.md in its workspace). Hypervolumes of different "
+        "envs use each env's own reference point and are not comparable across rows. An empty cell: the "
+        "method did not run there.",
+        "",
+        grid_table(cells),
+        "## Seeds behind each cell",
+        "",
+        grid_seeds_table(cells),
+        "## Figures",
+        "",
+    ]
+    for fname, caption in figures.items():
+        lines += [f"![{caption}]({fname})", "", f"*{caption}*", ""]
+    lines += ["## Provenance", "", grid_provenance_table(cells)]
+    return "\n".join(lines)

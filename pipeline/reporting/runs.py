@@ -1,0 +1,163 @@
+"""Evaluated runs, the report's input: `Run`, one (method, seed) with the evaluate stage's
+re-evaluated returns and the score stage's metrics, front, hypervolume history and provenance;
+the methods' names and their usual order; and the loaders that read every run from the score
+and evaluate outputs (`load_runs`, `load_run`, `check_comparable`), raising ArtifactError that
+names the file on a bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.artifacts import ArtifactError
+
+VARIANT_ORDER = ("mapex_pderl", "mapex_posthoc_pderl", "warmup_only_pderl", "mapex_td3", "mapex_posthoc_td3",
+                 "warmup_only_td3", "mopderl", "morld")
+LABELS = {
+    "mapex_pderl": "MAPEX", "mapex_posthoc_pderl": "MAPEX-PostHoc", "warmup_only_pderl": "warm-up only (PDERL)",
+    "mapex_td3": "MAPEX-TD3", "mapex_posthoc_td3": "MAPEX-TD3-PostHoc", "warmup_only_td3": "warm-up only (TD3)",
+    "mopderl": "MOPDERL", "morld": "MORL/D",
+    "specialists_pderl": "PDERL specialists only", "specialists_td3": "TD3 specialists only",
+}
+RUN_DIR = re.compile(r"^seed(\d+)$")
+METRICS_KEYS = ("env_id", "variant", "seed", "episodes", "front", "specialists", "hv_ratio_vs_specialists",
+                "extraction_hypervolume", "iterations", "env_samples_extraction", "reference_point")
+FRONT_KEYS = ("hypervolume", "hv_fraction", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality", "distinct_count")
+HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolume")
+
+
+@dataclass
+class Run:
+    """One evaluated extraction run."""
+
+    variant: str
+    seed: int
+    metrics: dict  # the score stage's metrics.json
+    returns: np.ndarray  # (n, m) re-evaluated mean return of each member
+    origin: np.ndarray  # (n,) "specialist" (a starting policy, from a specialist's policy set) or "child"
+    iteration: np.ndarray  # (n,) iteration that made the member (0 for starting policies)
+    on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
+    # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))
+    history: dict[str, np.ndarray]
+    provenance: dict | None = None  # stage -> pipeline.core.provenance record or None (score's provenance.json)
+    objective: np.ndarray | None = None  # (n,) the specialist a starting policy came from, -1 for a child
+
+    def starting_counts(self) -> dict[int, int]:
+        """Number of starting policies per specialist objective (1 each for TD3 specialists)."""
+        spec = self.origin == "specialist"
+        objectives = self.objective[spec] if self.objective is not None else np.full(int(spec.sum()), -1)
+        keys, counts = np.unique(objectives, return_counts=True)
+        return {int(k): int(c) for k, c in zip(keys, counts)}
+
+
+def label(variant: str) -> str:
+    return LABELS.get(variant, variant)
+
+
+def specialist_kind(method: str) -> str | None:
+    """The kind of specialists a method starts from: 'pderl' (MOPDERL's phase 2 too), 'td3', or
+    None (MORL/D starts from nothing)."""
+    if method == "mopderl" or method.endswith("_pderl"):
+        return "pderl"
+    if method.endswith("_td3"):
+        return "td3"
+    return None
+
+
+def variants_in(runs: list[Run]) -> list[str]:
+    """Variants present, the known ones first in their usual order."""
+    present = {r.variant for r in runs}
+    return [v for v in VARIANT_ORDER if v in present] + sorted(present - set(VARIANT_ORDER))
+
+
+def load_runs(scored: Path, evaluated: Path) -> list[Run]:
+    """Every SCORED/VARIANT/seedS with a metrics.json, with its score outputs and evaluated.csv."""
+    if not scored.is_dir():
+        raise ArtifactError(f"{scored}: not a directory of score outputs")
+    runs = []
+    for metrics_path in sorted(scored.glob("*/seed*/metrics.json")):
+        run_dir = metrics_path.parent
+        match = RUN_DIR.match(run_dir.name)
+        if match is None:
+            continue
+        runs.append(load_run(run_dir, evaluated / run_dir.parent.name / run_dir.name, run_dir.parent.name, int(match.group(1))))
+    if not runs:
+        raise ArtifactError(f"{scored}: no VARIANT/seedS/metrics.json found (run the score stage first)")
+    return runs
+
+
+def load_run(score_dir: Path, eval_dir: Path, variant: str, seed: int) -> Run:
+    """One run from its score folder and evaluate folder; ArtifactError naming the file on a bad input."""
+    metrics = _read_json(score_dir / "metrics.json", METRICS_KEYS)
+    for group in ("front", "specialists"):
+        missing = [k for k in FRONT_KEYS if k not in (metrics[group] if isinstance(metrics[group], dict) else {})]
+        if missing:
+            raise ArtifactError(f"{score_dir / 'metrics.json'}: no {', '.join(f'{group}.{k}' for k in missing)} key")
+    if (metrics["variant"], metrics["seed"]) != (variant, seed):
+        raise ArtifactError(f"{score_dir / 'metrics.json'}: is for variant {metrics['variant']!r} seed {metrics['seed']!r}, "
+                            f"but sits in {variant}/seed{seed}")
+    chain = _read_json(score_dir / "provenance.json", ())
+    members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
+    n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
+    front = _read_csv(score_dir / "front.csv", ["id"], allow_empty=True)
+    hist = _read_csv(score_dir / "hypervolume.csv", list(HISTORY_COLUMNS))
+    try:
+        ids = np.asarray(front.get("id", []), int)
+        on_front = np.zeros(len(members["origin"]), bool)
+        on_front[ids] = True
+        return Run(
+            variant=variant, seed=seed, metrics=metrics,
+            returns=np.stack([np.asarray(members[f"obj{m}"], float) for m in range(n_obj)], axis=1),
+            origin=np.asarray(members["origin"]), iteration=np.asarray(members["iteration"], int), on_front=on_front,
+            history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS}, provenance=chain,
+            objective=np.array([int(x) if x != "" else -1 for x in members.get("objective", [""] * len(members["origin"]))]),
+        )
+    except (ValueError, IndexError) as exc:
+        raise ArtifactError(f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
+                            f"do not fit together or hold unreadable numbers ({exc})") from None
+
+
+def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:
+    """Every run is for params env.id and was scored against one reference point."""
+    envs = sorted({str(r.metrics["env_id"]) for r in runs})
+    if envs != [env_id]:
+        raise ArtifactError(f"{scored}: runs are for env(s) {envs}, params env.id is {env_id!r}")
+    refs = {tuple(r.metrics["reference_point"]) for r in runs}
+    if len(refs) > 1:
+        raise ArtifactError(f"{scored}: runs were scored against different reference points {sorted(refs)}; rerun score")
+
+
+def _read_json(path: Path, keys: tuple[str, ...]) -> dict:
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
+    return data
+
+
+def _read_csv(path: Path, required: list[str], allow_empty: bool = False) -> dict[str, list[str]]:
+    """Columns of a CSV file by name; ArtifactError naming the file if it is missing, empty or lacks a column."""
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+        header = reader.fieldnames or []
+    if not rows and not allow_empty:
+        raise ArtifactError(f"{path}: no rows")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise ArtifactError(f"{path}: missing column(s) {missing}")
+    return {k: [r[k] for r in rows] for k in header}
