@@ -15,7 +15,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slot
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.common import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
+from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
 from pipeline.params.extract import ExtractParams
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 

@@ -106,7 +106,7 @@ from pipeline.baselines.nsga2 import (
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
-from pipeline.core.pareto import normalised_hypervolume, pareto_mask
+from pipeline.core.pareto import normalised_hypervolume
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
