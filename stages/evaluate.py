@@ -10,7 +10,7 @@ Outputs (in OUT):
                    env_samples, obj<m>_extract (extraction-time mean return), obj<m> and obj<m>_std
                    (re-evaluated mean and std over `evaluate.episodes` episodes). Columns are named
                    obj0, obj1, ... rather than after the objectives so dvc.yaml's plot axes fit every env.
-  evaluation.json  what was run: env_id, variant, seed, episodes, seed_stream, max_episode_steps,
+  evaluation.json  what was run: env_id, method, seed, episodes, seed_stream, max_episode_steps,
                    population, env_samples_evaluation, and `provenance` (pipeline.core.provenance).
 """
 
@@ -34,7 +34,7 @@ from pipeline.core.provenance import provenance
 from pipeline.core.seeding import select_device
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
-META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "variant")
+META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "method")
 
 
 @reports_errors
@@ -69,7 +69,7 @@ def evaluate(
                             f"do not match env {env_p.id} {(spec.obs_dim, spec.act_dim, spec.n_objectives)}")
 
     results = []
-    with progress(len(members), f"evaluate {meta['variant']} seed {seed}", unit="policy") as bar:
+    with progress(len(members), f"evaluate {meta['method']} seed {seed}", unit="policy") as bar:
         for i, member in enumerate(members):
             res = evaluate_policy(member_actor(member, meta).to(device), envs, eval_seeds(seed, cfg.seed_stream, i, cfg.episodes))
             results.append(res)
@@ -79,7 +79,7 @@ def evaluate(
         env.close()
 
     record = {
-        "env_id": env_p.id, "variant": meta["variant"], "seed": seed, "episodes": cfg.episodes,
+        "env_id": env_p.id, "method": meta["method"], "seed": seed, "episodes": cfg.episodes,
         "seed_stream": cfg.seed_stream, "max_episode_steps": env_p.max_episode_steps,
         "population": len(members), "env_samples_evaluation": sum(r.env_samples for r in results),
         "provenance": provenance(device),

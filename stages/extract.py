@@ -100,7 +100,7 @@ def extract(
             bar.set_postfix_str(f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "
                                 f"child {fmt_vec(run.last[-1].mean)}", refresh=False)
             bar.update(run.k)
-    save_population(out / "population.pt", run.members, {**meta, "seed": seed, "variant": method, "params": config,
+    save_population(out / "population.pt", run.members, {**meta, "seed": seed, "method": method, "params": config,
                                                            "provenance": provenance(device)})
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()

@@ -22,7 +22,7 @@ def load_cell(ws: Path) -> Cell:
     raw = load_params(ws / "params.yaml")
     env_p, run_p = section(raw, "env", EnvParams, ws / "params.yaml"), section(raw, "", RunParams, ws / "params.yaml")
     runs = [r for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
-            if r.seed in run_p.seeds and r.variant in run_p.methods]
+            if r.seed in run_p.seeds and r.method in run_p.methods]
     if not runs:
         raise ArtifactError(f"{ws / 'data' / 'score'}: no scored run for seeds {run_p.seeds} and methods {run_p.methods}")
     check_comparable(ws / "data" / "score", runs, env_p.id)

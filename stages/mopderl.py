@@ -140,7 +140,7 @@ def mopderl(
     finally:
         env.close()
 
-    meta = {**spec_meta, **bounds, "seed": seed, "variant": "mopderl", "params": config, "provenance": provenance(device)}
+    meta = {**spec_meta, **bounds, "seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
     save_population(out / "population.pt", run.members, meta)
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()

@@ -90,7 +90,7 @@ def morld(
     members, extra = export_members(run, cfg.eval_episodes)
     meta = {
         "env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives,
-        "action_low": list(spec.action_low), "action_high": list(spec.action_high), "seed": seed, "variant": "morld",
+        "action_low": list(spec.action_low), "action_high": list(spec.action_high), "seed": seed, "method": "morld",
         "params": config, "provenance": provenance(device), **extra,
     }
     save_population(out / "population.pt", members, meta)

@@ -12,7 +12,8 @@ from pipeline.params import RunParams, section
 from pipeline.params.report import ReportParams
 from pipeline.reporting.figures import front_figure, history_figure
 from pipeline.reporting.report import report_markdown
-from pipeline.reporting.runs import Run, check_comparable, label, load_runs, variants_in
+from pipeline.params.methods import label
+from pipeline.reporting.runs import Run, check_comparable, load_runs, methods_in
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
 
@@ -42,7 +43,7 @@ def report(
     run_p = section(raw, "", RunParams, params)
     seeds, methods = run_p.seeds, run_p.methods
     # Only the seeds and methods params.yaml names: folders of ones dropped from the lists may linger.
-    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds and r.variant in methods]
+    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds and r.method in methods]
     if not runs:
         raise ArtifactError(f"{scored}: no scored run for seeds {seeds} and methods {methods}")
     check_comparable(scored, runs, env_p.id)
@@ -51,11 +52,11 @@ def report(
     figures: dict[str, object] = {}
     captions: dict[str, str] = {}
     for seed in sorted({r.seed for r in runs}):
-        by_variant = {r.variant: r for r in runs if r.seed == seed}
+        by_variant = {r.method: r for r in runs if r.seed == seed}
         figures[f"front_seed{seed}"] = front_figure(by_variant, names, env_p.id, seed, cfg.figure_width)
         captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member, starting policies "
                                              f"as stars (one colour per specialist), what each method made coloured by iteration; "
-                                             f"{' vs '.join(label(v) for v in variants_in(list(by_variant.values())))} side by side.")
+                                             f"{' vs '.join(label(v) for v in methods_in(list(by_variant.values())))} side by side.")
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
     captions["hypervolume.png"] = ("Hypervolume of the population after each iteration (MOPDERL: generation), vs "
                                    "iteration and vs cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: all "
@@ -84,4 +85,4 @@ def starting_policies_line(runs: list[Run]) -> str:
     lines = {text(r) for r in runs}
     if len(lines) == 1:
         return lines.pop()
-    return "; ".join(f"{label(r.variant)} seed {r.seed}: {text(r)}" for r in sorted(runs, key=lambda r: (r.seed, r.variant)))
+    return "; ".join(f"{label(r.method)} seed {r.seed}: {text(r)}" for r in sorted(runs, key=lambda r: (r.seed, r.method)))

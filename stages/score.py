@@ -36,8 +36,8 @@ from pipeline.core.population import Member, load_population
 from pipeline.core.provenance import provenance
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
-META_KEYS = ("env_id", "n_objectives", "seed", "variant")
-EVALUATION_KEYS = ("env_id", "variant", "seed", "episodes", "population", "env_samples_evaluation", "provenance")
+META_KEYS = ("env_id", "n_objectives", "seed", "method")
+EVALUATION_KEYS = ("env_id", "method", "seed", "episodes", "population", "env_samples_evaluation", "provenance")
 
 
 @reports_errors
@@ -77,7 +77,7 @@ def score(
     history = hypervolume_history(iteration, np.array([m.env_samples for m in members]),
                                   {"hypervolume_extract": extract_returns, "hypervolume": means}, ref)
     metrics = {
-        "env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "episodes": record["episodes"],
+        "env_id": meta["env_id"], "method": meta["method"], "seed": meta["seed"], "episodes": record["episodes"],
         "population": len(members), "starting_policies": sum(m.origin == "specialist" for m in members),
         # every member the method made: MAPEX's children, MOPDERL's offspring, MORL/D's policies
         "children": sum(m.origin != "specialist" for m in members),
@@ -147,9 +147,9 @@ def read_evaluated(path: Path, members: list[Member], n_obj: int) -> np.ndarray:
 
 
 def check_same_run(path: Path, record: dict, population: Path, meta: dict, n_members: int) -> None:
-    """evaluation.json must describe this population: same env, variant, seed and size."""
-    theirs = {k: record[k] for k in ("env_id", "variant", "seed", "population")}
-    ours = {"env_id": meta["env_id"], "variant": meta["variant"], "seed": meta["seed"], "population": n_members}
+    """evaluation.json must describe this population: same env, method, seed and size."""
+    theirs = {k: record[k] for k in ("env_id", "method", "seed", "population")}
+    ours = {"env_id": meta["env_id"], "method": meta["method"], "seed": meta["seed"], "population": n_members}
     if theirs != ours:
         differ = [k for k in ours if theirs[k] != ours[k]]
         raise ArtifactError(f"{path} ({', '.join(f'{k} = {theirs[k]!r}' for k in differ)}) does not describe "

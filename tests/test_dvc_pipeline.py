@@ -131,7 +131,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
     for m in methods:
         metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
-        assert metrics["variant"] == m and metrics["front"]["cardinality"] >= 1
+        assert metrics["method"] == m and metrics["front"]["cardinality"] >= 1
     # PDERL's policy sets start the PDERL methods (population + RL actor per objective); TD3 one each
     assert json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())["starting_policies"] == 8
     assert json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"] == 2

@@ -22,7 +22,8 @@ from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, load_population, member_actor, save_population
-from pipeline.reporting.runs import Run, specialist_kind
+from pipeline.params.methods import specialist_kind
+from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import (fmt_num, frames_to_reach, provenance_table, sample_efficiency_table, specialist_groups,
                                        specialist_metrics)
 from pipeline.reporting.verdicts import hv_verdict, verdict_outcome, verdicts
@@ -72,7 +73,7 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
             env_samples=250 * (i + 1), hidden_sizes=[16, 16], actor=actor_state(actor),
             policy_name="policy" if specialist else None))
     meta = dict(env_id=env_id, obs_dim=17, act_dim=6, n_objectives=2, action_low=low, action_high=high,
-                seed=seed, params={}, variant=variant, **({"provenance": PROVENANCE} if seed == 0 else {}))
+                seed=seed, params={}, method=variant, **({"provenance": PROVENANCE} if seed == 0 else {}))
     save_population(path, members, {k: v for k, v in meta.items() if k not in drop})
 
 
@@ -148,7 +149,7 @@ def test_evaluated_csv_rows_and_columns(runs):
 
 def test_evaluation_json(runs):
     record = json.loads((runs / "evaluate" / "mapex_td3" / "seed0" / "evaluation.json").read_text())
-    assert (record["env_id"], record["variant"], record["seed"], record["population"]) == (ENV_ID, "mapex_td3", 0, 5)
+    assert (record["env_id"], record["method"], record["seed"], record["population"]) == (ENV_ID, "mapex_td3", 0, 5)
     assert (record["episodes"], record["seed_stream"], record["max_episode_steps"]) == (EPISODES, 1, CAP)
     assert record["env_samples_evaluation"] == 5 * EPISODES * CAP  # HalfCheetah never terminates
     prov = record["provenance"]
@@ -199,7 +200,7 @@ def test_evaluate_truncated_population(tmp_path):
     assert "truncated.pt" in out
 
 
-@pytest.mark.parametrize("key", ["variant", "seed", "action_low", "n_objectives"])
+@pytest.mark.parametrize("key", ["method", "seed", "action_low", "n_objectives"])
 def test_evaluate_population_metadata_key_missing(tmp_path, key):
     pop = tmp_path / "pop.pt"
     make_population(pop, 0, "mapex_td3", drop=(key,))
@@ -603,7 +604,7 @@ def test_verdicts_cover_every_pair_that_ran_and_specialists_per_kind():
     assert specialist_kind("mopderl") == "pderl" and specialist_kind("morld") is None
     assert specialist_kind("mapex_posthoc_td3") == "td3"
     for r in runs:
-        r.metrics["specialists"] = {"hypervolume": {"pderl": 1.0, "td3": 2.0}[specialist_kind(r.variant)]}
+        r.metrics["specialists"] = {"hypervolume": {"pderl": 1.0, "td3": 2.0}[specialist_kind(r.method)]}
     assert specialist_groups(runs + [_run("morld", 0, 1.0)]) == ["specialists_pderl", "specialists_td3"]
     assert [m["hypervolume"] for m in specialist_metrics(runs, "td3")] == [2.0, 2.0, 2.0]
     assert [m["hypervolume"] for m in specialist_metrics(runs, "pderl")] == [1.0, 1.0, 1.0]

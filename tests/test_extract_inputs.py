@@ -147,7 +147,7 @@ def test_posthoc_critics_end_to_end(specs, tmp_path, mapex, write_params):
     mj, _ = load_population(tmp_path / "joint" / "population.pt")
     ms, meta = load_population(tmp_path / "same" / "population.pt")
     mo, _ = load_population(tmp_path / "other" / "population.pt")
-    assert meta["params"]["critics"] == "posthoc" and meta["variant"] == "mapex_posthoc_td3" and len(ms) == len(mj) == 4
+    assert meta["params"]["critics"] == "posthoc" and meta["method"] == "mapex_posthoc_td3" and len(ms) == len(mj) == 4
     for a, b in zip(mj[2:], ms[2:]):
         assert all(torch.equal(a.actor[k], b.actor[k]) for k in a.actor) and a.returns == b.returns
     assert not torch.equal(mj[-1].actor["net.0.weight"], mo[-1].actor["net.0.weight"])

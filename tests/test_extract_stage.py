@@ -206,7 +206,7 @@ def test_warmup_only_variant_and_bad_inputs(specialists, tmp_path):
     r = mapex(*extract_cmd(specialists, tmp_path / "w", params, tmp_path / "r", variant="warmup_only"), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     _, meta = load_population(tmp_path / "w" / "population.pt")
-    assert meta["params"]["extract"]["epochs"] == 0 and meta["variant"] == "warmup_only_td3"
+    assert meta["params"]["extract"]["epochs"] == 0 and meta["method"] == "warmup_only_td3"
     # missing specialist directory: the file is named, nothing is written
     r = mapex(*extract_cmd(tmp_path / "nowhere", tmp_path / "x", params, tmp_path / "r"), cwd=tmp_path)
     assert r.returncode == 2

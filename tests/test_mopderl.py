@@ -322,7 +322,7 @@ def stage(write_params, specialists):
 
 
 def read_outputs(out: Path):
-    members, meta = load_population(out / "population.pt", ["env_id", "seed", "variant"])
+    members, meta = load_population(out / "population.pt", ["env_id", "seed", "method"])
     return members, meta, (out / "history.csv").read_text()
 
 
@@ -333,7 +333,7 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     members, meta, hist = read_outputs(out)
     assert sorted(p.name for p in out.iterdir()) == ["history.csv", "population.pt"]
     assert not (tmp_path / "full" / "resume" / "mopderl" / "seed0").exists()  # progress cleared
-    assert meta["variant"] == "mopderl" and meta["seed"] == 0 and meta["env_id"] == "mo-halfcheetah-v5"
+    assert meta["method"] == "mopderl" and meta["seed"] == 0 and meta["env_id"] == "mo-halfcheetah-v5"
     assert meta["params"]["mopderl"]["population_size"] == 4 and "provenance" in meta
     assert meta["action_low"] == [-1.0] * 6 and meta["n_objectives"] == 2
     # the starting population: each specialist's population actors ("rl" is the RL agent)

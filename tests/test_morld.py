@@ -171,7 +171,7 @@ def test_stage_writes_loadable_population(finished: Path):
     members, meta = load_population(finished / "population.pt", ("env_id", "obs_dim", "act_dim", "action_low", "action_high"))
     assert (meta["env_id"], meta["obs_dim"], meta["act_dim"], meta["n_objectives"]) == (ENV, 8, 2, 2)
     assert (meta["action_low"], meta["action_high"]) == ([-1.0, -1.0], [1.0, 1.0])
-    assert meta["variant"] == "morld" and meta["seed"] == 0 and meta["params"]["morld"]["pop_size"] == 2
+    assert meta["method"] == "morld" and meta["seed"] == 0 and meta["params"]["morld"]["pop_size"] == 2
     assert meta["training_frames"] == 400 and "device" in meta["provenance"]
     names = [m.policy_name for m in members]
     assert names[:2] == ["pop0", "pop1"] and all(n.startswith("archive") for n in names[2:])

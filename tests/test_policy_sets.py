@@ -249,7 +249,7 @@ def _population(path: Path, drop_meta: str | None = None, drop_member: str | Non
     members = [Member("specialist", 0, 0, [], None, [1.0, 2.0], [0.0, 0.0], 1, 10, [4], actor, "rl"),
                Member("child", None, 1, [0, 0], [0.6, 0.8], [2.0, 1.0], [0.0, 0.0], 1, 20, [4], actor, None)]
     meta = {"env_id": "mo-halfcheetah-v5", "obs_dim": 17, "act_dim": 6, "n_objectives": 2, "action_low": [-1.0] * 6,
-            "action_high": [1.0] * 6, "seed": 0, "variant": "mapex", "params": {}}
+            "action_high": [1.0] * 6, "seed": 0, "method": "mapex", "params": {}}
     records = [asdict(m) for m in members]
     if version == 1:
         records = [{k: v for k, v in r.items() if k != "policy_name"} for r in records]

@@ -64,7 +64,7 @@ def write_population(path: Path, meta_drop: tuple[str, ...] = (), extract=EXTRAC
                       returns=list(r), returns_std=[0.0, 0.0], eval_episodes=5, env_samples=s, hidden_sizes=[4], actor=actor)
                for i, (r, it, s) in enumerate(zip(extract, ITERATION, SAMPLES))]
     meta = dict(env_id=ENV_ID, obs_dim=17, act_dim=6, n_objectives=2, action_low=[-1.0] * 6, action_high=[1.0] * 6,
-                seed=seed, variant="mapex", params={}, provenance=POPULATION_PROVENANCE)
+                seed=seed, method="mapex", params={}, provenance=POPULATION_PROVENANCE)
     save_population(path, members, {k: v for k, v in meta.items() if k not in meta_drop})
 
 
@@ -80,7 +80,7 @@ def write_evaluated(directory: Path, record: dict | None = None, drop_column: st
             row = dict(zip(header, [i, "specialist" if i < 2 else "child", i if i < 2 else "", it, "" if i < 2 else "0;1",
                                     s, *x, *r, 0.5, 0.5]))
             w.writerow([v for k, v in row.items() if k != drop_column])
-    base = {"env_id": ENV_ID, "variant": "mapex", "seed": 0, "episodes": 10, "seed_stream": 1, "max_episode_steps": 750,
+    base = {"env_id": ENV_ID, "method": "mapex", "seed": 0, "episodes": 10, "seed_stream": 1, "max_episode_steps": 750,
             "population": 5, "env_samples_evaluation": 37500, "provenance": {"git_commit": "def456", "versions": {}}}
     (directory / "evaluation.json").write_text(json.dumps(base if record is None else record))
 
@@ -138,7 +138,7 @@ def test_metrics_hand_computed(run):
     # extraction-time front (10,1), (7,3), (6,6), (1,10): 10*1 + 7*2 + 6*3 + 1*4 = 46
     assert m["extraction_hypervolume"] == pytest.approx(46.0)
     assert (m["iterations"], m["population"], m["children"], m["env_samples_extraction"]) == (2, 5, 3, 500)
-    assert (m["episodes"], m["env_samples_evaluation"], m["variant"], m["seed"]) == (10, 37500, "mapex", 0)
+    assert (m["episodes"], m["env_samples_evaluation"], m["method"], m["seed"]) == (10, 37500, "mapex", 0)
     assert (m["reference_point"], m["distinct_tol"], m["utility_weights"]) == ([0.0, 0.0], 0.02, 3)
     assert "provenance" not in m  # kept in provenance.json: `dvc metrics show` stays a table of numbers
 
@@ -211,7 +211,7 @@ def test_missing_population(tmp_path):
     assert "population.pt" in out and "not found" in out
 
 
-@pytest.mark.parametrize("key", ["variant", "seed", "env_id"])
+@pytest.mark.parametrize("key", ["method", "seed", "env_id"])
 def test_population_metadata_key_missing(tmp_path, key):
     write_population(tmp_path / "population.pt", meta_drop=(key,))
     write_evaluated(tmp_path / "evaluated")

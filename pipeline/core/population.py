@@ -1,9 +1,10 @@
 """The population artifact of an extraction run: every policy with its record.
 
-population.pt (format "mapex.population", version 2), loadable with torch.load(weights_only=True):
+population.pt (format "mapex.population", version 3), loadable with torch.load(weights_only=True):
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
-              variant, params (the env and extract params, seed and variant the run used),
+              method (pipeline/params/methods.py: mapex_td3, mopderl, ...), params (the params
+              the run used; for extraction also its --variant and --kind),
               provenance (pipeline.core.provenance: git commit, library versions, device, threads)
     members:  list, in the order policies joined the population (index = policy id): first
               the starting policies (every policy of specialist 0's policy set, in the set's
@@ -23,7 +24,8 @@ population.pt (format "mapex.population", version 2), loadable with torch.load(w
         hidden_sizes   the actor's hidden widths
         actor          state dict of pipeline.core.nets.Actor
 
-Version 1 (before policy sets) lacks `policy_name`; it still loads, its starting policies
+Older versions still load: version 2 named the method `variant` in its meta (read as
+`method`); version 1 (before policy sets) also lacks `policy_name`, its starting policies
 named "policy" (each came from a policy.pt) and its children None.
 
 history.csv, one row per iteration (iteration 0 = the starting policies alone): iteration,
@@ -43,8 +45,8 @@ from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_sav
 from pipeline.core.nets import Actor
 
 FORMAT = "mapex.population"
-FORMAT_VERSION = 2
-OLDEST_READABLE = 1  # version 1: no policy_name
+FORMAT_VERSION = 3
+READABLE = (3, 2, 1)  # 2: the method under meta "variant"; 1: also no policy_name
 
 
 @dataclass
@@ -82,18 +84,20 @@ def save_population(path: str | Path, members: list[Member], meta: dict[str, Any
 
 
 def _load_any_version(path: str | Path) -> tuple[dict[str, Any], int]:
-    """The population's dict and its format version (the current one or version 1)."""
+    """The population's dict and its format version (one of READABLE)."""
     try:
         return torch_load_checked(path, FORMAT, FORMAT_VERSION), FORMAT_VERSION
     except ArtifactError as current:
-        try:
-            return torch_load_checked(path, FORMAT, OLDEST_READABLE), OLDEST_READABLE
-        except ArtifactError:
-            raise current from None  # missing, unreadable, another format or an unknown version
+        for version in READABLE[1:]:
+            try:
+                return torch_load_checked(path, FORMAT, version), version
+            except ArtifactError:
+                pass
+        raise current from None  # missing, unreadable, another format or an unknown version
 
 
 def load_population(path: str | Path, meta_keys: Sequence[str] = ()) -> tuple[list[Member], dict[str, Any]]:
-    """Load (members, meta) of a population.pt of the current format or version 1.
+    """Load (members, meta) of a population.pt of the current format or an older readable one.
 
     Raises ArtifactError naming the file (never a KeyError) when it is not a valid population:
     no `meta` or `members`, a metadata key of `meta_keys` (or `n_objectives`) missing, a member
@@ -106,6 +110,8 @@ def load_population(path: str | Path, meta_keys: Sequence[str] = ()) -> tuple[li
         if not isinstance(obj[key], kind):
             raise ArtifactError(f"{path}: {key!r} is a {type(obj[key]).__name__}, expected a {kind.__name__}")
     meta = obj["meta"]
+    if version < 3 and "variant" in meta:  # the method was called a variant before version 3
+        meta = {("method" if k == "variant" else k): v for k, v in meta.items()}
     missing = [k for k in ("n_objectives", *meta_keys) if k not in meta]
     if missing:
         raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, dict.fromkeys(missing)))} key")

@@ -125,10 +125,14 @@ class Checkpoint:
         self.written = obj["n_items"]
 
     def clear(self) -> None:
-        """Remove the checkpoint, its log entries and what a kill left half-written."""
+        """Remove the checkpoint, its log entries, what a kill left half-written and its directory if that is now empty."""
         for path in (self.path, self.path.with_name(self.path.name + TMP_SUFFIX), *self._items()):
             path.unlink(missing_ok=True)
         self.written = 0
+        try:
+            self.path.parent.rmdir()  # a progress directory of its own goes too; one holding outputs stays
+        except OSError:
+            pass
 
 
 def resume(ckpt: Checkpoint, fresh: Callable[[], R]) -> tuple[R, bool]:

@@ -174,27 +174,29 @@ def load_slot(
     Raises ArtifactError naming the file for a missing or damaged file, an objective the
     buffer's env does not have, an empty buffer, or files of different specialists."""
     buf_path, pol_path = slot / "buffer.zarr", slot / "policy.pt"
+    starts: list[StartingPolicy] = []
+    set_claim: list[Claim] = []
+    if policies:  # read first: a missing specialist is reported by its policies' file
+        set_path = policies_path(slot)
+        pset = load_policy_set(set_path)
+        found = specialist_kind(pset.meta)
+        if kind is not None and found is not None and found != kind:
+            raise ArtifactError(f"{set_path}: a {found} specialist, but --kind is {kind!r}")
+        hidden = list(pset.meta["hidden_sizes"])
+        starts = [StartingPolicy(objective, name, a, hidden) for name, a in zip(pset.names, pset.actors)]
+        if set_path != pol_path:
+            set_claim = [(set_path, pset.meta, "objective")]
+    actor, meta, target = load_policy(pol_path, target=True)
     data, attrs = load_buffer(buf_path)
     n_obj = attrs["n_objectives"]
     if not 0 <= objective < n_obj:
         raise ArtifactError(f"{buf_path} (env {attrs['env_id']}) has objectives 0..{n_obj - 1}, not {objective}")
     if attrs["n_transitions"] == 0:
         raise ArtifactError(f"{buf_path}: buffer holds no transitions")
-    actor, meta, target = load_policy(pol_path, target=True)
-    claims: list[Claim] = [(pol_path, meta, "objective"), (buf_path, attrs, "objective")]
-    files = [pol_path, buf_path / "zarr.json"]
-    starts: list[StartingPolicy] = []
-    if policies:
-        set_path = policies_path(slot)
-        pset = load_policy_set(set_path)
-        if set_path != pol_path:
-            claims.insert(0, (set_path, pset.meta, "objective"))
-            files.insert(0, set_path)
-        found = specialist_kind(pset.meta)
-        if kind is not None and found is not None and found != kind:
-            raise ArtifactError(f"{set_path}: a {found} specialist, but --kind is {kind!r}")
-        hidden = list(pset.meta["hidden_sizes"])
-        starts = [StartingPolicy(objective, name, a, hidden) for name, a in zip(pset.names, pset.actors)]
+    # the starting policies first, then the buffer they are checked against (then a set's policy.pt)
+    policy_claim: Claim = (pol_path, meta, "objective")
+    claims = [*(set_claim or [policy_claim]), (buf_path, attrs, "objective"), *([policy_claim] if set_claim else [])]
+    files = [*(c[0] for c in set_claim), pol_path, buf_path / "zarr.json"]
     online = crit_target = cmeta = None
     if critics is not None:
         online, crit_target, cmeta = load_critics(critics)

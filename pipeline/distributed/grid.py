@@ -172,6 +172,23 @@ def validate_params(params: dict[str, Any], where: str) -> None:
             raise GridError(str(exc)) from None
 
 
+def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
+    """`params` with the run lists derived from its methods and seeds (as `mapex sync-params`
+    writes them), so a cell lists what it runs once, like a preset."""
+    from pipeline.params.common import RunParams
+    from pipeline.params.methods import derived_lists
+
+    defaults = RunParams.model_fields
+    seeds = list(params.get("seeds", defaults["seeds"].default))
+    try:
+        lists = derived_lists(list(params.get("methods", defaults["methods"].default)), seeds)
+    except ValueError as exc:
+        raise GridError(f"{where}: {exc}") from None
+    if not lists["pderl_seeds"] and params.get("pderl_seeds"):
+        lists["pderl_seeds"] = seeds  # PDERL specialists no method reads, trained on request
+    return {**params, **lists}
+
+
 def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cell]:
     """The grid's cells in order (envs outer, override sets inner), params validated."""
     base = _yaml_at(repo, commit, grid.base, f"{grid_path}: base")
@@ -208,10 +225,8 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
             cell_params = merge(params, over or {})
             if grid.seeds is not None:
                 cell_params["seeds"] = list(grid.seeds)
-                for key in ("pderl_seeds", "mopderl_seeds", "morld_seeds"):  # [] or every seed (RunParams)
-                    if cell_params.get(key):
-                        cell_params[key] = list(grid.seeds)
             name = f"{env_name}.{set_name}" if set_name else env_name
+            cell_params = with_run_lists(cell_params, f"{grid_path}: cell {name}")
             validate_params(cell_params, f"{grid_path}: cell {name}")
             # No cell or grid name in the text, so that cells of equal params are equal checkouts.
             text = "# params of a `mapex sweep` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(cell_params, sort_keys=False)

@@ -78,7 +78,8 @@ def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
 
     extract runs every joint variant of `extract_variants` from every kind of `extract_from`
     (a matrix), so the methods of stage extract must form that whole product; raises
-    ValueError naming the missing method otherwise. Unknown methods raise ValueError too."""
+    ValueError naming the missing method otherwise. Unknown methods raise ValueError too.
+    extract_from also drives critic_fidelity (the joint critics' scores), so it is never empty."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
@@ -90,6 +91,9 @@ def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
     if missing:
         raise ValueError(f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
                          f"(a DVC matrix), so add {missing} (or drop the methods that need them)")
+    if not kinds:  # no joint-critic extraction: extract runs no item, and critic_fidelity (a matrix over
+        # extract_from) scores the joint critics of the specialists the methods start from (TD3's are always trained)
+        kinds = [k for k in SPECIALIST_KINDS if any(m.kind == k for m in chosen)] or ["td3"]
     posthoc = [k for k in SPECIALIST_KINDS if method_name("mapex_posthoc", k) in methods]
     needs_pderl = any(m.kind == "pderl" for m in chosen)
     return {

@@ -13,11 +13,9 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.reporting.runs import Run, label, variants_in
+from pipeline.params.methods import colour, label
+from pipeline.reporting.runs import Run, methods_in
 
-COLOURS = {"mapex_pderl": "tab:blue", "mapex_posthoc_pderl": "tab:cyan", "warmup_only_pderl": "tab:gray",
-           "mapex_td3": "tab:green", "mapex_posthoc_td3": "tab:olive", "warmup_only_td3": "tab:orange",
-           "mopderl": "tab:red", "morld": "tab:purple"}
 SPECIALIST_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive")  # by the specialist's objective
 
 
@@ -80,7 +78,7 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
     front's boundary joins the non-dominated members; each panel also shows the other
     variants' fronts dashed for comparison. Only objectives 0 and 1 are drawn.
     """
-    variants = [v for v in variants_in(list(runs.values()))]
+    variants = [v for v in methods_in(list(runs.values()))]
     fig, grid, axes = _panels(len(variants), width, 0.95 if len(variants) > 1 else 0.6, share=True)
     max_it = max(max(int(r.iteration.max()), 1) for r in runs.values())
     norm = Normalize(vmin=1, vmax=max_it)
@@ -90,7 +88,7 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
         pts, child = run.returns[:, :2], run.origin != "specialist"  # whatever the method made
         for other in variants:
             if other != v:
-                _front_line(ax, runs[other].returns[runs[other].on_front, :2], color=COLOURS.get(other, "grey"),
+                _front_line(ax, runs[other].returns[runs[other].on_front, :2], color=colour(other),
                             ls="--", lw=1.2, alpha=0.8, label=f"{label(other)} front")
         _front_line(ax, pts[run.on_front], color="black", lw=1.2, label=f"{label(v)} front")
         if child.any():
@@ -156,17 +154,17 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
     """
     fig = _figure(width, width * 0.4)
     ax_it, ax_s = fig.subplots(1, 2, sharey=True)
-    for v in variants_in(runs):
-        rs = [r for r in runs if r.variant == v]
-        colour = COLOURS.get(v, "grey")
+    for v in methods_in(runs):
+        rs = [r for r in runs if r.method == v]
+        c = colour(v)
         its = np.unique(np.concatenate([r.history["iteration"] for r in rs]))
         grid = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
         for key, ls, kind in HISTORY_CURVES:
             name = f"{label(v)}, {kind}"
             _band(ax_it, its, np.stack([step_values(r.history["iteration"], r.history[key], its) for r in rs]),
-                  colour, name, len(rs), ls)
+                  c, name, len(rs), ls)
             _band(ax_s, grid, np.stack([step_values(r.history["env_samples"], r.history[key], grid) for r in rs]),
-                  colour, name, len(rs), ls)
+                  c, name, len(rs), ls)
     ax_it.set_xlabel("iteration")
     ax_it.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax_s.set_xlabel("env frames after the specialists")

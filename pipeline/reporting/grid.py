@@ -9,8 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 from matplotlib.figure import Figure
 
-from pipeline.reporting.figures import COLOURS, _band, _front_line, _panels, _shared_legend, step_values
-from pipeline.reporting.runs import Run, label, variants_in
+from pipeline.params.methods import colour, label
+from pipeline.reporting.figures import _band, _front_line, _panels, _shared_legend, step_values
+from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.tables import (
     PROVENANCE_COLUMNS,
     PROVENANCE_STAGES,
@@ -37,7 +38,7 @@ def grid_table(cells: list[Cell]) -> str:
     """The paper's Table 1 across a grid: one row per cell (env), a column group per metric, a
     column per method (and the specialists of each kind) found in any cell; mean ± SEM over seeds."""
     all_runs = [r for c in cells for r in c.runs]
-    groups = [*variants_in(all_runs), *specialist_groups(all_runs)]
+    groups = [*methods_in(all_runs), *specialist_groups(all_runs)]
     header = ["Environment"] + [f"{title} {label(g)}" for _, title in TABLE_METRICS for g in groups]
     rows = []
     for c in cells:
@@ -45,7 +46,7 @@ def grid_table(cells: list[Cell]) -> str:
         for key, _ in TABLE_METRICS:
             for g in groups:
                 ms = (specialist_metrics(c.runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
-                      else [r.metrics["front"] for r in c.runs if r.variant == g])
+                      else [r.metrics["front"] for r in c.runs if r.method == g])
                 cells_row.append(fmt_mean_sem([m[key] for m in ms]) if ms else "")
         rows.append(cells_row)
     return _md_table(header, rows)
@@ -55,8 +56,8 @@ def grid_seeds_table(cells: list[Cell]) -> str:
     """Which seeds each cell's methods were scored on (a cell's mean ± SEM is over these)."""
     rows = []
     for c in cells:
-        for v in variants_in(c.runs):
-            seeds = sorted(r.seed for r in c.runs if r.variant == v)
+        for v in methods_in(c.runs):
+            seeds = sorted(r.seed for r in c.runs if r.method == v)
             rows.append([c.name, label(v), ", ".join(map(str, seeds))])
     return _md_table(["cell", "method", "seeds"], rows)
 
@@ -68,7 +69,7 @@ def grid_provenance_table(cells: list[Cell]) -> str:
     for c in cells:
         for stage in PROVENANCE_STAGES:
             groups: dict[tuple[str, ...], list[Run]] = {}
-            for r in sorted(c.runs, key=lambda r: (r.seed, r.variant)):
+            for r in sorted(c.runs, key=lambda r: (r.seed, r.method)):
                 groups.setdefault(provenance_cells((r.provenance or {}).get(stage)), []).append(r)
             rows += [[c.name, stage, _run_list(rs), *cells] for cells, rs in groups.items()]
     return _md_table(["cell", "stage", "runs", *PROVENANCE_COLUMNS], rows)
@@ -78,9 +79,9 @@ def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
     """One panel per cell: every method's re-evaluated front, one line per seed (same colour)."""
     fig, _, axes = _panels(len(cells), width, 0.9)
     for ax, c in zip(axes, cells):
-        for v in variants_in(c.runs):
-            for i, r in enumerate(sorted((r for r in c.runs if r.variant == v), key=lambda r: r.seed)):
-                _front_line(ax, r.returns[r.on_front, :2], color=COLOURS.get(v, "grey"), lw=1.1, alpha=0.8,
+        for v in methods_in(c.runs):
+            for i, r in enumerate(sorted((r for r in c.runs if r.method == v), key=lambda r: r.seed)):
+                _front_line(ax, r.returns[r.on_front, :2], color=colour(v), lw=1.1, alpha=0.8,
                             label=label(v) if i == 0 else None)
         ax.set_title(c.name, fontsize="medium")
         ax.set_xlabel("objective 0")
@@ -96,11 +97,11 @@ def grid_history_figure(cells: list[Cell], width: float) -> Figure:
     specialists, mean ± SEM over seeds per method."""
     fig, _, axes = _panels(len(cells), width, 0.8)
     for ax, c in zip(axes, cells):
-        for v in variants_in(c.runs):
-            rs = [r for r in c.runs if r.variant == v]
+        for v in methods_in(c.runs):
+            rs = [r for r in c.runs if r.method == v]
             x = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
             curves = np.stack([step_values(r.history["env_samples"], r.history["hypervolume"], x) for r in rs])
-            _band(ax, x, curves, COLOURS.get(v, "grey"), label(v), len(rs))
+            _band(ax, x, curves, colour(v), label(v), len(rs))
         ax.set_title(c.name, fontsize="medium")
         ax.set_xlabel("env frames after the specialists")
         ax.set_ylabel("hypervolume (re-evaluated)")
@@ -116,7 +117,7 @@ def grid_markdown(cells: list[Cell], figures: dict[str, str]) -> str:
         "# MAPEX grid report",
         "",
         f"- cells: {', '.join(c.name for c in cells)}",
-        f"- methods: {', '.join(f'{label(v)} ({v})' for v in variants_in([r for c in cells for r in c.runs]))}",
+        f"- methods: {', '.join(f'{label(v)} ({v})' for v in methods_in([r for c in cells for r in c.runs]))}",
         "",
         "## Table 1 across the grid",
         "",

@@ -12,7 +12,8 @@ strings computed from the numbers. Mean +- SEM across seeds as in the paper's Ta
 
 from __future__ import annotations
 
-from pipeline.reporting.runs import Run, label, variants_in
+from pipeline.params.methods import label
+from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.tables import details_table, paper_table, provenance_table, sample_efficiency_table
 from pipeline.reporting.verdicts import verdicts
 
@@ -34,7 +35,7 @@ def report_markdown(
     lines = [
         f"# MAPEX report: {env_id}",
         "",
-        f"- methods: {', '.join(f'{label(v)} ({v})' for v in variants_in(runs))}",
+        f"- methods: {', '.join(f'{label(v)} ({v})' for v in methods_in(runs))}",
         f"- seeds: {', '.join(map(str, seeds))}",
         f"- objectives: {', '.join(f'{i}: {n}' for i, n in enumerate(names))}",
         f"- hypervolume reference point: {ref}",

@@ -15,17 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.artifacts import ArtifactError
+from pipeline.params.methods import METHODS
 
-VARIANT_ORDER = ("mapex_pderl", "mapex_posthoc_pderl", "warmup_only_pderl", "mapex_td3", "mapex_posthoc_td3",
-                 "warmup_only_td3", "mopderl", "morld")
-LABELS = {
-    "mapex_pderl": "MAPEX", "mapex_posthoc_pderl": "MAPEX-PostHoc", "warmup_only_pderl": "warm-up only (PDERL)",
-    "mapex_td3": "MAPEX-TD3", "mapex_posthoc_td3": "MAPEX-TD3-PostHoc", "warmup_only_td3": "warm-up only (TD3)",
-    "mopderl": "MOPDERL", "morld": "MORL/D",
-    "specialists_pderl": "PDERL specialists only", "specialists_td3": "TD3 specialists only",
-}
+METHOD_ORDER = tuple(METHODS)  # the report's usual order: the paper's MAPEX first
 RUN_DIR = re.compile(r"^seed(\d+)$")
-METRICS_KEYS = ("env_id", "variant", "seed", "episodes", "front", "specialists", "hv_ratio_vs_specialists",
+METRICS_KEYS = ("env_id", "method", "seed", "episodes", "front", "specialists", "hv_ratio_vs_specialists",
                 "extraction_hypervolume", "iterations", "env_samples_extraction", "reference_point")
 FRONT_KEYS = ("hypervolume", "hv_fraction", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality", "distinct_count")
 HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolume")
@@ -35,7 +29,7 @@ HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolu
 class Run:
     """One evaluated extraction run."""
 
-    variant: str
+    method: str  # pipeline/params/methods.py
     seed: int
     metrics: dict  # the score stage's metrics.json
     returns: np.ndarray  # (n, m) re-evaluated mean return of each member
@@ -55,24 +49,10 @@ class Run:
         return {int(k): int(c) for k, c in zip(keys, counts)}
 
 
-def label(variant: str) -> str:
-    return LABELS.get(variant, variant)
-
-
-def specialist_kind(method: str) -> str | None:
-    """The kind of specialists a method starts from: 'pderl' (MOPDERL's phase 2 too), 'td3', or
-    None (MORL/D starts from nothing)."""
-    if method == "mopderl" or method.endswith("_pderl"):
-        return "pderl"
-    if method.endswith("_td3"):
-        return "td3"
-    return None
-
-
-def variants_in(runs: list[Run]) -> list[str]:
+def methods_in(runs: list[Run]) -> list[str]:
     """Variants present, the known ones first in their usual order."""
-    present = {r.variant for r in runs}
-    return [v for v in VARIANT_ORDER if v in present] + sorted(present - set(VARIANT_ORDER))
+    present = {r.method for r in runs}
+    return [v for v in METHOD_ORDER if v in present] + sorted(present - set(METHOD_ORDER))
 
 
 def load_runs(scored: Path, evaluated: Path) -> list[Run]:
@@ -91,16 +71,16 @@ def load_runs(scored: Path, evaluated: Path) -> list[Run]:
     return runs
 
 
-def load_run(score_dir: Path, eval_dir: Path, variant: str, seed: int) -> Run:
+def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
     """One run from its score folder and evaluate folder; ArtifactError naming the file on a bad input."""
     metrics = _read_json(score_dir / "metrics.json", METRICS_KEYS)
     for group in ("front", "specialists"):
         missing = [k for k in FRONT_KEYS if k not in (metrics[group] if isinstance(metrics[group], dict) else {})]
         if missing:
             raise ArtifactError(f"{score_dir / 'metrics.json'}: no {', '.join(f'{group}.{k}' for k in missing)} key")
-    if (metrics["variant"], metrics["seed"]) != (variant, seed):
-        raise ArtifactError(f"{score_dir / 'metrics.json'}: is for variant {metrics['variant']!r} seed {metrics['seed']!r}, "
-                            f"but sits in {variant}/seed{seed}")
+    if (metrics["method"], metrics["seed"]) != (method, seed):
+        raise ArtifactError(f"{score_dir / 'metrics.json'}: is for method {metrics['method']!r} seed {metrics['seed']!r}, "
+                            f"but sits in {method}/seed{seed}")
     chain = _read_json(score_dir / "provenance.json", ())
     members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
     n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
@@ -111,7 +91,7 @@ def load_run(score_dir: Path, eval_dir: Path, variant: str, seed: int) -> Run:
         on_front = np.zeros(len(members["origin"]), bool)
         on_front[ids] = True
         return Run(
-            variant=variant, seed=seed, metrics=metrics,
+            method=method, seed=seed, metrics=metrics,
             returns=np.stack([np.asarray(members[f"obj{m}"], float) for m in range(n_obj)], axis=1),
             origin=np.asarray(members["origin"]), iteration=np.asarray(members["iteration"], int), on_front=on_front,
             history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS}, provenance=chain,

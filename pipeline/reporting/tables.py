@@ -9,7 +9,8 @@ import math
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.reporting.runs import VARIANT_ORDER, Run, label, specialist_kind, variants_in
+from pipeline.params.methods import label, specialist_kind
+from pipeline.reporting.runs import METHOD_ORDER, Run, methods_in
 
 
 def fmt_num(x: float | None) -> str:
@@ -38,15 +39,15 @@ def specialist_metrics(runs: list[Run], kind: str | None = None) -> list[dict]:
     """The specialists' metrics once per seed (every method of a seed from one kind of
     specialists re-evaluates the same ones): of the runs starting from `kind` (all when None)."""
     by_seed: dict[int, dict] = {}
-    for r in sorted(runs, key=lambda r: (r.seed, VARIANT_ORDER.index(r.variant) if r.variant in VARIANT_ORDER else 99)):
-        if kind is None or specialist_kind(r.variant) == kind:
+    for r in sorted(runs, key=lambda r: (r.seed, METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99)):
+        if kind is None or specialist_kind(r.method) == kind:
             by_seed.setdefault(r.seed, r.metrics["specialists"])
     return [by_seed[s] for s in sorted(by_seed)]
 
 
 def specialist_groups(runs: list[Run]) -> list[str]:
     """'specialists_pderl', 'specialists_td3': one per kind of specialists the runs start from."""
-    kinds = {specialist_kind(r.variant) for r in runs} - {None}
+    kinds = {specialist_kind(r.method) for r in runs} - {None}
     return [f"specialists_{k}" for k in ("pderl", "td3") if k in kinds]
 
 
@@ -57,13 +58,13 @@ TABLE_METRICS = (("hypervolume", "Hypervolume (↑)"), ("sparsity", "Sparsity (�
 def paper_table(runs: list[Run], env_id: str) -> str:
     """The paper's Table 1 layout (one row per env, a column group per metric) for every variant
     and the specialists: its two metrics (hypervolume, sparsity) plus two it does not report."""
-    groups = [*variants_in(runs), *specialist_groups(runs)]
+    groups = [*methods_in(runs), *specialist_groups(runs)]
     header = ["Environment"] + [f"{title} {label(g)}" for _, title in TABLE_METRICS for g in groups]
     cells = [env_id]
     for key, _ in TABLE_METRICS:
         for g in groups:
             ms = (specialist_metrics(runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
-                  else [r.metrics["front"] for r in runs if r.variant == g])
+                  else [r.metrics["front"] for r in runs if r.method == g])
             cells.append(fmt_mean_sem([m[key] for m in ms]))
     return _md_table(header, [cells])
 
@@ -78,8 +79,8 @@ def details_table(runs: list[Run]) -> str:
     header = ["Method", "seeds", "starting policies", "made by the method", "HV / HV(specialists)", "HV fraction of [ref, ideal] box",
               "sparsity (PGMORL)", "cardinality", "extraction/training-time HV", "iterations", "env frames (after specialists)"]
     rows = []
-    for v in variants_in(runs):
-        rs = [r for r in runs if r.variant == v]
+    for v in methods_in(runs):
+        rs = [r for r in runs if r.method == v]
         m = [r.metrics for r in rs]
         made = fmt_mean_sem([float((r.origin != "specialist").sum()) for r in rs])
         rows.append([label(v), str(len(rs)), _count(rs, "specialist"), made,
@@ -95,8 +96,8 @@ def details_table(runs: list[Run]) -> str:
         sm = specialist_metrics(runs, kind)
         # every method of a seed from this kind starts from the same policies
         # (the extraction runs first: they start from every policy of the sets, MOPDERL from the populations)
-        ordered = sorted(runs, key=lambda r: VARIANT_ORDER.index(r.variant) if r.variant in VARIANT_ORDER else 99, reverse=True)
-        one_per_seed = list({r.seed: r for r in ordered if specialist_kind(r.variant) == kind}.values())
+        ordered = sorted(runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99, reverse=True)
+        one_per_seed = list({r.seed: r for r in ordered if specialist_kind(r.method) == kind}.values())
         # the specialists' HV fraction depends on which method's box it was measured in: not shown
         rows.append([label(g), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
                      fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
@@ -113,7 +114,7 @@ def frames_to_reach(runs: list[Run], a: str, b: str, fractions: tuple[float, ...
     """Per fraction f: for each seed with both methods, the cumulative env frames after which
     method a's population (re-evaluated hypervolume history) first reaches f x method b's final
     re-evaluated hypervolume; None where it never does."""
-    by = {(r.variant, r.seed): r for r in runs}
+    by = {(r.method, r.seed): r for r in runs}
     seeds = sorted(s for (v, s) in by if v == a and (b, s) in by)
     out: dict[float, list[float | None]] = {f: [] for f in fractions}
     for s in seeds:
@@ -131,7 +132,7 @@ def sample_efficiency_table(runs: list[Run], pairs: tuple[tuple[str, str], ...] 
     hypervolume, from the same specialists (mean ± SEM over the seeds that reached it); '' when
     no pair was run."""
     rows = []
-    present = {r.variant for r in runs}
+    present = {r.method for r in runs}
     for a, b in pairs:
         if a not in present or b not in present:
             continue
@@ -169,8 +170,8 @@ def provenance_cells(record: dict | None) -> tuple[str, ...]:
 def _run_list(runs: list[Run]) -> str:
     """'MAPEX seeds 0, 1; warm-up only seed 2'."""
     parts = []
-    for v in variants_in(runs):
-        seeds = sorted(r.seed for r in runs if r.variant == v)
+    for v in methods_in(runs):
+        seeds = sorted(r.seed for r in runs if r.method == v)
         parts.append(f"{label(v)} seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}")
     return "; ".join(parts)
 
@@ -181,7 +182,7 @@ def provenance_table(runs: list[Run]) -> str:
     rows = []
     for stage in PROVENANCE_STAGES:
         groups: dict[tuple[str, ...], list[Run]] = {}
-        for r in sorted(runs, key=lambda r: (r.seed, r.variant)):
+        for r in sorted(runs, key=lambda r: (r.seed, r.method)):
             groups.setdefault(provenance_cells((r.provenance or {}).get(stage)), []).append(r)
         rows += [[stage, _run_list(rs), *cells] for cells, rs in groups.items()]
     return _md_table(["stage", "runs", *PROVENANCE_COLUMNS], rows)

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.reporting.runs import Run, label
+from pipeline.params.methods import label
+from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 
 # Comparisons the verdict section states when both methods of a pair were run: (a, b, what a is).
@@ -67,7 +68,7 @@ def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float 
     """
     la, lb = label(a), label(b)
     what = what or next((w for x, y, w in VERDICT_PAIRS if (x, y) == (a, b)), la)
-    hv = {(r.variant, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
+    hv = {(r.method, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
     seeds = sorted(s for (v, s) in hv if v == a and (b, s) in hv)
     if not seeds:
         return Verdict("unknown", f"Cannot say whether {what} beat {lb} on hypervolume: no seed has evaluated "
@@ -77,7 +78,7 @@ def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float 
     d = x - y
     n = len(seeds)
     outcome = verdict_outcome(d, y, min_difference, noise_sems)
-    iters = max(int(r.metrics["iterations"]) for r in runs if r.variant in (a, b))
+    iters = max(int(r.metrics["iterations"]) for r in runs if r.method in (a, b))
     tally = f"{la} was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}"
     if n > 1:
         (am, asem), (bm, bsem), (dm, dsem) = mean_sem(x), mean_sem(y), mean_sem(d)
@@ -102,6 +103,6 @@ def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float 
 
 def verdicts(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> list[Verdict]:
     """One verdict per pair of VERDICT_PAIRS whose two methods were both run (paired by seed)."""
-    present = {r.variant for r in runs}
+    present = {r.method for r in runs}
     return [hv_verdict(runs, min_difference, noise_sems, a, b, what) for a, b, what in VERDICT_PAIRS
             if a in present and b in present]
