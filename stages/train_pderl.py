@@ -23,7 +23,12 @@ from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from stages.common import PARAMS_OPTION, progress, reports_errors, run_parts
 
-CHECKPOINT = "pderl_state.pt"
+CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
+
+
+def checkpoint_path(out: Path, k: int) -> Path:
+    """Objective k's checkpoint: in .<OUT's name>.resume beside OUT (pipeline.core.resume.checkpoint_dir)."""
+    return checkpoint_dir(out, inside=False) / f"{CHECKPOINT_PREFIX}obj{k}.pt"
 
 # train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
 # RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
@@ -56,7 +61,7 @@ def train_pderl(
     target actor), critics.pt (the RL agent's critics, online and target), buffer.zarr (its
     replay buffer, full reward vectors) and fitness.csv (per generation: frames, updates,
     best and mean population fitness, the RL episode's return; last row "final": the final
-    evaluation). Progress is checkpointed to OUT/obj{K}/pderl_state.pt every
+    evaluation). Progress is checkpointed to .<OUT name>.resume/pderl_state_obj{K}.pt beside OUT every
     train_pderl.checkpoint_every generations; a rerun with the same params, code, device and
     thread count resumes from it and ends with the same artifacts. It is deleted once the
     artifacts are written. train_pderl.processes > 1 runs the objectives side by side in that
@@ -97,7 +102,7 @@ def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec
     train_specialist.Relay)."""
     torch.set_num_threads(threads)
     for k in objectives:
-        train_one(out / f"obj{k}", k, names[k], seed, spec, env_p, td3, cfg, device, send)
+        train_one(out, k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
 def run_config(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams) -> dict[str, Any]:
@@ -114,11 +119,11 @@ def run_config(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialist
 
 def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
               cfg: TrainPderlParams, device: torch.device, send) -> None:
-    """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts.
-    Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
+    """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts
+    (OUT/obj{k}/). Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
     fp = run_fingerprint("train_pderl", run_config(seed, k, env_p, td3, cfg), device)
-    # beside the outputs, or on shared storage in a sweep
-    ckpt = Checkpoint(checkpoint_dir(out) / CHECKPOINT, fp, lambda line: send("say", line))
+    # beside OUT (DVC's out, deleted before a rerun), or on shared storage in a sweep
+    ckpt = Checkpoint(checkpoint_path(out, k), fp, lambda line: send("say", line))
     run, resumed = resume(ckpt, lambda: PderlRun(spec, td3, cfg, k, seed, device))
     if resumed:
         send("say", f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path}")
@@ -138,7 +143,7 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
         send("returns", f"obj {k} ({name}) final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
     finally:
         env.close()
-    save_pderl(out, result, spec, env_p, td3, cfg, device)
+    save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg, device)
     ckpt.clear()
 
 

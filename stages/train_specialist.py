@@ -54,7 +54,7 @@ def train_specialist(
 
     Every train_specialist.checkpoint_every env steps the specialists trained together save
     their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
-    OUT/specialist_state_obj{K}[-obj{L}...].pt, atomically; a rerun with the same params,
+    .<OUT name>.resume/specialist_state_obj{K}[-obj{L}...].pt beside OUT, atomically; a rerun with the same params,
     code, device and thread count resumes from it and writes the same artifacts, bit for bit
     on a CPU, as an uninterrupted run. Anything else starts over. It is deleted once the
     artifacts are written (it is not a DVC out).
@@ -101,15 +101,16 @@ def train_part(out: Path, groups: list[list[int]], seed: int, spec, env_p: EnvPa
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
     """The checkpoint of the specialists of objectives `group` trained together: beside the
-    outputs, or under $MAPEX_RESUME_ROOT in a sweep (pipeline.core.resume.checkpoint_dir)."""
-    return checkpoint_dir(out) / (CHECKPOINT_PREFIX + "-".join(f"obj{k}" for k in group) + ".pt")
+    outputs in .<OUT's name>.resume (OUT is DVC's out, deleted before a rerun), or under
+    $MAPEX_RESUME_ROOT in a sweep (pipeline.core.resume.checkpoint_dir)."""
+    return checkpoint_dir(out, inside=False) / (CHECKPOINT_PREFIX + "-".join(f"obj{k}" for k in group) + ".pt")
 
 
 def remove_stale_checkpoints(out: Path, trained: Sequence[int]) -> None:
     """Remove checkpoints left by another grouping of objectives this run has now trained
     (a run killed with batched: true, rerun with batched: false, say): they cannot be resumed
     any more, and a paper-scale one holds gigabytes."""
-    for path in checkpoint_dir(out).glob(f"{CHECKPOINT_PREFIX}obj*.pt"):
+    for path in checkpoint_dir(out, inside=False).glob(f"{CHECKPOINT_PREFIX}obj*.pt"):
         names = path.name[len(CHECKPOINT_PREFIX) : -len(".pt")].split("-")
         if all(n.startswith("obj") and n[3:].isdigit() for n in names) and {int(n[3:]) for n in names} <= set(trained):
             path.unlink(missing_ok=True)

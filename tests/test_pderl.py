@@ -37,7 +37,7 @@ from pipeline.specialists.pderl import (
     train_pderl,
 )
 from pipeline.core.policyset import load_policy_set
-from stages.train_pderl import CHECKPOINT, train_pderl as train_pderl_stage
+from stages.train_pderl import CHECKPOINT_PREFIX, train_pderl as train_pderl_stage
 
 CAP = 30
 TD3 = {"total_steps": 1000, "learning_starts": 100, "buffer_size": 5000, "batch_size": 32, "hidden_sizes": [16, 16], "device": "cpu"}
@@ -377,12 +377,13 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     res = stage(tmp_path / "killed")
     assert isinstance(res.exception, Killed)
     out = tmp_path / "killed" / "out" / "obj1"
-    assert sorted(p.name for p in out.iterdir()) == [CHECKPOINT]
+    ckpt = tmp_path / "killed" / ".out.resume" / f"{CHECKPOINT_PREFIX}obj1.pt"  # beside OUT, which DVC deletes before a rerun
+    assert ckpt.is_file() and not out.exists()
     monkeypatch.setattr(PderlRun, "step_generation", real)
     res = stage(tmp_path / "killed")
     assert res.exit_code == 0, res.output
     assert "resuming from generation 2" in res.output
-    assert not (out / CHECKPOINT).exists()
+    assert not ckpt.exists() and not ckpt.parent.exists()
     same_bits(full, artifacts(out))
 
     # A checkpoint of other params is not trusted: the run starts over.
@@ -419,7 +420,7 @@ def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeyp
     assert parts == [[[0], [1]]]  # one worker per objective
     for k in (0, 1):
         same_bits(artifacts(tmp_path / "one" / "out" / f"obj{k}"), artifacts(tmp_path / "two" / "out" / f"obj{k}"))
-        assert not (tmp_path / "two" / "out" / f"obj{k}" / CHECKPOINT).exists()
+        assert not (tmp_path / "two" / ".out.resume").exists()
 
 
 def test_stage_rejects_bad_params(tmp_path, stage):

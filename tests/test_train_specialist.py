@@ -547,16 +547,17 @@ def test_killed_stage_resumes_to_identical_artifacts(batched, objective, die_at,
     dead = run_stage(cli, tmp_path / "run", write_params, overrides)
     assert isinstance(dead.exception, Killed)
     out = tmp_path / "run" / "out"
-    assert (out / checkpoint).is_file()
+    ckpt_dir = tmp_path / "run" / ".out.resume"  # beside OUT: DVC deletes OUT itself before a rerun
+    assert (ckpt_dir / checkpoint).is_file()
     assert not (out / f"obj{objective}").exists()  # nothing of the dying specialists was written
     counter.clear()
     again = run_stage(cli, tmp_path / "run", write_params, overrides)
     assert again.exit_code == 0, again.stderr
-    assert f"resuming from step {resumed_at} of {out / checkpoint}" in again.stderr
+    assert f"resuming from step {resumed_at} of {ckpt_dir / checkpoint}" in again.stderr
     # stacked: one run, resumed; one at a time: obj0 trained again from 0, obj1 resumed
     assert counter.counts == ([300 - resumed_at] if batched else [300, 300 - resumed_at])
     assert_same_artifacts(tmp_path / "ref" / "out", out)
-    assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]  # the checkpoint is gone
+    assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"] and not ckpt_dir.exists()  # the checkpoint is gone
 
 
 @pytest.mark.parametrize(("device", "graphs"), DEVICES)
@@ -649,7 +650,7 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
     ref = subprocess.run(command(tmp_path / "ref"), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert ref.returncode == 0, ref.stderr[-3000:]
     out = tmp_path / "run"
-    ckpts = [out / "specialist_state_obj0.pt", out / "specialist_state_obj1.pt"]
+    ckpts = [tmp_path / ".run.resume" / "specialist_state_obj0.pt", tmp_path / ".run.resume" / "specialist_state_obj1.pt"]
     proc = subprocess.Popen(command(out), cwd=tmp_path, env=env, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     while not all(c.exists() for c in ckpts) and proc.poll() is None and time.time() < deadline:
@@ -703,11 +704,11 @@ def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, c
     counter = count_steps(monkeypatch, die_at=150)
     dead = run_stage(cli, tmp_path, write_params)
     assert isinstance(dead.exception, Killed)
-    ckpt = tmp_path / "out" / "specialist_state_obj0-obj1.pt"
+    ckpt = tmp_path / ".out.resume" / "specialist_state_obj0-obj1.pt"
     assert ckpt.is_file()
-    stale = tmp_path / "out" / "specialist_state_obj1.pt"  # as if left by a batched: false run
+    stale = tmp_path / ".out.resume" / "specialist_state_obj1.pt"  # as if left by a batched: false run
     stale.write_bytes(b"old")
-    foreign = tmp_path / "out" / "specialist_state_obj1-obj2.pt"  # objective 2 is not trained here: kept
+    foreign = tmp_path / ".out.resume" / "specialist_state_obj1-obj2.pt"  # objective 2 is not trained here: kept
     foreign.write_bytes(b"old")
     saves: list[int] = []
     monkeypatch.setattr(stage.Checkpoint, "save", lambda self, state: saves.append(state))

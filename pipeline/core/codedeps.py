@@ -83,11 +83,15 @@ def closure_files(module: str) -> list[Path]:
     return [ROOT / p for p in module_closure(module)]
 
 
+# The line above each stage's code deps in dvc.yaml: they are generated, not written by hand.
+CODE_MARKER = "      # generated: the code this stage imports (python -m pipeline.core.codedeps); do not edit\n"
+
+
 def sync_dvc_yaml(path: Path | None = None) -> list[str]:
     """Rewrite the code deps of every stage in dvc.yaml to its import closure plus stages/cli.py.
 
     Line-based, so comments and data deps stay as written; code deps go after the data deps,
-    sorted. Returns the names of the stages whose deps changed.
+    sorted, below CODE_MARKER. Returns the names of the stages whose deps changed.
     """
     path = path or ROOT / "dvc.yaml"
     lines = path.read_text().splitlines(keepends=True)
@@ -106,9 +110,10 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
             while i < len(lines) and lines[i].startswith(("      - ", "      #")):  # entries and comments
                 block.append(lines[i])
                 i += 1
-            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/"))]  # comments stay with the data deps
+            # comments stay with the data deps; the marker is rewritten above the code deps
+            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/")) and b != CODE_MARKER]
             code = sorted(set(module_closure(stage_module(stage))) | {"stages/cli.py"})
-            new = data + [f"      - {c}\n" for c in code]
+            new = data + [CODE_MARKER] + [f"      - {c}\n" for c in code]
             if new != block:
                 changed.append(stage)
             out.extend(new)

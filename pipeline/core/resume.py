@@ -160,8 +160,14 @@ def resume_root(default: str | Path) -> Path:
     return Path(root) if root else Path(default)
 
 
-def checkpoint_dir(out: str | Path) -> Path:
-    """Where a stage that checkpoints beside its outputs (OUT/<name>_state.pt) keeps that file:
-    OUT itself, or $MAPEX_RESUME_ROOT/<OUT's name> when set (shared storage)."""
+def checkpoint_dir(out: str | Path, inside: bool = True) -> Path:
+    """Where a stage that checkpoints beside its outputs keeps its checkpoint: OUT itself
+    (`inside`, for a stage whose DVC outs are files in OUT), else the hidden sibling
+    .<OUT's name>.resume (for a stage whose DVC out is the directory OUT, which DVC deletes
+    before the stage runs); or $MAPEX_RESUME_ROOT/<OUT's name> when set (a sweep's shared
+    storage, one directory per stage item)."""
+    out = Path(out)
     root = os.environ.get(RESUME_ROOT_ENV)
-    return Path(root) / Path(out).name if root else Path(out)
+    if root:
+        return Path(root) / out.name
+    return out if inside else out.parent / f".{out.name}.resume"
