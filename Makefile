@@ -1,6 +1,7 @@
 # Two entry points for a fresh machine (see README):
 #   make repro   install into .venv, then run the whole pipeline (dvc repro on params.yaml)
 #   make test    install into .venv, then run the test suite
+# and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #
 # torch: the CPU build is installed first, so nothing later pulls the multi-GB CUDA build.
 # TORCH_SPEC and TORCH_INDEX choose another build, e.g. for a CUDA 12.8 machine:
@@ -11,7 +12,7 @@ TORCH_SPEC ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 BIN := $(VENV)/bin
 
-.PHONY: install repro test bench clean-venv
+.PHONY: install repro test lint format bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +36,17 @@ test: install
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines]" >> $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
+
+lint: install
+	$(BIN)/pip install -q -e ".[dev]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[dev] failed (log: $(VENV)/install.log)"; exit 1; }
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+
+format: install
+	$(BIN)/pip install -q -e ".[dev]" >> $(VENV)/install.log 2>&1
+	$(BIN)/ruff check --fix .
+	$(BIN)/ruff format .
 
 bench: install
 	$(BIN)/pip install -q -e ".[bench]"
