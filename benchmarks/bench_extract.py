@@ -23,10 +23,10 @@ import numpy as np
 import torch
 
 from pipeline.core.envs import make_env
-from pipeline.evaluation.episodes import eval_seeds, evaluate_policies
-from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policies
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
 
 OBS, ACT = 17, 6
 PAPER_EPOCHS = 20  # mo-halfcheetah-v5, appendix table
@@ -36,8 +36,13 @@ HIDDEN = [256, 256]
 def synthetic(rows: int, device: torch.device):
     """Two specialist buffers of `rows` rows each, their critics and two parent actors."""
     rng = np.random.default_rng(0)
-    buffers = [{"obs": rng.normal(size=(rows, OBS)).astype(np.float32), "action": rng.uniform(-1, 1, (rows, ACT)).astype(np.float32)}
-               for _ in range(2)]
+    buffers = [
+        {
+            "obs": rng.normal(size=(rows, OBS)).astype(np.float32),
+            "action": rng.uniform(-1, 1, (rows, ACT)).astype(np.float32),
+        }
+        for _ in range(2)
+    ]
     torch.manual_seed(0)
     critics = [CriticEnsemble(OBS, ACT, HIDDEN, 4).eval().to(device) for _ in range(2)]
     actors = [Actor(OBS, ACT, HIDDEN, [-1] * ACT, [1] * ACT).eval().to(device) for _ in range(2)]
@@ -69,8 +74,10 @@ def per_child(k: int, args, inputs, device: torch.device) -> float:
     t_train, children = train_seconds(k, args.rows, args.paper_epochs, args.warmup_steps, inputs, device)
     per_epoch = (t_train - t_warm) / args.paper_epochs
     est = t_warm + per_epoch * PAPER_EPOCHS
-    line = (f"K = {k:2d}: warm-up {t_warm:.1f} s, {args.paper_epochs} AWR epoch(s) {t_train - t_warm:.1f} s "
-            f"({per_epoch:.1f} s each) => {est:.1f} s for {k} child(ren) at {PAPER_EPOCHS} epochs, {est / k:.2f} s per child")
+    line = (
+        f"K = {k:2d}: warm-up {t_warm:.1f} s, {args.paper_epochs} AWR epoch(s) {t_train - t_warm:.1f} s "
+        f"({per_epoch:.1f} s each) => {est:.1f} s for {k} child(ren) at {PAPER_EPOCHS} epochs, {est / k:.2f} s per child"
+    )
     if not args.skip_eval:
         envs = [make_env("mo-halfcheetah-v5", 750) for _ in range(k * args.eval_episodes)]
         t0 = time.perf_counter()
@@ -85,10 +92,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", choices=["cpu", "cuda"], default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--threads", type=int, default=torch.get_num_threads(), help="torch CPU threads")
-    ap.add_argument("--paper-epochs", type=int, default=PAPER_EPOCHS, help=f"AWR epochs actually timed (of {PAPER_EPOCHS})")
+    ap.add_argument(
+        "--paper-epochs", type=int, default=PAPER_EPOCHS, help=f"AWR epochs actually timed (of {PAPER_EPOCHS})"
+    )
     ap.add_argument("--rows", type=int, default=200_000, help="hybrid buffer rows (paper: 200,000)")
     ap.add_argument("--warmup-steps", type=int, default=1000, help="warm-up steps (paper: 1,000)")
-    ap.add_argument("--k", type=int, nargs="+", default=[1, 16], help="children per iteration to time (first = baseline)")
+    ap.add_argument(
+        "--k", type=int, nargs="+", default=[1, 16], help="children per iteration to time (first = baseline)"
+    )
     ap.add_argument("--eval-episodes", type=int, default=5)
     ap.add_argument("--skip-eval", action="store_true")
     args = ap.parse_args()
@@ -97,8 +108,11 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"
-    print(f"torch {torch.__version__}, {name}, {args.threads} CPU threads; hybrid {args.rows} rows, child {HIDDEN}, "
-          f"warm-up {args.warmup_steps} steps, batch 256", flush=True)
+    print(
+        f"torch {torch.__version__}, {name}, {args.threads} CPU threads; hybrid {args.rows} rows, child {HIDDEN}, "
+        f"warm-up {args.warmup_steps} steps, batch 256",
+        flush=True,
+    )
     inputs = synthetic(args.rows, device)
     train_seconds(max(args.k), min(args.rows, 4096), 1, 5, inputs, device)  # untimed: allocator and kernel warm-up
     times = {k: per_child(k, args, inputs, device) for k in args.k}

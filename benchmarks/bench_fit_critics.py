@@ -19,8 +19,8 @@ import numpy as np
 import torch
 
 from pipeline.core.nets import Actor
-from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.critics.posthoc import fit_posthoc_critics
+from pipeline.params.fit_critics import FitCriticsParams
 
 OBS, ACT, N_OBJ = 17, 6, 2
 
@@ -53,7 +53,9 @@ def main() -> None:
 
     data = synthetic_buffer(args.rows, np.random.default_rng(0))
     policy = Actor(OBS, ACT, args.hidden, [-1.0] * ACT, [1.0] * ACT)
-    cfg = FitCriticsParams(steps=args.warmup + args.steps, batch_size=args.batch, hidden_sizes=args.hidden, device="cpu")
+    cfg = FitCriticsParams(
+        steps=args.warmup + args.steps, batch_size=args.batch, hidden_sizes=args.hidden, device="cpu"
+    )
     marks: dict[str, float] = {}
 
     def on_step(step: int, loss: torch.Tensor) -> None:

@@ -80,13 +80,22 @@ def bench_td3(args: argparse.Namespace) -> dict:
     sync(args.device)
     wall = time.perf_counter() - t
     env.close()
-    return {"name": "TD3" + (" (eager)" if args.eager or args.device == "cpu" else " (CUDA graphs)"),
-            "frames": len(result.buffer["obs"]), "updates": args.frames - args.learning_starts, "wall": wall}
+    return {
+        "name": "TD3" + (" (eager)" if args.eager or args.device == "cpu" else " (CUDA graphs)"),
+        "frames": len(result.buffer["obs"]),
+        "updates": args.frames - args.learning_starts,
+        "wall": wall,
+    }
 
 
 def bench_pderl(args: argparse.Namespace) -> dict:
-    cfg = TrainPderlParams(total_frames=args.frames, population_size=args.population, eval_episodes=1,
-                           mini_buffer_size=50_000, device=args.device)
+    cfg = TrainPderlParams(
+        total_frames=args.frames,
+        population_size=args.population,
+        eval_episodes=1,
+        mini_buffer_size=50_000,
+        device=args.device,
+    )
     env = make_env(args.env, args.cap)
     spec = env_spec(env, args.env, args.cap)
     episodes = Timer(pderl.PderlRun.run_episode, args.device)
@@ -99,8 +108,15 @@ def bench_pderl(args: argparse.Namespace) -> dict:
     sync(args.device)
     wall = time.perf_counter() - t
     env.close()
-    return {"name": "PDERL" + (" (eager)" if args.eager or args.device == "cpu" else " (CUDA graphs)"), "frames": result.frames, "updates": result.updates, "wall": wall,
-            "generations": len(result.history), "episodes_s": episodes.seconds, "evolution_s": evolution.seconds}
+    return {
+        "name": "PDERL" + (" (eager)" if args.eager or args.device == "cpu" else " (CUDA graphs)"),
+        "frames": result.frames,
+        "updates": result.updates,
+        "wall": wall,
+        "generations": len(result.history),
+        "episodes_s": episodes.seconds,
+        "evolution_s": evolution.seconds,
+    }
 
 
 def main() -> None:
@@ -121,19 +137,27 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     dev = torch.cuda.get_device_name() if args.device == "cuda" else "cpu"
-    print(f"{args.env} cap {args.cap}, hidden {args.hidden}, batch {args.batch}, {args.frames} frames "
-          f"(updates from {args.learning_starts}), population {args.population}, {dev}, {args.threads} thread(s)")
+    print(
+        f"{args.env} cap {args.cap}, hidden {args.hidden}, batch {args.batch}, {args.frames} frames "
+        f"(updates from {args.learning_starts}), population {args.population}, {dev}, {args.threads} thread(s)"
+    )
     rows = [] if args.skip_td3 else [bench_td3(args)]
     rows.append(bench_pderl(args))
-    print(f"{'trainer':<22}{'frames':>9}{'updates':>9}{'wall s':>9}{'frames/s':>10}{'updates/s':>11}{'h / 2M frames':>15}")
+    print(
+        f"{'trainer':<22}{'frames':>9}{'updates':>9}{'wall s':>9}{'frames/s':>10}{'updates/s':>11}{'h / 2M frames':>15}"
+    )
     for r in rows:
         fps = r["frames"] / r["wall"]
-        print(f"{r['name']:<22}{r['frames']:>9}{r['updates']:>9}{r['wall']:>9.1f}{fps:>10.0f}{r['updates'] / r['wall']:>11.0f}"
-              f"{PAPER_FRAMES / fps / 3600:>15.1f}")
+        print(
+            f"{r['name']:<22}{r['frames']:>9}{r['updates']:>9}{r['wall']:>9.1f}{fps:>10.0f}{r['updates'] / r['wall']:>11.0f}"
+            f"{PAPER_FRAMES / fps / 3600:>15.1f}"
+        )
     p = rows[-1]
     rest = p["wall"] - p["episodes_s"] - p["evolution_s"]
-    print(f"PDERL split over {p['generations']} generations: episodes {p['episodes_s']:.1f} s, evolution "
-          f"{p['evolution_s']:.1f} s, TD3 updates and the rest {rest:.1f} s")
+    print(
+        f"PDERL split over {p['generations']} generations: episodes {p['episodes_s']:.1f} s, evolution "
+        f"{p['evolution_s']:.1f} s, TD3 updates and the rest {rest:.1f} s"
+    )
     if len(rows) == 2:
         print(f"PDERL / TD3 frames/s: {(p['frames'] / p['wall']) / (rows[0]['frames'] / rows[0]['wall']):.2f}")
 

@@ -20,10 +20,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.critics.fidelity import score_critics  # noqa: E402
-from pipeline.params.fit_critics import FitCriticsParams  # noqa: E402
-from pipeline.critics.posthoc import fit_posthoc_critics  # noqa: E402
 from pipeline.core.specialist import load_slot  # noqa: E402
+from pipeline.critics.fidelity import score_critics  # noqa: E402
+from pipeline.critics.posthoc import fit_posthoc_critics  # noqa: E402
+from pipeline.params.fit_critics import FitCriticsParams  # noqa: E402
 
 
 def main() -> None:
@@ -42,8 +42,15 @@ def main() -> None:
     spec = load_slot(args.specialist, args.objective)
     target = spec.actor if spec.actor_target is None else spec.actor_target
     objectives = list(range(spec.buffer_attrs["n_objectives"]))
-    cfg = FitCriticsParams(steps=args.steps, check_every=args.check_every, patience=10**9, tau=args.tau,
-                           target_update_freq=args.target_update_freq, hidden_sizes=args.hidden, device="cpu")
+    cfg = FitCriticsParams(
+        steps=args.steps,
+        check_every=args.check_every,
+        patience=10**9,
+        tau=args.tau,
+        target_update_freq=args.target_update_freq,
+        hidden_sizes=args.hidden,
+        device="cpu",
+    )
     t0 = time.perf_counter()
     print(f"{'step':>7} {'s':>7}  " + "  ".join(f"obj{m}: err / pearson / mean Q vs G" for m in objectives))
     step = [0]
@@ -55,11 +62,22 @@ def main() -> None:
         print(f"{min(step[0], args.steps):7d} {time.perf_counter() - t0:7.1f}  " + "  ".join(cols), flush=True)
         return float(np.mean([f.rel_error for f in rep.per_objective]))
 
-    fit = fit_posthoc_critics(spec.buffer, target, objectives, cfg, np.random.default_rng(0),
-                              torch.Generator().manual_seed(0), "cpu", None, error)
+    fit = fit_posthoc_critics(
+        spec.buffer,
+        target,
+        objectives,
+        cfg,
+        np.random.default_rng(0),
+        torch.Generator().manual_seed(0),
+        "cpu",
+        None,
+        error,
+    )
     elapsed = time.perf_counter() - t0
-    print(f"{fit.steps} steps in {elapsed:.1f} s ({fit.steps / elapsed:.0f} steps/s incl. checks, "
-          f"{args.threads} thread(s)); best check at step {fit.best_step}")
+    print(
+        f"{fit.steps} steps in {elapsed:.1f} s ({fit.steps / elapsed:.0f} steps/s incl. checks, "
+        f"{args.threads} thread(s)); best check at step {fit.best_step}"
+    )
 
 
 if __name__ == "__main__":

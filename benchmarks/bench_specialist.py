@@ -150,23 +150,35 @@ def bench_sb3(args: argparse.Namespace) -> tuple[float, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--env", default="mo-halfcheetah-v5", help="MO-Gymnasium env id")
     parser.add_argument("--cap", type=int, default=750, help="episode cap (max_episode_steps)")
     parser.add_argument("--objective", type=int, default=0, help="SB3 trains this objective alone")
     parser.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="device of every side")
-    parser.add_argument("--stack", type=int, nargs="+", default=[2], help="K: specialists stacked in one process (one run per K)")
+    parser.add_argument(
+        "--stack", type=int, nargs="+", default=[2], help="K: specialists stacked in one process (one run per K)"
+    )
     parser.add_argument("--warmup", type=int, default=2000, help="random-action steps before updates (not timed)")
     parser.add_argument("--steps", type=int, default=3000, help="timed steps after the warm-up, one update each")
     parser.add_argument("--batch", type=int, default=256, help="minibatch size")
     parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256], help="hidden widths of actor and critics")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads, the same for every side (and process)")
-    parser.add_argument("--processes", type=int, default=1,
-                        help="P > 1: also run each K split over P side-by-side processes (train_specialist.processes)")
+    parser.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads, the same for every side (and process)"
+    )
+    parser.add_argument(
+        "--processes",
+        type=int,
+        default=1,
+        help="P > 1: also run each K split over P side-by-side processes (train_specialist.processes)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-secondary", action="store_true", help="ours without secondary critics (2 Q-networks)")
     parser.add_argument("--no-sb3", action="store_true", help="skip stable-baselines3")
-    parser.add_argument("--paper-steps", type=float, default=2e6, help="specialist steps per objective in the projection")
+    parser.add_argument(
+        "--paper-steps", type=float, default=2e6, help="specialist steps per objective in the projection"
+    )
     args = parser.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -175,28 +187,39 @@ def main() -> None:
         import stable_baselines3  # fail early, before our run, if the bench extra is missing
 
         sb3_version = stable_baselines3.__version__
-    device = (torch.cuda.get_device_name(0) if args.device == "cuda" else platform.processor() or platform.machine())
+    device = torch.cuda.get_device_name(0) if args.device == "cuda" else platform.processor() or platform.machine()
     print(f"env {args.env} (cap {args.cap}), hidden {args.hidden}, batch {args.batch}, device {args.device}: {device}")
-    print(f"warm-up {args.warmup} steps (untimed), timed {args.steps} steps, torch {torch.__version__} "
-          f"with {torch.get_num_threads()} thread(s), stable-baselines3 {sb3_version}, {os.cpu_count()} cores")
+    print(
+        f"warm-up {args.warmup} steps (untimed), timed {args.steps} steps, torch {torch.__version__} "
+        f"with {torch.get_num_threads()} thread(s), stable-baselines3 {sb3_version}, {os.cpu_count()} cores"
+    )
     rows: list[tuple[str, int, float, float]] = []  # (side, specialists, aggregate steps/s, per CPU-second)
     for k in sorted({1, *args.stack}):
         print(f"ours x{k}: start ({load()})", flush=True)
         (wall, cpu), n_q = bench_ours(args, k)
         rows.append((f"ours x{k}", k, k * args.steps / wall, k * args.steps / cpu))
-        print(f"ours x{k}: {n_q} Q-networks each, {wall:.1f} s wall: {k * args.steps / wall:.1f} steps/s aggregate, "
-              f"{args.steps / wall:.1f} per specialist ({k * args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
+        print(
+            f"ours x{k}: {n_q} Q-networks each, {wall:.1f} s wall: {k * args.steps / wall:.1f} steps/s aggregate, "
+            f"{args.steps / wall:.1f} per specialist ({k * args.steps / cpu:.1f} per CPU-second) ({load()})",
+            flush=True,
+        )
         if args.processes > 1 and k >= args.processes:
             print(f"ours x{k} in {args.processes} processes: start ({load()})", flush=True)
             rate, per_cpu = bench_side_by_side(args, k, args.processes)
             rows.append((f"ours x{k} in {args.processes} processes", k, rate, per_cpu))
-            print(f"ours x{k} in {args.processes} processes: {rate:.1f} steps/s aggregate, {rate / k:.1f} per specialist "
-                  f"({per_cpu:.1f} per CPU-second of its processes) ({load()})", flush=True)
+            print(
+                f"ours x{k} in {args.processes} processes: {rate:.1f} steps/s aggregate, {rate / k:.1f} per specialist "
+                f"({per_cpu:.1f} per CPU-second of its processes) ({load()})",
+                flush=True,
+            )
     if not args.no_sb3:
         print(f"sb3: start ({load()})", flush=True)
         wall, cpu = bench_sb3(args)
         rows.append(("sb3", 1, args.steps / wall, args.steps / cpu))
-        print(f"sb3: 2 Q-networks, {wall:.1f} s wall: {args.steps / wall:.1f} steps/s ({args.steps / cpu:.1f} per CPU-second) ({load()})", flush=True)
+        print(
+            f"sb3: 2 Q-networks, {wall:.1f} s wall: {args.steps / wall:.1f} steps/s ({args.steps / cpu:.1f} per CPU-second) ({load()})",
+            flush=True,
+        )
 
     one = rows[0][2]
     print("\n| run | specialists | aggregate steps/s | per specialist | vs one alone (aggregate) |")
@@ -212,6 +235,7 @@ def main() -> None:
     for side, k, rate, _ in rows:
         if side.startswith("ours"):
             print(f"  {side}: {steps / rate / 3600:.2f} h")
+
 
 if __name__ == "__main__":
     main()

@@ -64,9 +64,24 @@ def main() -> None:
             out = Path(tmp) / name
             t0 = time.perf_counter()
             r = subprocess.run(
-                [sys.executable, "-m", "stages.cli", "extract", "--seed", str(args.seed), "--specialists", str(args.specialists),
-                 "--out", str(out), "--resume-dir", str(Path(tmp) / "resume" / name), "--params", str(pfile)],
-                capture_output=True, text=True,
+                [
+                    sys.executable,
+                    "-m",
+                    "stages.cli",
+                    "extract",
+                    "--seed",
+                    str(args.seed),
+                    "--specialists",
+                    str(args.specialists),
+                    "--out",
+                    str(out),
+                    "--resume-dir",
+                    str(Path(tmp) / "resume" / name),
+                    "--params",
+                    str(pfile),
+                ],
+                capture_output=True,
+                text=True,
             )
             wall = time.perf_counter() - t0
             if r.returncode:
@@ -79,7 +94,10 @@ def main() -> None:
             hv, hv_s = hypervolume(ret, ref), hypervolume(spec_ret, ref)
             n_distinct = distinct(front, ret.min(0), ret.max(0))
             rows.append((name, hv, hv / hv_s if hv_s else float("nan"), len(front), n_distinct, wall))
-            print(f"{name}: HV {hv:.4g} ({rows[-1][2]:.2f}x specialists), front {len(front)}, distinct {n_distinct}, {wall:.0f} s", flush=True)
+            print(
+                f"{name}: HV {hv:.4g} ({rows[-1][2]:.2f}x specialists), front {len(front)}, distinct {n_distinct}, {wall:.0f} s",
+                flush=True,
+            )
     print("\n| variant | HV | x specialists | front | distinct | wall s |\n|---|---|---|---|---|---|")
     for name, hv, ratio, f, d, wall in rows:
         print(f"| {name} | {hv:.4g} | {ratio:.2f} | {f} | {d} | {wall:.0f} |")

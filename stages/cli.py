@@ -60,7 +60,9 @@ def _register(names) -> None:
 
 # Only the subcommand being run when argv names one; every subcommand otherwise (--help, a
 # typo that typer should answer with the list, or the app imported by tests).
-_argv_cmd = sys.argv[1] if len(sys.argv) > 1 and sys.argv[1] in COMMANDS and sys.argv[0].endswith(("mapex", "cli.py")) else None
+_argv_cmd = (
+    sys.argv[1] if len(sys.argv) > 1 and sys.argv[1] in COMMANDS and sys.argv[0].endswith(("mapex", "cli.py")) else None
+)
 _register([_argv_cmd] if _argv_cmd else list(COMMANDS))
 
 

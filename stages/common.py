@@ -20,7 +20,9 @@ from pipeline.params import EnvParams, ParamsError, RunParams, load_params, sect
 F = TypeVar("F", bound=Callable[..., Any])
 M = TypeVar("M", bound=BaseModel)
 
-PARAMS_OPTION = typer.Option(Path("params.yaml"), "--params", help="params file (validated before anything is read or written)")
+PARAMS_OPTION = typer.Option(
+    Path("params.yaml"), "--params", help="params file (validated before anything is read or written)"
+)
 
 
 # The pipeline's input errors: one readable line and exit code 2, in a stage or in its workers.
@@ -44,7 +46,9 @@ class Relay:
             self.bar.write(value, file=sys.stderr)
 
 
-def run_parts(fn: Callable[..., None], parts: list[tuple], bar: tqdm, where: Callable[[int], str], prefix: str = "return ") -> None:
+def run_parts(
+    fn: Callable[..., None], parts: list[tuple], bar: tqdm, where: Callable[[int], str], prefix: str = "return "
+) -> None:
     """Run fn(*parts[i], threads, send=...) for every part: here when there is one, else each in
     its own worker process at once (pipeline.core.workers), with this process's torch thread
     count. Progress goes to `bar` (Relay). A worker's failure is reported as the stage would
@@ -59,7 +63,9 @@ def run_parts(fn: Callable[..., None], parts: list[tuple], bar: tqdm, where: Cal
     if warning:
         bar.write(warning, file=sys.stderr)
     try:
-        run_side_by_side(fn, [(*args, threads) for args in parts], lambda i, message: relay.message(*message, part=i), INPUT_ERRORS)
+        run_side_by_side(
+            fn, [(*args, threads) for args in parts], lambda i, message: relay.message(*message, part=i), INPUT_ERRORS
+        )
     except WorkerError as exc:
         if exc.detail:
             typer.echo(exc.detail.rstrip(), err=True)

@@ -55,10 +55,14 @@ def critic_fidelity(
     online, _, meta = load_critics(critics_path)
     check_matches(critics_path, meta, spec.buffer_attrs, str(spec.buffer_path))
     if meta.get("buffer_objective") != objective:
-        raise ArtifactError(f"{critics_path}: critics of buffer objective {meta.get('buffer_objective')!r}, expected {objective}")
+        raise ArtifactError(
+            f"{critics_path}: critics of buffer objective {meta.get('buffer_objective')!r}, expected {objective}"
+        )
     policy_path = specialist / "policy.pt"
     if meta.get("seed") != spec.policy_meta.get("seed"):
-        raise ArtifactError(f"{critics_path}: critics of seed {meta.get('seed')!r}, but {policy_path} is of seed {spec.policy_meta.get('seed')!r}")
+        raise ArtifactError(
+            f"{critics_path}: critics of seed {meta.get('seed')!r}, but {policy_path} is of seed {spec.policy_meta.get('seed')!r}"
+        )
     if meta.get("source") == "posthoc":
         check_posthoc_buffer(critics_path, meta, spec.buffer_path, spec.buffer_attrs)
     gamma = trained_gamma(critics_path, meta)

@@ -26,12 +26,12 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.envs import env_spec, make_env
-from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
-from pipeline.params import ParamsError
-from pipeline.params.evaluate import EvaluateParams
 from pipeline.core.population import Member, load_population, member_actor
 from pipeline.core.provenance import provenance
 from pipeline.core.seeding import select_device
+from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
+from pipeline.params import ParamsError
+from pipeline.params.evaluate import EvaluateParams
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "method")
@@ -65,13 +65,17 @@ def evaluate(
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     dims = (meta["obs_dim"], meta["act_dim"], meta["n_objectives"])
     if (spec.obs_dim, spec.act_dim, spec.n_objectives) != dims:
-        raise ArtifactError(f"{population}: dims (obs, act, objectives) {dims} "
-                            f"do not match env {env_p.id} {(spec.obs_dim, spec.act_dim, spec.n_objectives)}")
+        raise ArtifactError(
+            f"{population}: dims (obs, act, objectives) {dims} "
+            f"do not match env {env_p.id} {(spec.obs_dim, spec.act_dim, spec.n_objectives)}"
+        )
 
     results = []
     with progress(len(members), f"evaluate {meta['method']} seed {seed}", unit="policy") as bar:
         for i, member in enumerate(members):
-            res = evaluate_policy(member_actor(member, meta).to(device), envs, eval_seeds(seed, cfg.seed_stream, i, cfg.episodes))
+            res = evaluate_policy(
+                member_actor(member, meta).to(device), envs, eval_seeds(seed, cfg.seed_stream, i, cfg.episodes)
+            )
             results.append(res)
             bar.set_postfix_str(f"{member.origin} {i} return {fmt_vec(res.mean)}", refresh=False)
             bar.update(1)
@@ -79,9 +83,14 @@ def evaluate(
         env.close()
 
     record = {
-        "env_id": env_p.id, "method": meta["method"], "seed": seed, "episodes": cfg.episodes,
-        "seed_stream": cfg.seed_stream, "max_episode_steps": env_p.max_episode_steps,
-        "population": len(members), "env_samples_evaluation": sum(r.env_samples for r in results),
+        "env_id": env_p.id,
+        "method": meta["method"],
+        "seed": seed,
+        "episodes": cfg.episodes,
+        "seed_stream": cfg.seed_stream,
+        "max_episode_steps": env_p.max_episode_steps,
+        "population": len(members),
+        "env_samples_evaluation": sum(r.env_samples for r in results),
         "provenance": provenance(device),
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -110,6 +119,18 @@ def evaluated_csv(members: list[Member], results: list[EvalResult]) -> str:
     w.writerow(header)
     for i, (mem, res) in enumerate(zip(members, results)):
         objective = "" if mem.objective is None else mem.objective
-        w.writerow([i, mem.origin, objective, mem.policy_name or "", mem.iteration, ";".join(map(str, mem.parents)), mem.env_samples,
-                    *map(float, mem.returns), *map(float, np.asarray(res.mean)), *map(float, np.asarray(res.std))])
+        w.writerow(
+            [
+                i,
+                mem.origin,
+                objective,
+                mem.policy_name or "",
+                mem.iteration,
+                ";".join(map(str, mem.parents)),
+                mem.env_samples,
+                *map(float, mem.returns),
+                *map(float, np.asarray(res.mean)),
+                *map(float, np.asarray(res.std)),
+            ]
+        )
     return buf.getvalue()

@@ -15,23 +15,36 @@ from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slot
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
 from pipeline.params.extract import ExtractParams
+from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 
 @reports_errors
 def extract(
     seed: int = typer.Option(0, help="run seed (selects the specialists of this seed and seeds every draw)"),
-    variant: str = typer.Option("mapex", help="'mapex' (Algorithm 1 with the specialists' joint critics), 'mapex_posthoc' "
-                                              "(with critics fitted post hoc, --posthoc) or 'warmup_only' (ablation: epochs = 0)"),
-    kind: str = typer.Option("td3", help="the kind of specialists: 'td3' or 'pderl'; the run is method VARIANT_KIND (mapex_td3, ...)"),
-    specialists: Path = typer.Option(..., help="directory with, per objective K, obj{K}/policies.pt (a policy set, e.g. PDERL's) "
-                                          "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt"),
-    posthoc: Path = typer.Option(None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"),
+    variant: str = typer.Option(
+        "mapex",
+        help="'mapex' (Algorithm 1 with the specialists' joint critics), 'mapex_posthoc' "
+        "(with critics fitted post hoc, --posthoc) or 'warmup_only' (ablation: epochs = 0)",
+    ),
+    kind: str = typer.Option(
+        "td3", help="the kind of specialists: 'td3' or 'pderl'; the run is method VARIANT_KIND (mapex_td3, ...)"
+    ),
+    specialists: Path = typer.Option(
+        ...,
+        help="directory with, per objective K, obj{K}/policies.pt (a policy set, e.g. PDERL's) "
+        "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt",
+    ),
+    posthoc: Path = typer.Option(
+        None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"
+    ),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
-    resume_dir: Path = typer.Option(None, help="where progress is checkpointed after every iteration; default "
-                                               "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume"),
+    resume_dir: Path = typer.Option(
+        None,
+        help="where progress is checkpointed after every iteration; default "
+        "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume",
+    ),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Extract a Pareto front from single-objective specialists (MAPEX, Algorithm 1).
@@ -65,28 +78,69 @@ def extract(
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * cfg.children_per_iteration)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     if spec.n_objectives != 2:
-        raise EnvError(f"env.id = {env_p.id!r} has {spec.n_objectives} objectives; MAPEX gap identification is "
-                       "defined for 2 (the paper leaves N >= 3 to future work)")
+        raise EnvError(
+            f"env.id = {env_p.id!r} has {spec.n_objectives} objectives; MAPEX gap identification is "
+            "defined for 2 (the paper leaves N >= 3 to future work)"
+        )
     if sorted(run_p.objectives) != list(range(spec.n_objectives)):
-        raise ParamsError(f"{params}: objectives = {run_p.objectives}: extraction needs one specialist per objective "
-                          f"0..{spec.n_objectives - 1}")
+        raise ParamsError(
+            f"{params}: objectives = {run_p.objectives}: extraction needs one specialist per objective "
+            f"0..{spec.n_objectives - 1}"
+        )
     critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
     if critics_mode == "posthoc" and posthoc is None:
         raise ParamsError("--variant mapex_posthoc reads post-hoc critics, but no --posthoc directory was given")
-    meta = {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives,
-            "action_low": list(spec.action_low), "action_high": list(spec.action_high)}
+    meta = {
+        "env_id": spec.env_id,
+        "obs_dim": spec.obs_dim,
+        "act_dim": spec.act_dim,
+        "n_objectives": spec.n_objectives,
+        "action_low": list(spec.action_low),
+        "action_high": list(spec.action_high),
+    }
     critics_root = posthoc if critics_mode == "posthoc" else specialists
-    slots = [load_slot(specialists / f"obj{k}", k, seed=seed, spec_meta=meta, policies=True, critics=critics_root / f"obj{k}" / "critics.pt",
-                       critics_mode=critics_mode, kind=kind) for k in range(spec.n_objectives)]
+    slots = [
+        load_slot(
+            specialists / f"obj{k}",
+            k,
+            seed=seed,
+            spec_meta=meta,
+            policies=True,
+            critics=critics_root / f"obj{k}" / "critics.pt",
+            critics_mode=critics_mode,
+            kind=kind,
+        )
+        for k in range(spec.n_objectives)
+    ]
     device = select_device(cfg.device)
     # env.reference_point is not in the config: it does not change what extraction computes
-    config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "extract": cfg.model_dump(), "seed": seed,
-              "variant": variant, "kind": kind, "critics": critics_mode}
+    config = {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "extract": cfg.model_dump(),
+        "seed": seed,
+        "variant": variant,
+        "kind": kind,
+        "critics": critics_mode,
+    }
     method = method_name(variant, kind)
-    ckpt = Checkpoint((resume_dir or resume_root("data/resume")) / "extract" / method / f"seed{seed}" / "state.pt",
-                      run_fingerprint("extract", config, device, [f for s in slots for f in s.files]), lambda line: typer.echo(line, err=True))
-    run, resumed = resume(ckpt, lambda: ExtractionRun([p for s in slots for p in s.starts], [s.buffer for s in slots],
-                                                      [s.critic for s in slots], cfg, meta, seed, envs, device))
+    ckpt = Checkpoint(
+        (resume_dir or resume_root("data/resume")) / "extract" / method / f"seed{seed}" / "state.pt",
+        run_fingerprint("extract", config, device, [f for s in slots for f in s.files]),
+        lambda line: typer.echo(line, err=True),
+    )
+    run, resumed = resume(
+        ckpt,
+        lambda: ExtractionRun(
+            [p for s in slots for p in s.starts],
+            [s.buffer for s in slots],
+            [s.critic for s in slots],
+            cfg,
+            meta,
+            seed,
+            envs,
+            device,
+        ),
+    )
     if resumed:
         typer.echo(f"resuming from iteration {run.iteration} of {cfg.iterations} ({ckpt.path.parent})", err=True)
     else:
@@ -97,10 +151,16 @@ def extract(
         while not run.done:
             run.step()
             ckpt.save(run.state_dict())
-            bar.set_postfix_str(f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "
-                                f"child {fmt_vec(run.last[-1].mean)}", refresh=False)
+            bar.set_postfix_str(
+                f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "
+                f"child {fmt_vec(run.last[-1].mean)}",
+                refresh=False,
+            )
             bar.update(run.k)
-    save_population(out / "population.pt", run.members, {**meta, "seed": seed, "method": method, "params": config,
-                                                           "provenance": provenance(device)})
+    save_population(
+        out / "population.pt",
+        run.members,
+        {**meta, "seed": seed, "method": method, "params": config, "provenance": provenance(device)},
+    )
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()

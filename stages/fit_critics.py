@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import csv
 import io
-import copy
 from pathlib import Path
 
 import numpy as np
@@ -12,13 +12,13 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.checkpoint import save_critics
-from pipeline.core.specialist import load_slot
-from pipeline.critics.fidelity import mean_rel_error, score_critics
-from pipeline.params import ParamsError
-from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.critics.posthoc import fit_posthoc_critics
 from pipeline.core.provenance import provenance
 from pipeline.core.seeding import derive_seeds, select_device, torch_generator
+from pipeline.core.specialist import load_slot
+from pipeline.critics.fidelity import mean_rel_error, score_critics
+from pipeline.critics.posthoc import fit_posthoc_critics
+from pipeline.params import ParamsError
+from pipeline.params.fit_critics import FitCriticsParams
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
 
 # Extra seed key so post-hoc fitting draws streams independent of the specialist's own,
@@ -64,7 +64,9 @@ def fit_critics(
         raise ParamsError(f"{params}: fit_critics.{exc}") from None
     spec = load_slot(specialist, objective)
     if spec.policy_meta.get("seed") != seed:
-        raise ArtifactError(f"{specialist / 'policy.pt'}: specialist of seed {spec.policy_meta.get('seed')!r}, expected --seed {seed}")
+        raise ArtifactError(
+            f"{specialist / 'policy.pt'}: specialist of seed {spec.policy_meta.get('seed')!r}, expected --seed {seed}"
+        )
     objectives = list(range(spec.buffer_attrs["n_objectives"]))
     s_np, s_torch = derive_seeds(seed, objective, POSTHOC_STREAM, n=2)
 
@@ -75,19 +77,30 @@ def fit_critics(
         if step % 250 == 0:  # .item() synchronises a GPU: not every step
             bar.set_postfix_str(f"loss {loss.item():.4g}", refresh=False)
 
-    target = spec.actor if spec.actor_target is None else spec.actor_target  # pi_k's TD3 target actor (pi_k itself if it has none)
+    target = (
+        spec.actor if spec.actor_target is None else spec.actor_target
+    )  # pi_k's TD3 target actor (pi_k itself if it has none)
     scorer = copy.deepcopy(target).to(device)
 
     def error(critic) -> float:
-        report = score_critics(spec.buffer, critic, objectives, scorer, cfg.gamma, cfg.fidelity_episodes, cfg.tail_tolerance)
+        report = score_critics(
+            spec.buffer, critic, objectives, scorer, cfg.gamma, cfg.fidelity_episodes, cfg.tail_tolerance
+        )
         err = mean_rel_error(report)
         bar.set_postfix_str(f"fidelity error {err:.3f}", refresh=False)
         return err
 
     with bar:
         fitted = fit_posthoc_critics(
-            spec.buffer, target, objectives, cfg,
-            np.random.default_rng(s_np), torch_generator(s_torch, device), device, on_step, error,
+            spec.buffer,
+            target,
+            objectives,
+            cfg,
+            np.random.default_rng(s_np),
+            torch_generator(s_torch, device),
+            device,
+            on_step,
+            error,
         )
         bar.total = fitted.steps  # stopped early: the bar ends full
         bar.refresh()
@@ -104,8 +117,11 @@ def fit_critics(
         "objectives": objectives,
         "source": "posthoc",
         "buffer_checksums": dict(attrs.get("checksums", {})),
-        "fit": {"steps": fitted.steps, "best_step": fitted.best_step,
-                "best_error": min((c.error for c in fitted.checks), default=None)},
+        "fit": {
+            "steps": fitted.steps,
+            "best_step": fitted.best_step,
+            "best_error": min((c.error for c in fitted.checks), default=None),
+        },
         "provenance": provenance(device),
     }
     save_critics(out / "critics.pt", online, fitted.target.cpu(), meta)

@@ -21,18 +21,26 @@ def load_cell(ws: Path) -> Cell:
     """One cell workspace: its params (env, seeds, methods) and the runs scored there."""
     raw = load_params(ws / "params.yaml")
     env_p, run_p = section(raw, "env", EnvParams, ws / "params.yaml"), section(raw, "", RunParams, ws / "params.yaml")
-    runs = [r for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
-            if r.seed in run_p.seeds and r.method in run_p.methods]
+    runs = [
+        r
+        for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
+        if r.seed in run_p.seeds and r.method in run_p.methods
+    ]
     if not runs:
-        raise ArtifactError(f"{ws / 'data' / 'score'}: no scored run for seeds {run_p.seeds} and methods {run_p.methods}")
+        raise ArtifactError(
+            f"{ws / 'data' / 'score'}: no scored run for seeds {run_p.seeds} and methods {run_p.methods}"
+        )
     check_comparable(ws / "data" / "score", runs, env_p.id)
     return Cell(ws.name, env_p.id, runs)
 
 
 @reports_errors
 def grid_report(
-    workdir: Path = typer.Argument(..., help="a sweep's work directory: one workspace per grid cell (default of "
-                                             "`mapex sweep`: sweeps/<grid file name>)"),
+    workdir: Path = typer.Argument(
+        ...,
+        help="a sweep's work directory: one workspace per grid cell (default of "
+        "`mapex sweep`: sweeps/<grid file name>)",
+    ),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
     width: float = typer.Option(13.0, min=4, help="figure width in inches"),
     dpi: int = typer.Option(110, min=30, help="figure resolution"),
@@ -54,9 +62,11 @@ def grid_report(
         raise ArtifactError(f"{workdir}: no cell workspace with params.yaml and data/score")
     cells = [load_cell(d) for d in scored]
     figures = {"fronts": grid_fronts_figure(cells, width), "hypervolume": grid_history_figure(cells, width)}
-    captions = {"fronts.png": "Re-evaluated fronts of every method, one panel per cell, one line per seed.",
-                "hypervolume.png": "Re-evaluated hypervolume against cumulative env frames after the specialists "
-                                   "(mean ± SEM over seeds), one panel per cell."}
+    captions = {
+        "fronts.png": "Re-evaluated fronts of every method, one panel per cell, one line per seed.",
+        "hypervolume.png": "Re-evaluated hypervolume against cumulative env frames after the specialists "
+        "(mean ± SEM over seeds), one panel per cell.",
+    }
     text = grid_markdown(cells, captions)
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
         raise ArtifactError(f"{out}: exists and is not a report folder; refusing to replace it")

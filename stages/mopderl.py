@@ -8,18 +8,18 @@ from pathlib import Path
 
 import typer
 
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
-from pipeline.core.envs import make_env, env_spec
 from pipeline.baselines.mopderl import AgentInit, GenerationRecord, MopderlRun, StartingActor
-from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.mopderl import MopderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.pderl import EpisodeResult
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.envs import env_spec, make_env
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slot
+from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.mopderl import MopderlParams
+from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.pderl import EpisodeResult
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
@@ -33,9 +33,17 @@ def history_csv(records: list[GenerationRecord]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
     w.writeheader()
-    w.writerows({"generation": r.generation, "env_frames": r.frames, "new_individuals": r.new_individuals,
-                 "archive_size": r.archive_size, "front_size": r.front_size, "archive_hv_norm": f"{r.archive_hv_norm:.6g}"}
-                for r in records)
+    w.writerows(
+        {
+            "generation": r.generation,
+            "env_frames": r.frames,
+            "new_individuals": r.new_individuals,
+            "archive_size": r.archive_size,
+            "front_size": r.front_size,
+            "archive_hv_norm": f"{r.archive_hv_norm:.6g}",
+        }
+        for r in records
+    )
     return buf.getvalue()
 
 
@@ -43,13 +51,17 @@ def history_csv(records: list[GenerationRecord]) -> str:
 def mopderl(
     seed: int = typer.Option(0, help="run seed: selects the PDERL specialists of this seed and seeds every draw"),
     specialists: Path = typer.Option(
-        ..., help="the seed's PDERL specialists (stage train_pderl): obj{K}/ per objective K, each with policies.pt "
+        ...,
+        help="the seed's PDERL specialists (stage train_pderl): obj{K}/ per objective K, each with policies.pt "
         "(population actors and 'rl'), policy.pt (RL actor and target), critics.pt (primary and secondary critics) "
         "and buffer.zarr (the RL replay buffer)",
     ),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
-    resume_dir: Path = typer.Option(None, help="where progress is checkpointed (RESUME_DIR/mopderl/seedS); default "
-                                               "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume"),
+    resume_dir: Path = typer.Option(
+        None,
+        help="where progress is checkpointed (RESUME_DIR/mopderl/seedS); default "
+        "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume",
+    ),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """MOPDERL phase 2 (the baseline): evolve the merged PDERL populations towards a Pareto front.
@@ -92,32 +104,71 @@ def mopderl(
         spec = env_spec(env, env_p.id, env_p.max_episode_steps)
         objectives = list(range(spec.n_objectives))
         if sorted(run_p.objectives) != objectives:
-            raise ParamsError(f"{params}: objectives = {run_p.objectives}: MOPDERL needs one specialist per objective 0..{spec.n_objectives - 1}")
-        spec_meta = {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives}
+            raise ParamsError(
+                f"{params}: objectives = {run_p.objectives}: MOPDERL needs one specialist per objective 0..{spec.n_objectives - 1}"
+            )
+        spec_meta = {
+            "env_id": spec.env_id,
+            "obs_dim": spec.obs_dim,
+            "act_dim": spec.act_dim,
+            "n_objectives": spec.n_objectives,
+        }
         bounds = {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
-        slots = [load_slot(specialists / f"obj{k}", k, seed=seed, spec_meta=spec_meta, policies=True,
-                           critics=specialists / f"obj{k}" / "critics.pt", kind="pderl") for k in objectives]
+        slots = [
+            load_slot(
+                specialists / f"obj{k}",
+                k,
+                seed=seed,
+                spec_meta=spec_meta,
+                policies=True,
+                critics=specialists / f"obj{k}" / "critics.pt",
+                kind="pderl",
+            )
+            for k in objectives
+        ]
         population = [StartingActor(p.objective, p.name, p.actor) for s in slots for p in s.starts if p.name != "rl"]
         if len(population) < 2:
-            raise ArtifactError(f"{specialists}: {len(population)} population actor(s) in the policy sets; MOPDERL starts from "
-                                "PDERL specialists' populations (policies.pt of stage train_pderl)")
+            raise ArtifactError(
+                f"{specialists}: {len(population)} population actor(s) in the policy sets; MOPDERL starts from "
+                "PDERL specialists' populations (policies.pt of stage train_pderl)"
+            )
         for s in slots:
             if s.actor_target is None:
-                raise ArtifactError(f"{specialists / f'obj{s.objective}' / 'policy.pt'}: no 'actor_target': not an RL agent's policy "
-                                    "(stage train_pderl writes one)")
-        agents = [AgentInit(s.objective, s.actor, s.actor_target, s.critic, s.critic_target, list(s.critics_meta["objectives"]),
-                            s.buffer) for s in slots]
+                raise ArtifactError(
+                    f"{specialists / f'obj{s.objective}' / 'policy.pt'}: no 'actor_target': not an RL agent's policy "
+                    "(stage train_pderl writes one)"
+                )
+        agents = [
+            AgentInit(
+                s.objective,
+                s.actor,
+                s.actor_target,
+                s.critic,
+                s.critic_target,
+                list(s.critics_meta["objectives"]),
+                s.buffer,
+            )
+            for s in slots
+        ]
         files = [f for s in slots for f in s.files]
         del slots
         device = select_device(cfg.device)
-        config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
-                  "mopderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
-                  "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS), "seed": seed}
-        ckpt = Checkpoint((resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}" / "state.pt",
-                          run_fingerprint("mopderl", config, device, files), lambda line: typer.echo(line, err=True))
+        config = {
+            "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+            "mopderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+            "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
+            "seed": seed,
+        }
+        ckpt = Checkpoint(
+            (resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}" / "state.pt",
+            run_fingerprint("mopderl", config, device, files),
+            lambda line: typer.echo(line, err=True),
+        )
         run, resumed = resume(ckpt, lambda: MopderlRun(spec, td3, cfg, seed, population, agents, device))
         if resumed:
-            typer.echo(f"resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path.parent}", err=True)
+            typer.echo(
+                f"resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path.parent}", err=True
+            )
 
         bar = progress(cfg.total_frames, f"MOPDERL seed {seed}", unit="frame")
 
@@ -134,13 +185,23 @@ def mopderl(
                 if rec.generation % cfg.checkpoint_every == 0:
                     ckpt.save(run.state_dict())
                 best = run.archive_returns().max(axis=0)
-                bar.set_postfix_str(f"gen {rec.generation} archive {rec.archive_size} HV(norm) {rec.archive_hv_norm:.6g} "
-                                    f"best {fmt_vec(best)}", refresh=False)
+                bar.set_postfix_str(
+                    f"gen {rec.generation} archive {rec.archive_size} HV(norm) {rec.archive_hv_norm:.6g} "
+                    f"best {fmt_vec(best)}",
+                    refresh=False,
+                )
             bar.total = run.frames
     finally:
         env.close()
 
-    meta = {**spec_meta, **bounds, "seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
+    meta = {
+        **spec_meta,
+        **bounds,
+        "seed": seed,
+        "method": "mopderl",
+        "params": config,
+        "provenance": provenance(device),
+    }
     save_population(out / "population.pt", run.members, meta)
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()

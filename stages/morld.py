@@ -8,14 +8,21 @@ from pathlib import Path
 
 import typer
 
+from pipeline.baselines.morld import (
+    BaselinesMissing,
+    ExchangeRecord,
+    MorldRun,
+    export_members,
+    history_csv_rows,
+    require_morl_baselines,
+)
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env
-from pipeline.baselines.morld import BaselinesMissing, ExchangeRecord, MorldRun, export_members, history_csv_rows, require_morl_baselines
-from pipeline.params.morld import MorldParams
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.params.morld import MorldParams
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
 CHECKPOINT = "morld_state.pt"
@@ -62,23 +69,39 @@ def morld(
     spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
     probe.close()
     device = select_device(cfg.device)
-    config = {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), "morld": cfg.model_dump(), "seed": seed}
+    config = {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "morld": cfg.model_dump(),
+        "seed": seed,
+    }
     # the library version is in the fingerprint: the run drives morl-baselines' internals
-    fp = run_fingerprint("morld", {**config, "morld": cfg.model_dump(exclude={"checkpoint_every", "device"}),
-                                   "morl_baselines": _library_version()}, device)
+    fp = run_fingerprint(
+        "morld",
+        {
+            **config,
+            "morld": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+            "morl_baselines": _library_version(),
+        },
+        device,
+    )
     out.mkdir(parents=True, exist_ok=True)
     # beside the outputs, or on shared storage in a sweep
     ckpt = Checkpoint(checkpoint_dir(out) / CHECKPOINT, fp, lambda line: typer.echo(line, err=True))
     run, resumed = resume(ckpt, lambda: MorldRun(spec, cfg, seed, device))
     if resumed:
-        typer.echo(f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt.path}", err=True)
+        typer.echo(
+            f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt.path}",
+            err=True,
+        )
 
     bar = progress(cfg.frames(), f"MORL/D seed {seed}", unit="frame")
     bar.update(run.frames)
     run.env.on_step = lambda: bar.update(1)
 
     def on_exchange(run: MorldRun, rec: ExchangeRecord) -> None:
-        bar.set_postfix_str(f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}", refresh=False)
+        bar.set_postfix_str(
+            f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}", refresh=False
+        )
         # the last exchange too: a run killed while its actors are evaluated need not train again
         if rec.exchange % cfg.checkpoint_every == 0 or run.done:
             ckpt.save(run.state_dict())
@@ -86,18 +109,31 @@ def morld(
     with bar:
         run.train(on_exchange)
     run.env.on_step = None
-    typer.echo(f"morld seed {seed}: {run.frames} frames, {run.exchange} exchanges; evaluating the exported actors", err=True)
+    typer.echo(
+        f"morld seed {seed}: {run.frames} frames, {run.exchange} exchanges; evaluating the exported actors", err=True
+    )
     members, extra = export_members(run, cfg.eval_episodes)
     meta = {
-        "env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_objectives": spec.n_objectives,
-        "action_low": list(spec.action_low), "action_high": list(spec.action_high), "seed": seed, "method": "morld",
-        "params": config, "provenance": provenance(device), **extra,
+        "env_id": spec.env_id,
+        "obs_dim": spec.obs_dim,
+        "act_dim": spec.act_dim,
+        "n_objectives": spec.n_objectives,
+        "action_low": list(spec.action_low),
+        "action_high": list(spec.action_high),
+        "seed": seed,
+        "method": "morld",
+        "params": config,
+        "provenance": provenance(device),
+        **extra,
     }
     save_population(out / "population.pt", members, meta)
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()
     best = max(members, key=lambda m: m.returns[0])
-    typer.echo(f"morld seed {seed}: {len(members)} actors; best on objective 0: {best.policy_name} {fmt_vec(best.returns)}", err=True)
+    typer.echo(
+        f"morld seed {seed}: {len(members)} actors; best on objective 0: {best.policy_name} {fmt_vec(best.returns)}",
+        err=True,
+    )
 
 
 def _library_version() -> str | None:

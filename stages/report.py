@@ -9,10 +9,10 @@ import typer
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
 from pipeline.params import RunParams, section
+from pipeline.params.methods import label
 from pipeline.params.report import ReportParams
 from pipeline.reporting.figures import front_figure, history_figure
 from pipeline.reporting.report import report_markdown
-from pipeline.params.methods import label
 from pipeline.reporting.runs import Run, check_comparable, load_runs, methods_in
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
@@ -54,16 +54,22 @@ def report(
     for seed in sorted({r.seed for r in runs}):
         by_variant = {r.method: r for r in runs if r.seed == seed}
         figures[f"front_seed{seed}"] = front_figure(by_variant, names, env_p.id, seed, cfg.figure_width)
-        captions[f"front_seed{seed}.png"] = (f"Seed {seed}: re-evaluated returns of every member, starting policies "
-                                             f"as stars (one colour per specialist), what each method made coloured by iteration; "
-                                             f"{' vs '.join(label(v) for v in methods_in(list(by_variant.values())))} side by side.")
+        captions[f"front_seed{seed}.png"] = (
+            f"Seed {seed}: re-evaluated returns of every member, starting policies "
+            f"as stars (one colour per specialist), what each method made coloured by iteration; "
+            f"{' vs '.join(label(v) for v in methods_in(list(by_variant.values())))} side by side."
+        )
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
-    captions["hypervolume.png"] = ("Hypervolume of the population after each iteration (MOPDERL: generation), vs "
-                                   "iteration and vs cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: all "
-                                   "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
-                                   "the method ran (solid) and the same members re-evaluated (dashed).")
-    context = {"evaluation episodes per member": str(runs[0].metrics["episodes"]),
-               "starting policies per specialist": starting_policies_line(runs)}
+    captions["hypervolume.png"] = (
+        "Hypervolume of the population after each iteration (MOPDERL: generation), vs "
+        "iteration and vs cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: all "
+        "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
+        "the method ran (solid) and the same members re-evaluated (dashed)."
+    )
+    context = {
+        "evaluation episodes per member": str(runs[0].metrics["episodes"]),
+        "starting policies per specialist": starting_policies_line(runs),
+    }
     text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference, cfg.noise_sems)
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
@@ -79,10 +85,13 @@ def report(
 def starting_policies_line(runs: list[Run]) -> str:
     """'specialist 0: 3, specialist 1: 3' (the policies of each specialist's policy set that
     started the population), or each run's where they differ."""
+
     def text(r: Run) -> str:
         return ", ".join(f"specialist {k}: {n}" if k >= 0 else f"{n}" for k, n in r.starting_counts().items()) or "none"
 
     lines = {text(r) for r in runs}
     if len(lines) == 1:
         return lines.pop()
-    return "; ".join(f"{label(r.method)} seed {r.seed}: {text(r)}" for r in sorted(runs, key=lambda r: (r.seed, r.method)))
+    return "; ".join(
+        f"{label(r.method)} seed {r.seed}: {text(r)}" for r in sorted(runs, key=lambda r: (r.seed, r.method))
+    )

@@ -28,12 +28,12 @@ import numpy as np
 import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
-from pipeline.evaluation.metrics import hypervolume_history, population_summary
 from pipeline.core.pareto import pareto_mask
-from pipeline.params import ParamsError
-from pipeline.params.score import ScoreParams
 from pipeline.core.population import Member, load_population
 from pipeline.core.provenance import provenance
+from pipeline.evaluation.metrics import hypervolume_history, population_summary
+from pipeline.params import ParamsError
+from pipeline.params.score import ScoreParams
 from stages.common import PARAMS_OPTION, read_params, reports_errors
 
 META_KEYS = ("env_id", "n_objectives", "seed", "method")
@@ -72,13 +72,22 @@ def score(
 
     iteration = np.array([m.iteration for m in members])
     extract_returns = np.array([m.returns for m in members], dtype=float)
-    summary = population_summary(means, np.array([m.origin == "specialist" for m in members]), ref,
-                                 cfg.distinct_tol, cfg.utility_weights)
-    history = hypervolume_history(iteration, np.array([m.env_samples for m in members]),
-                                  {"hypervolume_extract": extract_returns, "hypervolume": means}, ref)
+    summary = population_summary(
+        means, np.array([m.origin == "specialist" for m in members]), ref, cfg.distinct_tol, cfg.utility_weights
+    )
+    history = hypervolume_history(
+        iteration,
+        np.array([m.env_samples for m in members]),
+        {"hypervolume_extract": extract_returns, "hypervolume": means},
+        ref,
+    )
     metrics = {
-        "env_id": meta["env_id"], "method": meta["method"], "seed": meta["seed"], "episodes": record["episodes"],
-        "population": len(members), "starting_policies": sum(m.origin == "specialist" for m in members),
+        "env_id": meta["env_id"],
+        "method": meta["method"],
+        "seed": meta["seed"],
+        "episodes": record["episodes"],
+        "population": len(members),
+        "starting_policies": sum(m.origin == "specialist" for m in members),
         # every member the method made: MAPEX's children, MOPDERL's offspring, MORL/D's policies
         "children": sum(m.origin != "specialist" for m in members),
         "iterations": int(iteration.max()),
@@ -86,7 +95,9 @@ def score(
         "env_samples_evaluation": record["env_samples_evaluation"],
         **summary,
         "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
-        "reference_point": ref.tolist(), "distinct_tol": cfg.distinct_tol, "utility_weights": cfg.utility_weights,
+        "reference_point": ref.tolist(),
+        "distinct_tol": cfg.distinct_tol,
+        "utility_weights": cfg.utility_weights,
     }
     chain = {"extract": meta.get("provenance"), "evaluate": record["provenance"], "score": provenance("cpu")}
     out.mkdir(parents=True, exist_ok=True)
@@ -98,10 +109,14 @@ def score(
 
 def reference_point(ref: list[float] | None, n_objectives: int, params: Path) -> np.ndarray:
     if ref is None:
-        raise ParamsError(f"{params}: env.reference_point is missing; score needs one value per objective "
-                          f"({n_objectives}), each worse than any policy scores (see docs/reference_points.md)")
+        raise ParamsError(
+            f"{params}: env.reference_point is missing; score needs one value per objective "
+            f"({n_objectives}), each worse than any policy scores (see docs/reference_points.md)"
+        )
     if len(ref) != n_objectives:
-        raise ParamsError(f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives")
+        raise ParamsError(
+            f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives"
+        )
     return np.asarray(ref, dtype=float)
 
 
@@ -139,8 +154,10 @@ def read_evaluated(path: Path, members: list[Member], n_obj: int) -> np.ndarray:
         for i, (row, mem) in enumerate(zip(rows, members)):
             mine = (int(row["id"]), row["origin"], int(row["iteration"]), [float(row[f"{c}_extract"]) for c in objs])
             if mine != (i, mem.origin, mem.iteration, [float(x) for x in mem.returns]):
-                raise ArtifactError(f"{path}: row {i} does not describe member {i} of the population "
-                                    f"(id, origin, iteration, extraction-time returns differ); rerun evaluate")
+                raise ArtifactError(
+                    f"{path}: row {i} does not describe member {i} of the population "
+                    f"(id, origin, iteration, extraction-time returns differ); rerun evaluate"
+                )
         return np.array([[float(row[c]) for c in objs] for row in rows])
     except ValueError as exc:
         raise ArtifactError(f"{path}: unreadable number ({exc})") from None
@@ -152,8 +169,10 @@ def check_same_run(path: Path, record: dict, population: Path, meta: dict, n_mem
     ours = {"env_id": meta["env_id"], "method": meta["method"], "seed": meta["seed"], "population": n_members}
     if theirs != ours:
         differ = [k for k in ours if theirs[k] != ours[k]]
-        raise ArtifactError(f"{path} ({', '.join(f'{k} = {theirs[k]!r}' for k in differ)}) does not describe "
-                            f"{population} ({', '.join(f'{k} = {ours[k]!r}' for k in differ)})")
+        raise ArtifactError(
+            f"{path} ({', '.join(f'{k} = {theirs[k]!r}' for k in differ)}) does not describe "
+            f"{population} ({', '.join(f'{k} = {ours[k]!r}' for k in differ)})"
+        )
 
 
 def finite(obj):

@@ -14,8 +14,11 @@ from stages.common import PARAMS_OPTION, reports_errors
 
 @reports_errors
 def sync_params(
-    preset: Path = typer.Option(None, "--from", help="start from this params file (e.g. presets/paper/mo-walker2d-v5.yaml); "
-                                                    "default: PARAMS itself"),
+    preset: Path = typer.Option(
+        None,
+        "--from",
+        help="start from this params file (e.g. presets/paper/mo-walker2d-v5.yaml); default: PARAMS itself",
+    ),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Write the lists dvc.yaml runs its producing stages over, derived from `methods` and `seeds`.

@@ -12,15 +12,15 @@ import typer
 
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
-from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
-from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.train_pderl import TrainPderlParams
+from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from stages.common import PARAMS_OPTION, progress, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
@@ -29,6 +29,7 @@ CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
 def checkpoint_path(out: Path, k: int) -> Path:
     """Objective k's checkpoint: in .<OUT's name>.resume beside OUT (pipeline.core.resume.checkpoint_dir)."""
     return checkpoint_dir(out, inside=False) / f"{CHECKPOINT_PREFIX}obj{k}.pt"
+
 
 # train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
 # RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
@@ -88,15 +89,36 @@ def train_pderl(
     device = select_device(cfg.device)
     parts = split_evenly(objectives, cfg.processes)
     what = ", ".join(f"obj {k} ({names[k]})" for k in objectives)
-    bar = progress(cfg.total_frames * len(objectives), f"PDERL seed {seed}: {what}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""), unit="frame")
+    bar = progress(
+        cfg.total_frames * len(objectives),
+        f"PDERL seed {seed}: {what}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""),
+        unit="frame",
+    )
     with bar:
-        run_parts(train_part, [(out, part, names, seed, spec, env_p, td3, cfg, device) for part in parts], bar,
-                  lambda i: f"PDERL seed {seed}, " + ", ".join(f"obj {k}" for k in parts[i]), prefix="")
+        run_parts(
+            train_part,
+            [(out, part, names, seed, spec, env_p, td3, cfg, device) for part in parts],
+            bar,
+            lambda i: f"PDERL seed {seed}, " + ", ".join(f"obj {k}" for k in parts[i]),
+            prefix="",
+        )
         bar.total = bar.n  # the final evaluations overshoot the frame budget
 
 
-def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
-               cfg: TrainPderlParams, device, threads: int, *, send) -> None:
+def train_part(
+    out: Path,
+    objectives: list[int],
+    names,
+    seed: int,
+    spec: EnvSpec,
+    env_p: EnvParams,
+    td3: TrainSpecialistParams,
+    cfg: TrainPderlParams,
+    device,
+    threads: int,
+    *,
+    send,
+) -> None:
     """The PDERL runs of `objectives`, one after another (in this process, or as one worker of
     train_pderl.processes with `threads` torch threads); progress goes to `send` (stages.
     train_specialist.Relay)."""
@@ -105,7 +127,9 @@ def train_part(out: Path, objectives: list[int], names, seed: int, spec: EnvSpec
         train_one(out, k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
-def run_config(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams) -> dict[str, Any]:
+def run_config(
+    seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams
+) -> dict[str, Any]:
     """What a PDERL run depends on besides code, device and threads (pipeline.core.resume.
     run_fingerprint): the params it reads, seed and objective."""
     return {
@@ -117,8 +141,18 @@ def run_config(seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialist
     }
 
 
-def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
-              cfg: TrainPderlParams, device: torch.device, send) -> None:
+def train_one(
+    out: Path,
+    k: int,
+    name: str,
+    seed: int,
+    spec: EnvSpec,
+    env_p: EnvParams,
+    td3: TrainSpecialistParams,
+    cfg: TrainPderlParams,
+    device: torch.device,
+    send,
+) -> None:
     """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts
     (OUT/obj{k}/). Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
     fp = run_fingerprint("train_pderl", run_config(seed, k, env_p, td3, cfg), device)
@@ -134,7 +168,10 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
         send("steps", ep.length)
 
     def on_generation(run: PderlRun, rec: GenerationRecord) -> None:
-        send("returns", f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}")
+        send(
+            "returns",
+            f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}",
+        )
         if rec.generation % cfg.checkpoint_every == 0:
             ckpt.save(run.state_dict())
 
@@ -147,8 +184,15 @@ def train_one(out: Path, k: int, name: str, seed: int, spec: EnvSpec, env_p: Env
     ckpt.clear()
 
 
-def save_pderl(out: Path, result: PderlResult, spec: EnvSpec, env_p: EnvParams, td3: TrainSpecialistParams,
-               cfg: TrainPderlParams, device) -> None:
+def save_pderl(
+    out: Path,
+    result: PderlResult,
+    spec: EnvSpec,
+    env_p: EnvParams,
+    td3: TrainSpecialistParams,
+    cfg: TrainPderlParams,
+    device,
+) -> None:
     """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
     those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
     k = result.objective
@@ -176,5 +220,14 @@ def fitness_csv(result: PderlResult) -> str:
     for r in result.history:
         w.writerow([r.generation, r.frames, r.updates, f"{r.best:.6g}", f"{r.mean:.6g}", f"{r.rl_fitness:.6g}"])
     fit = result.fitness
-    w.writerow(["final", result.frames, result.updates, f"{max(fit):.6g}", f"{sum(fit) / len(fit):.6g}", f"{result.rl_fitness:.6g}"])
+    w.writerow(
+        [
+            "final",
+            result.frames,
+            result.updates,
+            f"{max(fit):.6g}",
+            f"{sum(fit) / len(fit):.6g}",
+            f"{result.rl_fitness:.6g}",
+        ]
+    )
     return buf.getvalue()

@@ -13,12 +13,12 @@ import typer
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
-from pipeline.params import EnvParams, ParamsError, RunParams, section
-from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
+from pipeline.params import EnvParams, ParamsError, RunParams, section
+from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
@@ -71,10 +71,17 @@ def train_specialist(
     names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
     device = select_device(cfg.device)
     parts = plan(objectives, cfg)
-    bar = progress(cfg.total_steps * len(objectives), f"specialists seed {seed}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""))
+    bar = progress(
+        cfg.total_steps * len(objectives),
+        f"specialists seed {seed}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""),
+    )
     with bar:
-        run_parts(train_part, [(out, part, seed, spec, env_p, cfg, device, names) for part in parts], bar,
-                  lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group))
+        run_parts(
+            train_part,
+            [(out, part, seed, spec, env_p, cfg, device, names) for part in parts],
+            bar,
+            lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
+        )
     remove_stale_checkpoints(out, objectives)
 
 
@@ -86,8 +93,19 @@ def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[lis
     return [[part] if cfg.batched else [[k] for k in part] for part in parts]
 
 
-def train_part(out: Path, groups: list[list[int]], seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams, device,
-               names: Sequence[str], threads: int, *, send) -> None:
+def train_part(
+    out: Path,
+    groups: list[list[int]],
+    seed: int,
+    spec,
+    env_p: EnvParams,
+    cfg: TrainSpecialistParams,
+    device,
+    names: Sequence[str],
+    threads: int,
+    *,
+    send,
+) -> None:
     """Train and save the specialists (seed, k) of `groups`, one group after another (one part
     of `plan`: in this process, or a worker's whole job with `threads` torch threads)."""
     torch.set_num_threads(threads)
@@ -130,8 +148,17 @@ def run_config(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpec
     }
 
 
-def train_group(out: Path, group: list[int], what: str, seed: int, spec, env_p: EnvParams, cfg: TrainSpecialistParams,
-                device: torch.device, send) -> list[SpecialistResult]:
+def train_group(
+    out: Path,
+    group: list[int],
+    what: str,
+    seed: int,
+    spec,
+    env_p: EnvParams,
+    cfg: TrainSpecialistParams,
+    device: torch.device,
+    send,
+) -> list[SpecialistResult]:
     """Train the specialists (seed, k), k in `group`, together: from their checkpoint if one
     fits, checkpointing every cfg.checkpoint_every steps. Progress goes to `send` (see Relay),
     in batches of about PROGRESS_EVERY steps."""

@@ -86,8 +86,11 @@ def build_hybrid(buffers, weight, size, rng):
         obs.append(buf["obs"][idx])
         act.append(buf["action"][idx])
         origin.append(np.full(len(idx), k, dtype=np.int64))
-    return Hybrid(torch.from_numpy(np.concatenate(obs)), torch.from_numpy(np.concatenate(act)),
-                  torch.from_numpy(np.concatenate(origin)))
+    return Hybrid(
+        torch.from_numpy(np.concatenate(obs)),
+        torch.from_numpy(np.concatenate(act)),
+        torch.from_numpy(np.concatenate(origin)),
+    )
 
 
 # ---------------------------------------------------------------- warm-up and regression
@@ -167,7 +170,9 @@ def advantage_weighted_regression(actor, hybrid, critics, weight, scale, adv, rn
                 omega = fixed[idx]
             else:
                 q_pi = critic_values(critics, obs, pred.detach(), hybrid.origin[idx])
-                omega = awr_weight(mixed_advantage(q_sa_all[idx], q_pi, weight, adv.norm, scale), adv.beta, adv.omega_max)
+                omega = awr_weight(
+                    mixed_advantage(q_sa_all[idx], q_pi, weight, adv.norm, scale), adv.beta, adv.omega_max
+                )
             regression_step(actor, opt, obs, act, omega, adv.max_grad_norm, pred=pred)
             omega_sum += omega.sum()
             clipped += (omega >= adv.omega_max * (1 - 1e-6)).sum()
@@ -178,8 +183,22 @@ def advantage_weighted_regression(actor, hybrid, critics, weight, scale, adv, rn
 # ---------------------------------------------------------------- one child
 
 
-def make_child(returns, actors, buffers, critics, *, hidden_sizes, child_buffer_size, weight_norm, warmup_steps,
-               warmup_lr, warmup_batch_size, adv, rng, torch_seed):
+def make_child(
+    returns,
+    actors,
+    buffers,
+    critics,
+    *,
+    hidden_sizes,
+    child_buffer_size,
+    weight_norm,
+    warmup_steps,
+    warmup_lr,
+    warmup_batch_size,
+    adv,
+    rng,
+    torch_seed,
+):
     """One MAPEX iteration on a CPU. Returns (child actor in eval mode, parents, weight, counts, stats);
     `adv` has the fields of pipeline.extraction.mapex.AdvantageConfig."""
     parents = select_parents(returns, rng)
@@ -189,10 +208,23 @@ def make_child(returns, actors, buffers, critics, *, hidden_sizes, child_buffer_
     ref = actors[parents[0]]
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(torch_seed)
-        child = Actor(hybrid.obs.shape[1], hybrid.action.shape[1], hidden_sizes, (ref.centre - ref.scale).cpu(), (ref.centre + ref.scale).cpu())
+        child = Actor(
+            hybrid.obs.shape[1],
+            hybrid.action.shape[1],
+            hidden_sizes,
+            (ref.centre - ref.scale).cpu(),
+            (ref.centre + ref.scale).cpu(),
+        )
     warm_up(child, hybrid.obs, a_bar, warmup_steps, warmup_lr, warmup_batch_size, rng)
     _, span = population_scale(returns)
-    stats = advantage_weighted_regression(child, hybrid, critics, torch.as_tensor(w, dtype=torch.float32),
-                                          torch.as_tensor(span, dtype=torch.float32), adv, rng)
+    stats = advantage_weighted_regression(
+        child,
+        hybrid,
+        critics,
+        torch.as_tensor(w, dtype=torch.float32),
+        torch.as_tensor(span, dtype=torch.float32),
+        adv,
+        rng,
+    )
     counts = np.bincount(hybrid.origin.numpy(), minlength=len(buffers))
     return child.eval(), parents, w, counts, stats

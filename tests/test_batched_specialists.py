@@ -18,12 +18,14 @@ from pipeline.core.buffer import Batch, StackedReplay, batch_at
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.td3 import TD3State, stacked_update, td3_update
 from pipeline.specialists.td3_learner import TD3Learner
 from pipeline.specialists.td3_training import init_stacked, init_td3, run_seeds, stack_td3, train_specialists
-from pipeline.specialists.td3 import TD3State, stacked_update, td3_update
 
 ENV, CAP = "mo-swimmer-v5", 25
-CFG = TrainSpecialistParams(total_steps=90, learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70, device="cpu")
+CFG = TrainSpecialistParams(
+    total_steps=90, learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70, device="cpu"
+)
 
 
 def spec_of():
@@ -50,9 +52,13 @@ def test_stacked_update_is_td3_update_per_specialist(secondary):
     g = torch.Generator().manual_seed(0)
     b_, o, a, m = 12, spec.obs_dim, spec.act_dim, spec.n_objectives
     for step in range(6):
-        batch = Batch(torch.randn(2, b_, o, generator=g), torch.rand(2, b_, a, generator=g) * 2 - 1,
-                      torch.randn(2, b_, m, generator=g), torch.randn(2, b_, o, generator=g),
-                      (torch.rand(2, b_, generator=g) < 0.2).float())
+        batch = Batch(
+            torch.randn(2, b_, o, generator=g),
+            torch.rand(2, b_, a, generator=g) * 2 - 1,
+            torch.randn(2, b_, m, generator=g),
+            torch.randn(2, b_, o, generator=g),
+            (torch.rand(2, b_, generator=g) < 0.2).float(),
+        )
         # each specialist's smoothing noise from its own generator, as td3_update draws it
         noise_seeds = [100 + 2 * step, 101 + 2 * step]
         noise = torch.stack([torch.randn(b_, a, generator=torch.Generator().manual_seed(x)) for x in noise_seeds])
@@ -67,7 +73,9 @@ def test_stacked_update_is_td3_update_per_specialist(secondary):
             torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
         for x, y in zip(stacked.critic.subset(s * e, (s + 1) * e).parameters(), single.critic.parameters()):
             torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
-        for x, y in zip(stacked.critic_target.subset(s * e, (s + 1) * e).parameters(), single.critic_target.parameters()):
+        for x, y in zip(
+            stacked.critic_target.subset(s * e, (s + 1) * e).parameters(), single.critic_target.parameters()
+        ):
             torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
 
 
@@ -123,7 +131,16 @@ def test_stacked_replay_round_trips_rows_in_order():
     rep = StackedReplay(2, 5, 3, 2, 2, torch.device("cpu"))
     for t in range(7):
         v = np.array([[t, t, t], [10 + t, 10 + t, 10 + t]], np.float32)
-        rep.add(v, v[:, :2], v[:, :2] * 2, v + 1, np.array([t == 6, False]), np.array([False, t == 3]), np.array([0, t]), np.array([t, 0]))
+        rep.add(
+            v,
+            v[:, :2],
+            v[:, :2] * 2,
+            v + 1,
+            np.array([t == 6, False]),
+            np.array([False, t == 3]),
+            np.array([0, t]),
+            np.array([t, 0]),
+        )
     assert rep.size == 5 and rep.ptr == 2
     data = rep.chronological(1)
     assert data["obs"][:, 0].tolist() == [12, 13, 14, 15, 16]  # the last 5 rows, oldest first
@@ -168,7 +185,9 @@ def test_cuda_graphs_match_eager_cuda():
     cfg = CFG.model_copy(update={"device": "cuda"})
     dev = torch.device("cuda")
     graphed = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, cfg, jobs, dev)
-    eager = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, cfg.model_copy(update={"cuda_graphs": False}), jobs, dev)
+    eager = train_specialists(
+        [make_env(ENV, CAP) for _ in jobs], spec, cfg.model_copy(update={"cuda_graphs": False}), jobs, dev
+    )
     for a, b in zip(graphed, eager):
         np.testing.assert_allclose(a.buffer["obs"], b.buffer["obs"], rtol=1e-4, atol=1e-4)
         for x, y in zip(a.actor.parameters(), b.actor.parameters()):
@@ -187,9 +206,14 @@ def learner_and_reference(spec, cfg, device, primary=1):
     actor = Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high)
     critic = CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * m)
     ref = TD3State(
-        actor=copy.deepcopy(actor), actor_target=copy.deepcopy(actor).requires_grad_(False),
-        critic=copy.deepcopy(critic), critic_target=copy.deepcopy(critic).requires_grad_(False),
-        actor_opt=None, critic_opt=None, objectives=list(range(m)), primary=primary,
+        actor=copy.deepcopy(actor),
+        actor_target=copy.deepcopy(actor).requires_grad_(False),
+        critic=copy.deepcopy(critic),
+        critic_target=copy.deepcopy(critic).requires_grad_(False),
+        actor_opt=None,
+        critic_opt=None,
+        objectives=list(range(m)),
+        primary=primary,
     )
     ref.actor_opt = torch.optim.Adam(ref.actor.parameters(), lr=cfg.actor_lr, fused=True)
     ref.critic_opt = torch.optim.Adam(ref.critic.parameters(), lr=cfg.critic_lr, fused=True)
@@ -201,9 +225,16 @@ def learner_and_reference(spec, cfg, device, primary=1):
 def feed(learner, spec, n, seed=0):
     rng = np.random.default_rng(seed)
     for i in range(n):
-        learner.add(rng.normal(size=spec.obs_dim).astype(np.float32), rng.uniform(-1, 1, spec.act_dim).astype(np.float32),
-                    rng.normal(size=spec.n_objectives), rng.normal(size=spec.obs_dim).astype(np.float32),
-                    bool(i % 17 == 16), bool(i % 25 == 24), i // 25, i % 25)
+        learner.add(
+            rng.normal(size=spec.obs_dim).astype(np.float32),
+            rng.uniform(-1, 1, spec.act_dim).astype(np.float32),
+            rng.normal(size=spec.n_objectives),
+            rng.normal(size=spec.obs_dim).astype(np.float32),
+            bool(i % 17 == 16),
+            bool(i % 25 == 24),
+            i // 25,
+            i % 25,
+        )
 
 
 def test_td3_learner_is_td3_update():
@@ -219,12 +250,21 @@ def test_td3_learner_is_td3_update():
         batch = batch_at(data, rows.integers(0, 60, size=cfg.batch_size))
         td3_update(ref, batch, k % cfg.policy_freq == 0, cfg.gamma, cfg.tau, cfg.policy_noise, cfg.noise_clip, noise)
     actor, actor_target, critic, critic_target = learner.networks()
-    for mine, theirs in ((actor, ref.actor), (actor_target, ref.actor_target), (critic, ref.critic), (critic_target, ref.critic_target)):
+    for mine, theirs in (
+        (actor, ref.actor),
+        (actor_target, ref.actor_target),
+        (critic, ref.critic),
+        (critic_target, ref.critic_target),
+    ):
         for x, y in zip(mine.parameters(), theirs.parameters()):
             torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
-    assert not torch.equal(next(actor.parameters()), next(learner_and_reference(spec, cfg, torch.device("cpu"))[1].actor.parameters()))
+    assert not torch.equal(
+        next(actor.parameters()), next(learner_and_reference(spec, cfg, torch.device("cpu"))[1].actor.parameters())
+    )
     obs, act = torch.randn(9, spec.obs_dim), torch.rand(9, spec.act_dim)
-    torch.testing.assert_close(learner.q_primary(obs, act), ref.critic.member(obs, act, 2 * ref.primary), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(
+        learner.q_primary(obs, act), ref.critic.member(obs, act, 2 * ref.primary), rtol=1e-5, atol=1e-6
+    )
 
 
 def test_stacked_replay_fill_take_latest():
@@ -233,8 +273,16 @@ def test_stacked_replay_fill_take_latest():
     src = StackedReplay(1, 20, spec.obs_dim, spec.act_dim, spec.n_objectives, torch.device("cpu"))
     rng = np.random.default_rng(1)
     for i in range(11):
-        src.add(rng.normal(size=(1, spec.obs_dim)), rng.uniform(-1, 1, (1, spec.act_dim)), rng.normal(size=(1, spec.n_objectives)),
-                rng.normal(size=(1, spec.obs_dim)), [i == 4], [i == 7], [i // 5], [i % 5])
+        src.add(
+            rng.normal(size=(1, spec.obs_dim)),
+            rng.uniform(-1, 1, (1, spec.act_dim)),
+            rng.normal(size=(1, spec.n_objectives)),
+            rng.normal(size=(1, spec.obs_dim)),
+            [i == 4],
+            [i == 7],
+            [i // 5],
+            [i % 5],
+        )
     data = src.chronological(0)
     buf.fill(data)  # 11 rows into a ring of 8: the latest 8
     assert (buf.size, buf.ptr) == (8, 0)

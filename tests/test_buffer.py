@@ -17,7 +17,15 @@ from pipeline.core.artifacts import ArtifactError, atomic_path, torch_load_check
 from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, ReplayBuffer, batch_at, load_buffer, save_buffer
 
 OBS, ACT, NOBJ = 3, 2, 2
-ATTRS = {"env_id": "mo-test-v0", "objective": 1, "seed": 7, "obs_dim": OBS, "act_dim": ACT, "n_objectives": NOBJ, "max_episode_steps": 4}
+ATTRS = {
+    "env_id": "mo-test-v0",
+    "objective": 1,
+    "seed": 7,
+    "obs_dim": OBS,
+    "act_dim": ACT,
+    "n_objectives": NOBJ,
+    "max_episode_steps": 4,
+}
 
 
 def fill(buf: ReplayBuffer, n: int) -> None:
@@ -144,7 +152,11 @@ def test_chunks_run_along_time_only(tmp_path, monkeypatch):
     assert group["reward"].chunks == (4, NOBJ)
     assert group["episode"].chunks == (4,)
     # 10 rows in chunks of 4 rows: 3 chunk files, each holding every column.
-    chunk_files = sorted(p.relative_to(tmp_path / "b.zarr" / "obs").as_posix() for p in (tmp_path / "b.zarr" / "obs" / "c").rglob("*") if p.is_file())
+    chunk_files = sorted(
+        p.relative_to(tmp_path / "b.zarr" / "obs").as_posix()
+        for p in (tmp_path / "b.zarr" / "obs" / "c").rglob("*")
+        if p.is_file()
+    )
     assert chunk_files == ["c/0/0", "c/1/0", "c/2/0"]
     loaded, _ = load_buffer(tmp_path / "b.zarr")
     assert loaded["obs"].shape == (10, OBS)

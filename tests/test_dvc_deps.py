@@ -28,8 +28,12 @@ def code_deps(stage: dict) -> set[str]:
 def test_stage_code_deps_are_its_import_closure(name):
     expected = set(module_closure(stage_module(name))) | {"stages/cli.py"}
     got = code_deps(STAGES[name])
-    assert not expected - got, f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.core.codedeps)"
-    assert not got - expected, f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.core.codedeps)"
+    assert not expected - got, (
+        f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.core.codedeps)"
+    )
+    assert not got - expected, (
+        f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.core.codedeps)"
+    )
 
 
 def test_every_stage_has_its_module():
@@ -39,7 +43,9 @@ def test_every_stage_has_its_module():
         module = stage_module(name)
         assert (ROOT / (module.replace(".", "/") + ".py")).is_file(), name
         sub = stage["cmd"].split()[1].replace("-", "_")
-        assert f"stages.{sub}" == module, f"stage {name} runs `mapex {stage['cmd'].split()[1]}` but its deps follow {module}"
+        assert f"stages.{sub}" == module, (
+            f"stage {name} runs `mapex {stage['cmd'].split()[1]}` but its deps follow {module}"
+        )
 
 
 def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
@@ -58,7 +64,10 @@ def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
     cd.module_closure.cache_clear()
     try:
         assert cd.module_closure("pipeline.top") == (
-            "pipeline/__init__.py", "pipeline/sub/__init__.py", "pipeline/sub/leaf.py", "pipeline/top.py",
+            "pipeline/__init__.py",
+            "pipeline/sub/__init__.py",
+            "pipeline/sub/leaf.py",
+            "pipeline/top.py",
         )
     finally:
         cd.module_closure.cache_clear()
@@ -79,7 +88,9 @@ def stage_imports(path: Path) -> set[str]:
             found |= {f"{node.module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.Import):
             found |= {a.name for a in node.names}
-    return {name for name in found if name.startswith("stages.") and (ROOT / (name.replace(".", "/") + ".py")).is_file()}
+    return {
+        name for name in found if name.startswith("stages.") and (ROOT / (name.replace(".", "/") + ".py")).is_file()
+    }
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "stages").glob("*.py")), ids=lambda p: p.name)
@@ -87,7 +98,9 @@ def test_no_stage_imports_another_stage(path):
     if path.name in ("cli.py", "__init__.py", "common.py"):
         return
     others = stage_imports(path) - SHARED_STAGE_MODULES
-    assert not others, f"stages/{path.name} imports {sorted(others)}: move what it needs into pipeline/ (stages import pipeline only)"
+    assert not others, (
+        f"stages/{path.name} imports {sorted(others)}: move what it needs into pipeline/ (stages import pipeline only)"
+    )
 
 
 def test_stage_import_check_sees_an_import_of_another_stage(tmp_path):

@@ -24,7 +24,6 @@ ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
 
-
 def run(cmd: list[str], cwd: Path) -> str:
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(ROOT)}
     r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
@@ -109,6 +108,7 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
 def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     try:
         import morl_baselines  # noqa: F401
+
         baselines = ["mopderl", "morld"]
     except ImportError:  # the optional extra is not installed: the chain without MORL/D
         baselines = ["mopderl"]
@@ -117,15 +117,32 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
-    params = {**TINY, "pderl_seeds": [0], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex"], "posthoc_from": ["td3", "pderl"],
-              "mopderl_seeds": [0], "morld_seeds": [0] if "morld" in baselines else [], "methods": methods,
-              "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
-              "train_pderl": PDERL_TINY, "mopderl": MOPDERL_TINY, "morld": MORLD_TINY,
-              "extract": {**TINY["extract"], "iterations": 1}, "evaluate": {"episodes": 1}}
+    params = {
+        **TINY,
+        "pderl_seeds": [0],
+        "extract_from": ["td3", "pderl"],
+        "extract_variants": ["mapex"],
+        "posthoc_from": ["td3", "pderl"],
+        "mopderl_seeds": [0],
+        "morld_seeds": [0] if "morld" in baselines else [],
+        "methods": methods,
+        "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+        "train_pderl": PDERL_TINY,
+        "mopderl": MOPDERL_TINY,
+        "morld": MORLD_TINY,
+        "extract": {**TINY["extract"], "iterations": 1},
+        "evaluate": {"episodes": 1},
+    }
     (root / "params.yaml").write_text(yaml.safe_dump(params))
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
-    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@example.com"], ["git", "config", "user.name", "t"],
-                [str(BIN / "dvc"), "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "methods"]):
+    for cmd in (
+        ["git", "init", "-q"],
+        ["git", "config", "user.email", "t@example.com"],
+        ["git", "config", "user.name", "t"],
+        [str(BIN / "dvc"), "init", "-q"],
+        ["git", "add", "-A"],
+        ["git", "commit", "-qm", "methods"],
+    ):
         run(cmd, root)
     out = run([str(BIN / "dvc"), "repro"], root)
     assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
@@ -133,11 +150,28 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
         assert metrics["method"] == m and metrics["front"]["cardinality"] >= 1
     # PDERL's policy sets start the PDERL methods (population + RL actor per objective); TD3 one each
-    assert json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())["starting_policies"] == 8
-    assert json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"] == 2
+    assert (
+        json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())[
+            "starting_policies"
+        ]
+        == 8
+    )
+    assert (
+        json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"]
+        == 2
+    )
     report = (root / "data" / "report" / "report.md").read_text()
-    for name in ("| MAPEX |", "| MAPEX-PostHoc |", "| MAPEX-TD3 |", "| MOPDERL |", "| PDERL specialists only |",
-                 "| TD3 specialists only |", "MAPEX (PDERL specialists)", "Sample efficiency", "| MAPEX | MOPDERL |"):
+    for name in (
+        "| MAPEX |",
+        "| MAPEX-PostHoc |",
+        "| MAPEX-TD3 |",
+        "| MOPDERL |",
+        "| PDERL specialists only |",
+        "| TD3 specialists only |",
+        "MAPEX (PDERL specialists)",
+        "Sample efficiency",
+        "| MAPEX | MOPDERL |",
+    ):
         assert name in report, name
     if "morld" in baselines:
         assert "| MORL/D |" in report
@@ -147,8 +181,15 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     # critics and the baselines up to date: only extraction and what reads its fronts rerun
     with open(root / "pipeline" / "extraction" / "mapex.py", "a") as fh:
         fh.write("\n# an edit\n")
-    status = json.loads(subprocess.run([str(BIN / "dvc"), "status", "--json"], cwd=root, capture_output=True, text=True,
-                                       env={**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"}).stdout)
+    status = json.loads(
+        subprocess.run(
+            [str(BIN / "dvc"), "status", "--json"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"},
+        ).stdout
+    )
     stale = {name.split("@")[0] for name in status}
     assert "extract" in stale and "extract_posthoc" in stale
     assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale

@@ -18,17 +18,23 @@ import yaml
 from typer.testing import CliRunner
 
 from pipeline.core.envs import make_env
-from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
-from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, load_population, member_actor, save_population
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
+from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.params.methods import specialist_kind
 from pipeline.reporting.runs import Run
-from pipeline.reporting.tables import (fmt_num, frames_to_reach, provenance_table, sample_efficiency_table, specialist_groups,
-                                       specialist_metrics)
+from pipeline.reporting.tables import (
+    fmt_num,
+    frames_to_reach,
+    provenance_table,
+    sample_efficiency_table,
+    specialist_groups,
+    specialist_metrics,
+)
 from pipeline.reporting.verdicts import hv_verdict, verdict_outcome, verdicts
-from stages.grid_report import grid_report
 from stages.evaluate import evaluate
+from stages.grid_report import grid_report
 from stages.report import report
 from stages.score import score
 
@@ -38,8 +44,13 @@ CAP = 50
 EPISODES = 2
 SEEDS = (0, 1)
 VARIANTS = ("mapex_td3", "warmup_only_td3")
-PROVENANCE = {"git_commit": "0123456789abcdef", "git_dirty": False, "device": "cpu: test", "torch_threads": 1,
-              "versions": {"torch": "2.13.0", "numpy": "2.4", "mujoco": "4.0", "gymnasium": "1.4", "mo-gymnasium": "1.3.2"}}
+PROVENANCE = {
+    "git_commit": "0123456789abcdef",
+    "git_dirty": False,
+    "device": "cpu: test",
+    "torch_threads": 1,
+    "versions": {"torch": "2.13.0", "numpy": "2.4", "mujoco": "4.0", "gymnasium": "1.4", "mo-gymnasium": "1.3.2"},
+}
 
 
 def write_params(directory: Path, env: dict | None = None, evaluate: dict | None = None) -> Path:
@@ -65,15 +76,34 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
         specialist = i < 2
         torch.manual_seed(1000 * seed + i + (0 if specialist or variant == "mapex_td3" else 100))
         actor = Actor(17, 6, [16, 16], low, high)
-        members.append(Member(
-            origin="specialist" if specialist else "child", objective=i if specialist else None,
-            iteration=0 if specialist else i - 1, parents=[] if specialist else [0, 1],
-            target_weight=None if specialist else [0.6, 0.8],
-            returns=[float(10 * i - 20), float(-100 * i)], returns_std=[1.0, 2.0], eval_episodes=5,
-            env_samples=250 * (i + 1), hidden_sizes=[16, 16], actor=actor_state(actor),
-            policy_name="policy" if specialist else None))
-    meta = dict(env_id=env_id, obs_dim=17, act_dim=6, n_objectives=2, action_low=low, action_high=high,
-                seed=seed, params={}, method=variant, **({"provenance": PROVENANCE} if seed == 0 else {}))
+        members.append(
+            Member(
+                origin="specialist" if specialist else "child",
+                objective=i if specialist else None,
+                iteration=0 if specialist else i - 1,
+                parents=[] if specialist else [0, 1],
+                target_weight=None if specialist else [0.6, 0.8],
+                returns=[float(10 * i - 20), float(-100 * i)],
+                returns_std=[1.0, 2.0],
+                eval_episodes=5,
+                env_samples=250 * (i + 1),
+                hidden_sizes=[16, 16],
+                actor=actor_state(actor),
+                policy_name="policy" if specialist else None,
+            )
+        )
+    meta = dict(
+        env_id=env_id,
+        obs_dim=17,
+        act_dim=6,
+        n_objectives=2,
+        action_low=low,
+        action_high=high,
+        seed=seed,
+        params={},
+        method=variant,
+        **({"provenance": PROVENANCE} if seed == 0 else {}),
+    )
     save_population(path, members, {k: v for k, v in meta.items() if k not in drop})
 
 
@@ -109,11 +139,29 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 def evaluate_and_score(root: Path, variant: str, seed: int, params: Path) -> None:
     pop = root / "extract" / variant / f"seed{seed}" / "population.pt"
-    code, out = invoke("evaluate", "--population", pop, "--out", root / "evaluate" / variant / f"seed{seed}",
-                       "--seed", seed, "--params", params)
+    code, out = invoke(
+        "evaluate",
+        "--population",
+        pop,
+        "--out",
+        root / "evaluate" / variant / f"seed{seed}",
+        "--seed",
+        seed,
+        "--params",
+        params,
+    )
     assert code == 0, out
-    code, out = invoke("score", "--population", pop, "--evaluated", root / "evaluate" / variant / f"seed{seed}",
-                       "--out", root / "score" / variant / f"seed{seed}", "--params", params)
+    code, out = invoke(
+        "score",
+        "--population",
+        pop,
+        "--evaluated",
+        root / "evaluate" / variant / f"seed{seed}",
+        "--out",
+        root / "score" / variant / f"seed{seed}",
+        "--params",
+        params,
+    )
     assert code == 0, out
 
 
@@ -134,16 +182,32 @@ def runs(tmp_path_factory) -> Path:
 
 def test_evaluated_csv_rows_and_columns(runs):
     rows = read_csv(runs / "evaluate" / "mapex_td3" / "seed0" / "evaluated.csv")
-    assert list(rows[0]) == ["id", "origin", "objective", "policy_name", "iteration", "parents", "env_samples",
-                             "obj0_extract", "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
+    assert list(rows[0]) == [
+        "id",
+        "origin",
+        "objective",
+        "policy_name",
+        "iteration",
+        "parents",
+        "env_samples",
+        "obj0_extract",
+        "obj1_extract",
+        "obj0",
+        "obj1",
+        "obj0_std",
+        "obj1_std",
+    ]
     assert [r["id"] for r in rows] == ["0", "1", "2", "3", "4"]
     assert [r["origin"] for r in rows] == ["specialist"] * 2 + ["child"] * 3
     assert [r["policy_name"] for r in rows] == ["policy"] * 2 + [""] * 3
     members, _ = load_population(runs / "extract" / "mapex_td3" / "seed0" / "population.pt")
     for r, m in zip(rows, members):  # extraction-time record carried over unchanged
         assert [float(r["obj0_extract"]), float(r["obj1_extract"])] == m.returns
-        assert (int(r["iteration"]), int(r["env_samples"]), r["parents"]) == (m.iteration, m.env_samples,
-                                                                            ";".join(map(str, m.parents)))
+        assert (int(r["iteration"]), int(r["env_samples"]), r["parents"]) == (
+            m.iteration,
+            m.env_samples,
+            ";".join(map(str, m.parents)),
+        )
         assert float(r["obj0_std"]) >= 0 and float(r["obj1_std"]) >= 0
 
 
@@ -170,8 +234,17 @@ def test_reevaluation_uses_the_fresh_seed_stream(runs):
 
 def test_evaluate_is_deterministic_and_needs_no_reference_point(runs, tmp_path):
     params = write_params(tmp_path, env={"reference_point": None})
-    code, out = invoke("evaluate", "--population", runs / "extract" / "mapex_td3" / "seed0" / "population.pt",
-                       "--out", tmp_path / "again", "--seed", 0, "--params", params)
+    code, out = invoke(
+        "evaluate",
+        "--population",
+        runs / "extract" / "mapex_td3" / "seed0" / "population.pt",
+        "--out",
+        tmp_path / "again",
+        "--seed",
+        0,
+        "--params",
+        params,
+    )
     assert code == 0, out
     for name in ("evaluated.csv", "evaluation.json"):
         assert (tmp_path / "again" / name).read_text() == (runs / "evaluate" / "mapex_td3" / "seed0" / name).read_text()
@@ -277,10 +350,20 @@ def test_provenance_travels_from_population_to_score(runs):
 # ---------------------------------------------------------------- report
 
 
-def report_args(runs: Path, out: Path, params: Path | None = None, scored: Path | None = None,
-                evaluated: Path | None = None) -> list:
-    return ["report", "--evaluated", evaluated or runs / "evaluate", "--scored", scored or runs / "score",
-            "--out", out, "--params", params or runs / "params.yaml"]
+def report_args(
+    runs: Path, out: Path, params: Path | None = None, scored: Path | None = None, evaluated: Path | None = None
+) -> list:
+    return [
+        "report",
+        "--evaluated",
+        evaluated or runs / "evaluate",
+        "--scored",
+        scored or runs / "score",
+        "--out",
+        out,
+        "--params",
+        params or runs / "params.yaml",
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -323,21 +406,33 @@ def test_report_table_rows(report_dir):
 
 
 def test_report_table_sparsity_is_the_papers(runs, report_dir):
-    values = [json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["sparsity"]
-              for s in SEEDS]
+    values = [
+        json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["sparsity"]
+        for s in SEEDS
+    ]
     mean, sem = mean_sem(values)
     row = next(t for t in (report_dir / "report.md").read_text().splitlines() if t.startswith(f"| {ENV_ID} |"))
     assert row.split("|")[5].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"  # Sparsity (↓) MAPEX
 
 
 def test_report_verdict_matches_numbers(runs, report_dir):
-    hv = {v: [json.loads((runs / "score" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
-              for s in SEEDS] for v in VARIANTS}
+    hv = {
+        v: [
+            json.loads((runs / "score" / v / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
+            for s in SEEDS
+        ]
+        for v in VARIANTS
+    }
     d = np.array(hv["mapex_td3"]) - np.array(hv["warmup_only_td3"])
     margin = 2 * d.std(ddof=1) / np.sqrt(len(d))
     majority = {1: (d > 0).sum() > 1, -1: (d < 0).sum() > 1}
-    verb = ("beat" if d.mean() > margin and majority[1] else "lost to" if d.mean() < -margin and majority[-1]
-            else "tied with")
+    verb = (
+        "beat"
+        if d.mean() > margin and majority[1]
+        else "lost to"
+        if d.mean() < -margin and majority[-1]
+        else "tied with"
+    )
     text = (report_dir / "report.md").read_text()
     assert f"(MAPEX-TD3) {verb} warm-up only (TD3)" in text
     assert f"higher in {int((d > 0).sum())} of 2" in text
@@ -366,7 +461,9 @@ def _run(variant: str, seed: int, hv: float, provenance: dict | None = None) -> 
 
 
 def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
-    return [_run("mapex_td3", s, h) for s, h in enumerate(mapex_hv)] + [_run("warmup_only_td3", s, h) for s, h in enumerate(warm_hv)]
+    return [_run("mapex_td3", s, h) for s, h in enumerate(mapex_hv)] + [
+        _run("warmup_only_td3", s, h) for s, h in enumerate(warm_hv)
+    ]
 
 
 @pytest.mark.parametrize(
@@ -394,10 +491,16 @@ def test_hv_verdict_with_a_tolerance(mapex_hv, warm_hv, outcome):
     n = len(mapex_hv)
     assert f"({n} seed{'s' if n > 1 else ''}," in verdict.sentence
     d = np.array(mapex_hv) - np.array(warm_hv)
-    assert f"MAPEX-TD3 was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}" in verdict.sentence
+    assert (
+        f"MAPEX-TD3 was higher in {int((d > 0).sum())} of {n} seed(s), lower in {int((d < 0).sum())}"
+        in verdict.sentence
+    )
     if n > 1:  # mean ± SEM of each variant and of the paired differences, and the rule
         (am, asem), (bm, bsem), (dm, dsem) = mean_sem(mapex_hv), mean_sem(warm_hv), mean_sem(d)
-        assert f"MAPEX-TD3 {fmt_num(am)} ± {fmt_num(asem)}, warm-up only (TD3) {fmt_num(bm)} ± {fmt_num(bsem)}" in verdict.sentence
+        assert (
+            f"MAPEX-TD3 {fmt_num(am)} ± {fmt_num(asem)}, warm-up only (TD3) {fmt_num(bm)} ± {fmt_num(bsem)}"
+            in verdict.sentence
+        )
         assert f"MAPEX-TD3 - warm-up only (TD3) = {fmt_num(dm)} ± {fmt_num(dsem)} (SEM" in verdict.sentence
         assert "beyond 2 SEM" in verdict.sentence and "more than half of the seeds" in verdict.sentence
     else:
@@ -434,8 +537,12 @@ def test_hv_verdict_without_pairs():
 
 def test_provenance_table_groups_identical_rows():
     newer = {**PROVENANCE, "versions": {**PROVENANCE["versions"], "torch": "2.14.0"}, "git_dirty": True}
-    runs = [_run("mapex_td3", 0, 1.0, {"extract": PROVENANCE}), _run("mapex_td3", 1, 1.0, {"extract": PROVENANCE}),
-            _run("warmup_only_td3", 0, 1.0, {"extract": newer}), _run("warmup_only_td3", 1, 1.0, None)]
+    runs = [
+        _run("mapex_td3", 0, 1.0, {"extract": PROVENANCE}),
+        _run("mapex_td3", 1, 1.0, {"extract": PROVENANCE}),
+        _run("warmup_only_td3", 0, 1.0, {"extract": newer}),
+        _run("warmup_only_td3", 1, 1.0, None),
+    ]
     rows = [r for r in provenance_table(runs).splitlines() if r.startswith("| extract |")]
     assert rows == [
         "| extract | MAPEX-TD3 seeds 0, 1 | 0123456789 | 2.13.0 | 2.4 | 4.0 | 1.4 | 1.3.2 | cpu: test | 1 |",
@@ -582,8 +689,12 @@ def _hist_run(method: str, seed: int, frames: list[float], hvs: list[float]) -> 
 def test_frames_to_reach_the_other_methods_final_hypervolume():
     # seed 0: MAPEX reaches MOPDERL's final 10 at 300 frames (50% = 5 at 200, 90% = 9 at 300)
     # seed 1: MAPEX never reaches MOPDERL's final 20 (tops out at 15: 50% at 100, 90% never)
-    runs = [_hist_run("mapex_pderl", 0, [100, 200, 300], [1, 6, 12]), _hist_run("mopderl", 0, [500, 1000], [4, 10]),
-            _hist_run("mapex_pderl", 1, [100, 200], [11, 15]), _hist_run("mopderl", 1, [500], [20])]
+    runs = [
+        _hist_run("mapex_pderl", 0, [100, 200, 300], [1, 6, 12]),
+        _hist_run("mopderl", 0, [500, 1000], [4, 10]),
+        _hist_run("mapex_pderl", 1, [100, 200], [11, 15]),
+        _hist_run("mopderl", 1, [500], [20]),
+    ]
     reach = frames_to_reach(runs, "mapex_pderl", "mopderl")
     assert reach == {0.5: [200.0, 100.0], 0.9: [300.0, None], 1.0: [300.0, None]}
     back = frames_to_reach(runs, "mopderl", "mapex_pderl")  # MOPDERL vs MAPEX's final 12 and 15
@@ -596,11 +707,22 @@ def test_frames_to_reach_the_other_methods_final_hypervolume():
 
 
 def test_verdicts_cover_every_pair_that_ran_and_specialists_per_kind():
-    runs = [_run(m, s, hv) for s in range(3) for m, hv in
-            (("mapex_pderl", 10.0 + s), ("warmup_only_pderl", 5.0 + s), ("mapex_td3", 7.0), ("mopderl", 10.0 + s))]
+    runs = [
+        _run(m, s, hv)
+        for s in range(3)
+        for m, hv in (
+            ("mapex_pderl", 10.0 + s),
+            ("warmup_only_pderl", 5.0 + s),
+            ("mapex_td3", 7.0),
+            ("mopderl", 10.0 + s),
+        )
+    ]
     found = [v.sentence.split(" on re-evaluated")[0].split("), ")[1] for v in verdicts(runs)]
-    assert found == ["the advantage-weighted phase (MAPEX) beat warm-up only (PDERL)",
-                     "MAPEX (PDERL specialists) beat MAPEX-TD3", "MAPEX tied with MOPDERL"]
+    assert found == [
+        "the advantage-weighted phase (MAPEX) beat warm-up only (PDERL)",
+        "MAPEX (PDERL specialists) beat MAPEX-TD3",
+        "MAPEX tied with MOPDERL",
+    ]
     assert specialist_kind("mopderl") == "pderl" and specialist_kind("morld") is None
     assert specialist_kind("mapex_posthoc_td3") == "td3"
     for r in runs:
@@ -629,9 +751,14 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
     text = (tmp_path / "grid_report" / "report.md").read_text()
     rows = [line for line in text.splitlines() if line.startswith("| cheetah.")]
     table = [r for r in rows if "(mo-halfcheetah-v5)" in r]
-    assert [r.split("|")[1].strip() for r in table] == ["cheetah.a (mo-halfcheetah-v5)", "cheetah.b (mo-halfcheetah-v5)"]
-    hv = {s: json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
-          for s in (0, 1)}
+    assert [r.split("|")[1].strip() for r in table] == [
+        "cheetah.a (mo-halfcheetah-v5)",
+        "cheetah.b (mo-halfcheetah-v5)",
+    ]
+    hv = {
+        s: json.loads((runs / "score" / "mapex_td3" / f"seed{s}" / "metrics.json").read_text())["front"]["hypervolume"]
+        for s in (0, 1)
+    }
     mean, sem = mean_sem([hv[0], hv[1]])
     assert table[0].split("|")[2].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"  # Hypervolume MAPEX-TD3, both seeds
     assert table[1].split("|")[2].strip() == fmt_num(hv[1])  # cell b: seed 1 only

@@ -4,15 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import reference_child
 import torch
 
-from pipeline.extraction import mapex as ex
 from pipeline.core.envs import make_env
+from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.evaluation import episodes as ex_eval
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
-from pipeline.core.nets import Actor, CriticEnsemble
-
-import reference_child
+from pipeline.extraction import mapex as ex
 
 OBS, ACT = 17, 6  # mo-halfcheetah-v5's dims, so children can be evaluated in the real env
 RETURNS = np.array([[100.0, -300.0], [-5.0, -10.0], [60.0, -100.0]])  # 3 policies, all on the front
@@ -42,10 +41,25 @@ def fixture_inputs():
 
 def child_config(config: str, epochs: int = 2) -> ex.ChildConfig:
     c = CONFIGS[config]
-    adv = ex.AdvantageConfig(epochs=epochs, beta=1.0, omega_max=20.0, lr=1e-3, batch_size=64,
-                             max_grad_norm=c["max_grad_norm"], recompute=c["recompute"], norm=c["norm"])
-    return ex.ChildConfig(hidden_sizes=(32, 32), child_buffer_size=600, weight_norm=c["weight_norm"], warmup_steps=25,
-                          warmup_lr=1e-3, warmup_batch_size=64, adv=adv)
+    adv = ex.AdvantageConfig(
+        epochs=epochs,
+        beta=1.0,
+        omega_max=20.0,
+        lr=1e-3,
+        batch_size=64,
+        max_grad_norm=c["max_grad_norm"],
+        recompute=c["recompute"],
+        norm=c["norm"],
+    )
+    return ex.ChildConfig(
+        hidden_sizes=(32, 32),
+        child_buffer_size=600,
+        weight_norm=c["weight_norm"],
+        warmup_steps=25,
+        warmup_lr=1e-3,
+        warmup_batch_size=64,
+        adv=adv,
+    )
 
 
 # ---------------------------------------------------------------- K = 1: bitwise as before batching
@@ -68,9 +82,20 @@ def reference(cfg: ex.ChildConfig, numpy_seed: int, torch_seed: int):
     """The frozen pre-batching child on fresh fixture inputs: (actor, parents, weight, counts, stats)."""
     buffers, critics, actors = fixture_inputs()
     return reference_child.make_child(
-        RETURNS, actors, buffers, critics, hidden_sizes=cfg.hidden_sizes, child_buffer_size=cfg.child_buffer_size,
-        weight_norm=cfg.weight_norm, warmup_steps=cfg.warmup_steps, warmup_lr=cfg.warmup_lr,
-        warmup_batch_size=cfg.warmup_batch_size, adv=cfg.adv, rng=np.random.default_rng(numpy_seed), torch_seed=torch_seed)
+        RETURNS,
+        actors,
+        buffers,
+        critics,
+        hidden_sizes=cfg.hidden_sizes,
+        child_buffer_size=cfg.child_buffer_size,
+        weight_norm=cfg.weight_norm,
+        warmup_steps=cfg.warmup_steps,
+        warmup_lr=cfg.warmup_lr,
+        warmup_batch_size=cfg.warmup_batch_size,
+        adv=cfg.adv,
+        rng=np.random.default_rng(numpy_seed),
+        torch_seed=torch_seed,
+    )
 
 
 @pytest.mark.parametrize("config", sorted(CONFIGS))
@@ -179,7 +204,9 @@ def test_stacked_rows_are_weighted_by_their_own_advantage_and_come_from_their_ow
 
     monkeypatch.setattr(ex, "start_child", spy_start)
     monkeypatch.setattr(ex, "stacked_regression_step", spy_step)
-    adv = ex.AdvantageConfig(epochs=2, beta=0.5, omega_max=1e6, lr=1e-3, batch_size=64, max_grad_norm=None, recompute="every_step", norm=norm)
+    adv = ex.AdvantageConfig(
+        epochs=2, beta=0.5, omega_max=1e6, lr=1e-3, batch_size=64, max_grad_norm=None, recompute="every_step", norm=norm
+    )
     cfg = ex.ChildConfig((8,), 400, "l2", 0, 1e-3, 64, adv)
     ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
     weights = torch.tensor(np.stack([s.weight for s in starts]), dtype=torch.float32)
@@ -194,8 +221,12 @@ def test_stacked_rows_are_weighted_by_their_own_advantage_and_come_from_their_ow
             for k in (0, 1):
                 sel = origin == k
                 np.testing.assert_array_equal(a[sel].numpy(), buffers[k]["action"][index[sel].numpy()])
-            q_sa = torch.stack([critics[int(k)].twin_min(o[i : i + 1], a[i : i + 1])[:, 0] for i, k in enumerate(origin)])
-            q_pi = torch.stack([critics[int(k)].twin_min(o[i : i + 1], p[i : i + 1])[:, 0] for i, k in enumerate(origin)])
+            q_sa = torch.stack(
+                [critics[int(k)].twin_min(o[i : i + 1], a[i : i + 1])[:, 0] for i, k in enumerate(origin)]
+            )
+            q_pi = torch.stack(
+                [critics[int(k)].twin_min(o[i : i + 1], p[i : i + 1])[:, 0] for i, k in enumerate(origin)]
+            )
             expected = ex.mixed_advantage(q_sa, q_pi, weights[j], norm)
             np.testing.assert_allclose(w.numpy(), torch.exp(expected / 0.5).numpy(), rtol=1e-4, atol=1e-6)
             rows += list(zip(origin.tolist(), index.tolist()))
@@ -250,7 +281,10 @@ def test_device_rows_and_gather_paths_run_on_cpu_reproducibly():
     host draws (so the children differ, but not by much: same data, same init)."""
     buffers, critics, actors = fixture_inputs()
     cfg = uneven_config("precursor")
-    run = lambda: ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True)  # noqa: E731
+
+    def run():
+        return ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True)
+
     a, b = run(), run()
     host = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu")
     for (ca, ra), (cb, _), (ch, rh) in zip(a, b, host):
@@ -323,7 +357,9 @@ def test_cuda_children_are_reproducible_and_close_to_the_cpu_path():
     a = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
     b = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
     cpu_actors, cpu_critics = fixture_inputs()[2], fixture_inputs()[1]
-    cpu = ex.make_children(RETURNS, cpu_actors, buffers, cpu_critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True)
+    cpu = ex.make_children(
+        RETURNS, cpu_actors, buffers, cpu_critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True
+    )
     for (ca, ra), (cb, _), (cc, rc) in zip(a, b, cpu):
         assert next(ca.parameters()).is_cuda
         assert max_abs_diff(ca.cpu(), cb.cpu()) == 0.0

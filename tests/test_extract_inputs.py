@@ -46,12 +46,36 @@ def specs(trained, tmp_path) -> Path:
     return Path(shutil.copytree(trained, tmp_path / "specs"))
 
 
-def extract(mapex, write_params, tmp_path: Path, specs: Path, name: str = "out", seed: int = 0, posthoc: Path | None = None,
-            variant: str = "mapex", **updates):
+def extract(
+    mapex,
+    write_params,
+    tmp_path: Path,
+    specs: Path,
+    name: str = "out",
+    seed: int = 0,
+    posthoc: Path | None = None,
+    variant: str = "mapex",
+    **updates,
+):
     params = write_params(tmp_path, {"extract": {**EXTRACT, **updates}}, name=f"{name}.yaml")
     extra = ["--posthoc", posthoc] if posthoc is not None else []
-    return mapex("extract", "--seed", seed, "--variant", variant, "--specialists", specs, "--out", tmp_path / name,
-                 "--resume-dir", tmp_path / f"resume_{name}", "--params", params, *extra, cwd=tmp_path)
+    return mapex(
+        "extract",
+        "--seed",
+        seed,
+        "--variant",
+        variant,
+        "--specialists",
+        specs,
+        "--out",
+        tmp_path / name,
+        "--resume-dir",
+        tmp_path / f"resume_{name}",
+        "--params",
+        params,
+        *extra,
+        cwd=tmp_path,
+    )
 
 
 def assert_refused(r, tmp_path: Path, *fragments: str, name: str = "out", one_line: bool = True) -> None:
@@ -60,7 +84,7 @@ def assert_refused(r, tmp_path: Path, *fragments: str, name: str = "out", one_li
     assert r.returncode == 2, r.stderr
     lines = [line for line in r.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1, r.stderr
-    message = lines[0] if one_line else r.stderr[r.stderr.index("error:"):]
+    message = lines[0] if one_line else r.stderr[r.stderr.index("error:") :]
     for f in fragments:
         assert f in message, (f, message)
     assert not (tmp_path / name).exists()
@@ -168,7 +192,13 @@ def test_posthoc_critics_without_buffer_checksums_are_refused(specs, tmp_path, m
 
 def test_joint_critics_given_as_posthoc_are_refused(specs, tmp_path, mapex, write_params):
     r = extract(mapex, write_params, tmp_path, specs, posthoc=specs, variant="mapex_posthoc")
-    assert_refused(r, tmp_path, "obj0/critics.pt: critics of source 'joint'", "obj0/buffer.zarr", "the variant reads 'posthoc' critics")
+    assert_refused(
+        r,
+        tmp_path,
+        "obj0/critics.pt: critics of source 'joint'",
+        "obj0/buffer.zarr",
+        "the variant reads 'posthoc' critics",
+    )
 
 
 # ---------------------------------------------------------------- advantage options
@@ -176,7 +206,9 @@ def test_joint_critics_given_as_posthoc_are_refused(specs, tmp_path, mapex, writ
 
 def test_advantage_recompute_once_end_to_end(specs, tmp_path, mapex, write_params):
     every = extract(mapex, write_params, tmp_path, specs, name="every")
-    once = extract(mapex, write_params, tmp_path, specs, name="once", advantage_recompute="once", advantage_norm="zscore")
+    once = extract(
+        mapex, write_params, tmp_path, specs, name="once", advantage_recompute="once", advantage_norm="zscore"
+    )
     assert every.returncode == 0 and once.returncode == 0, once.stderr
     me, _ = load_population(tmp_path / "every" / "population.pt")
     mo, meta = load_population(tmp_path / "once" / "population.pt")

@@ -41,8 +41,13 @@ TINY = {
 
 
 def mapex(*args: str, cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=cwd, capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})
+    return subprocess.run(
+        [sys.executable, "-m", "stages.cli", *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})},
+    )
 
 
 def write_params(path: Path, **extract_updates) -> Path:
@@ -63,8 +68,20 @@ def specialists(tmp_path_factory) -> Path:
 
 def extract_cmd(specialists: Path, out: Path, params: Path, resume: Path | None, variant: str = "mapex") -> list[str]:
     """The extract command; resume None: no --resume-dir (progress goes to $MAPEX_RESUME_ROOT or data/resume)."""
-    return ["extract", "--seed", "0", "--variant", variant, "--specialists", str(specialists), "--out", str(out),
-            *(["--resume-dir", str(resume)] if resume is not None else []), "--params", str(params)]
+    return [
+        "extract",
+        "--seed",
+        "0",
+        "--variant",
+        variant,
+        "--specialists",
+        str(specialists),
+        "--out",
+        str(out),
+        *(["--resume-dir", str(resume)] if resume is not None else []),
+        "--params",
+        str(params),
+    ]
 
 
 def test_extract_end_to_end_population_and_history(specialists, tmp_path):
@@ -88,7 +105,10 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     assert not (tmp_path / "resume" / "extract" / "mapex_td3" / "seed0").exists()  # cleaned up when done
     prov = meta["provenance"]
     # extract.device is auto here: CUDA on a GPU machine (benchmarks/device/check.sh runs this file there)
-    assert prov["device"].startswith("cuda" if torch.cuda.is_available() else "cpu") and prov["versions"]["torch"] == torch.__version__
+    assert (
+        prov["device"].startswith("cuda" if torch.cuda.is_available() else "cpu")
+        and prov["versions"]["torch"] == torch.__version__
+    )
     assert "reference_point" not in meta and "reference_point" not in meta["params"]["env"]
 
 
@@ -116,10 +136,17 @@ def _population_equal(a: Path, b: Path) -> None:
     ma, meta_a = load_population(a)
     mb, meta_b = load_population(b)
     # provenance holds the git state, which other work in the same checkout may change mid-test
-    assert {k: v for k, v in meta_a.items() if k != "provenance"} == {k: v for k, v in meta_b.items() if k != "provenance"}
+    assert {k: v for k, v in meta_a.items() if k != "provenance"} == {
+        k: v for k, v in meta_b.items() if k != "provenance"
+    }
     assert len(ma) == len(mb)
     for x, y in zip(ma, mb):
-        assert (x.returns, x.parents, x.target_weight, x.env_samples) == (y.returns, y.parents, y.target_weight, y.env_samples)
+        assert (x.returns, x.parents, x.target_weight, x.env_samples) == (
+            y.returns,
+            y.parents,
+            y.target_weight,
+            y.env_samples,
+        )
         for k in x.actor:
             assert torch.equal(x.actor[k], y.actor[k]), k
 
@@ -140,8 +167,15 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     node_a, node_b = (tmp_path / "node_a", tmp_path / "node_b") if k == 2 else (tmp_path, tmp_path)
     node_a.mkdir(exist_ok=True)
     node_b.mkdir(exist_ok=True)
-    cmd = [sys.executable, "-m", "stages.cli", *extract_cmd(specialists, tmp_path / "out", params, None if k == 2 else resume)]
-    proc = subprocess.Popen(cmd, cwd=node_a, env={**os.environ, "PYTHONPATH": str(ROOT), **shared}, stderr=subprocess.DEVNULL)
+    cmd = [
+        sys.executable,
+        "-m",
+        "stages.cli",
+        *extract_cmd(specialists, tmp_path / "out", params, None if k == 2 else resume),
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=node_a, env={**os.environ, "PYTHONPATH": str(ROOT), **shared}, stderr=subprocess.DEVNULL
+    )
     deadline = time.time() + 120
 
     def children_saved() -> int:
@@ -180,8 +214,14 @@ def test_changed_params_start_over_instead_of_resuming(specialists, tmp_path):
     ckpt.save({"log": [{"x": 1}, {"x": 2}], "history": []})
     ckpt.save({"log": [{"x": 1}, {"x": 2}, {"x": 3}], "history": [1]})
     assert len(list((tmp_path / "progress").glob("state.item_*.pt"))) == 3  # each entry written once
-    assert Checkpoint(ckpt.path, "fingerprint-a", said.append).load() == {"log": [{"x": 1}, {"x": 2}, {"x": 3}], "history": [1]}
-    assert Checkpoint(ckpt.path, "fingerprint-b", said.append).load() is None and "changed since it was written" in said[-1]
+    assert Checkpoint(ckpt.path, "fingerprint-a", said.append).load() == {
+        "log": [{"x": 1}, {"x": 2}, {"x": 3}],
+        "history": [1],
+    }
+    assert (
+        Checkpoint(ckpt.path, "fingerprint-b", said.append).load() is None
+        and "changed since it was written" in said[-1]
+    )
     (tmp_path / "progress" / "state.item_00001.pt").unlink()  # a lost entry invalidates the checkpoint
     assert Checkpoint(ckpt.path, "fingerprint-a", said.append).load() is None and "cannot be read" in said[-1]
     # end to end: a finished run's state planted as the checkpoint of a run with another beta
@@ -235,7 +275,9 @@ def test_reference_point_is_not_an_input_of_extraction(specialists, tmp_path):
     item["item"]["returns_std"] = [-1.0, -1.0]
     torch.save(item, progress / "state.item_00002.pt")
     params_b = tmp_path / "b.yaml"
-    params_b.write_text(yaml.safe_dump({**TINY, "env": {k: v for k, v in TINY["env"].items() if k != "reference_point"}}))
+    params_b.write_text(
+        yaml.safe_dump({**TINY, "env": {k: v for k, v in TINY["env"].items() if k != "reference_point"}})
+    )
     r = mapex(*extract_cmd(specialists, tmp_path / "out", params_b, resume), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     members, _ = load_population(tmp_path / "out" / "population.pt")

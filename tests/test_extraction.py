@@ -8,9 +8,8 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.extraction import mapex as ex
 from pipeline.core.nets import Actor
-
+from pipeline.extraction import mapex as ex
 
 # ---------------------------------------------------------------- gaps and parents
 
@@ -187,7 +186,16 @@ def test_each_advantage_weights_exactly_its_own_row(monkeypatch):
         return torch.zeros(())
 
     monkeypatch.setattr(ex, "regression_step", spy)
-    cfg = ex.AdvantageConfig(epochs=2, beta=0.5, omega_max=1e6, lr=1e-3, batch_size=64, max_grad_norm=None, recompute="every_step", norm="none")
+    cfg = ex.AdvantageConfig(
+        epochs=2,
+        beta=0.5,
+        omega_max=1e6,
+        lr=1e-3,
+        batch_size=64,
+        max_grad_norm=None,
+        recompute="every_step",
+        norm="none",
+    )
     ex.advantage_weighted_regression(actor, h, critics, w, torch.ones(2), cfg, np.random.default_rng(0))
     assert sum(len(s[0]) for s in seen) == 2 * len(h.obs)
     for obs, act, omega, pi in seen:

@@ -18,12 +18,12 @@ from typer.testing import CliRunner
 
 from pipeline.core.buffer import load_buffer
 from pipeline.core.checkpoint import load_critics, save_policy
-from pipeline.critics.fidelity import discounted_returns, scored_states, score_critics, tail_horizon
 from pipeline.core.nets import Actor
-from pipeline.params.fit_critics import FitCriticsParams
-from pipeline.critics.posthoc import fit_posthoc_critics
-from stages.cli import app
 from pipeline.core.specialist import load_slot
+from pipeline.critics.fidelity import discounted_returns, score_critics, scored_states, tail_horizon
+from pipeline.critics.posthoc import fit_posthoc_critics
+from pipeline.params.fit_critics import FitCriticsParams
+from stages.cli import app
 
 FAST = dict(batch_size=64, lr=1e-2, gamma=0.5, tau=0.1, target_update_freq=1, hidden_sizes=[32, 32], device="cpu")
 
@@ -52,7 +52,9 @@ def synthetic_buffer(n: int, reward, terminated, truncated, rng, obs_dim: int = 
 
 
 def fit(data, policy, cfg, seed: int = 1):
-    return fit_posthoc_critics(data, policy, [0, 1], cfg, np.random.default_rng(seed), torch.Generator().manual_seed(seed))
+    return fit_posthoc_critics(
+        data, policy, [0, 1], cfg, np.random.default_rng(seed), torch.Generator().manual_seed(seed)
+    )
 
 
 def q_at(critic, data) -> torch.Tensor:
@@ -145,8 +147,15 @@ def test_stops_when_fidelity_stops_improving_and_keeps_the_best_weights():
         return e
 
     cfg = FitCriticsParams(steps=1000, check_every=10, patience=4, min_improvement=0.01, **FAST)
-    out = fit_posthoc_critics(data, Actor(3, 2, [8], [-1, -1], [1, 1]), [0, 1], cfg,
-                              np.random.default_rng(1), torch.Generator().manual_seed(1), error=error)
+    out = fit_posthoc_critics(
+        data,
+        Actor(3, 2, [8], [-1, -1], [1, 1]),
+        [0, 1],
+        cfg,
+        np.random.default_rng(1),
+        torch.Generator().manual_seed(1),
+        error=error,
+    )
     assert [c.step for c in out.checks] == [10, 20, 30, 40, 50, 60, 70]
     assert (out.steps, out.best_step) == (70, 50)
     for key, value in out.online.state_dict().items():
@@ -158,8 +167,15 @@ def test_without_checks_it_runs_exactly_the_steps():
     data = synthetic_buffer(64, (0.5, 1.0), np.zeros(64), np.zeros(64), rng)
     calls = []
     cfg = FitCriticsParams(steps=30, check_every=0, **FAST)
-    out = fit_posthoc_critics(data, Actor(3, 2, [8], [-1, -1], [1, 1]), [0, 1], cfg, np.random.default_rng(1),
-                              torch.Generator().manual_seed(1), error=lambda c: calls.append(1) or 0.0)
+    out = fit_posthoc_critics(
+        data,
+        Actor(3, 2, [8], [-1, -1], [1, 1]),
+        [0, 1],
+        cfg,
+        np.random.default_rng(1),
+        torch.Generator().manual_seed(1),
+        error=lambda c: calls.append(1) or 0.0,
+    )
     assert (out.steps, out.best_step, out.checks, calls) == (30, 30, (), [])
 
 
@@ -282,12 +298,35 @@ def run_dir(tmp_path_factory) -> Path:
     res = mapex("train-specialist", "--objective", 0, "--out", root, "--params", params)
     (root / "obj0").rename(root / "spec")
     assert res.exit_code == 0, res.output
-    res = mapex("fit-critics", "--objective", 0, "--specialist", root / "spec", "--out", root / "posthoc", "--params", params)
+    res = mapex(
+        "fit-critics", "--objective", 0, "--specialist", root / "spec", "--out", root / "posthoc", "--params", params
+    )
     assert res.exit_code == 0, res.output
-    res = mapex("critic-fidelity", "--objective", 0, "--specialist", root / "spec", "--out", root / "joint.json", "--params", params)
+    res = mapex(
+        "critic-fidelity",
+        "--objective",
+        0,
+        "--specialist",
+        root / "spec",
+        "--out",
+        root / "joint.json",
+        "--params",
+        params,
+    )
     assert res.exit_code == 0, res.output
-    res = mapex("critic-fidelity", "--objective", 0, "--specialist", root / "spec", "--critics", root / "posthoc" / "critics.pt",
-                "--out", root / "posthoc.json", "--params", params)
+    res = mapex(
+        "critic-fidelity",
+        "--objective",
+        0,
+        "--specialist",
+        root / "spec",
+        "--critics",
+        root / "posthoc" / "critics.pt",
+        "--out",
+        root / "posthoc.json",
+        "--params",
+        params,
+    )
     assert res.exit_code == 0, res.output
     return root
 
@@ -358,8 +397,16 @@ def bad_specialist(run_dir: Path, tmp_path: Path, kind: str) -> Path:
         chunk.unlink()
     elif kind == "other env policy":
         actor = Actor(11, 3, [32, 32], [-1.0] * 3, [1.0] * 3)
-        meta = {"env_id": "mo-hopper-2obj-v5", "obs_dim": 11, "act_dim": 3, "n_objectives": 2,
-                "action_low": [-1.0] * 3, "action_high": [1.0] * 3, "hidden_sizes": [32, 32], "objective": 0}
+        meta = {
+            "env_id": "mo-hopper-2obj-v5",
+            "obs_dim": 11,
+            "act_dim": 3,
+            "n_objectives": 2,
+            "action_low": [-1.0] * 3,
+            "action_high": [1.0] * 3,
+            "hidden_sizes": [32, 32],
+            "objective": 0,
+        }
         save_policy(spec / "policy.pt", actor, meta, actor)
     return spec
 
@@ -379,32 +426,59 @@ def test_bad_inputs_exit_2_name_the_file_and_write_nothing(run_dir, tmp_path, co
     spec = bad_specialist(run_dir, tmp_path, kind)
     out = tmp_path / "out"
     target = out if command == "fit-critics" else out / "fidelity.json"
-    res = mapex(command, "--objective", objective, "--specialist", spec, "--out", target, "--params", run_dir / "params.yaml")
+    res = mapex(
+        command, "--objective", objective, "--specialist", spec, "--out", target, "--params", run_dir / "params.yaml"
+    )
     assert res.exit_code == 2, res.output
     assert str(spec / names) in res.stderr and says in res.stderr
     assert not out.exists()
 
 
 def test_fit_critics_refuses_a_specialist_of_another_seed(run_dir, tmp_path):
-    res = mapex("fit-critics", "--objective", 0, "--seed", 7, "--specialist", run_dir / "spec", "--out", tmp_path / "out",
-                "--params", run_dir / "params.yaml")
+    res = mapex(
+        "fit-critics",
+        "--objective",
+        0,
+        "--seed",
+        7,
+        "--specialist",
+        run_dir / "spec",
+        "--out",
+        tmp_path / "out",
+        "--params",
+        run_dir / "params.yaml",
+    )
     assert res.exit_code == 2, res.output
     assert str(run_dir / "spec" / "policy.pt") in res.stderr and "expected --seed 7" in res.stderr
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("change, says", [
-    ({"seed": 3}, "critics of seed 3"),
-    ({"buffer_checksums": {"obs": "0"}}, "fitted on a different buffer"),
-    ({"buffer_checksums": None}, "without 'buffer_checksums'"),
-])
+@pytest.mark.parametrize(
+    "change, says",
+    [
+        ({"seed": 3}, "critics of seed 3"),
+        ({"buffer_checksums": {"obs": "0"}}, "fitted on a different buffer"),
+        ({"buffer_checksums": None}, "without 'buffer_checksums'"),
+    ],
+)
 def test_critic_fidelity_refuses_posthoc_critics_of_another_run(run_dir, tmp_path, change, says):
     other = tmp_path / "critics.pt"
     obj = torch.load(run_dir / "posthoc" / "critics.pt", weights_only=True)
     obj["meta"] = {k: v for k, v in (obj["meta"] | change).items() if v is not None}
     torch.save(obj, other)
-    res = mapex("critic-fidelity", "--objective", 0, "--specialist", run_dir / "spec", "--critics", other,
-                "--out", tmp_path / "f.json", "--params", run_dir / "params.yaml")
+    res = mapex(
+        "critic-fidelity",
+        "--objective",
+        0,
+        "--specialist",
+        run_dir / "spec",
+        "--critics",
+        other,
+        "--out",
+        tmp_path / "f.json",
+        "--params",
+        run_dir / "params.yaml",
+    )
     assert res.exit_code == 2, res.output
     assert str(other) in res.stderr and says in res.stderr
     assert not (tmp_path / "f.json").exists()
@@ -415,8 +489,19 @@ def test_critic_fidelity_rejects_critics_of_another_env(run_dir, tmp_path):
     obj = torch.load(run_dir / "spec" / "critics.pt", weights_only=True)
     obj["meta"] = obj["meta"] | {"env_id": "mo-walker2d-v5"}
     torch.save(obj, other)
-    res = mapex("critic-fidelity", "--objective", 0, "--specialist", run_dir / "spec", "--critics", other,
-                "--out", tmp_path / "f.json", "--params", run_dir / "params.yaml")
+    res = mapex(
+        "critic-fidelity",
+        "--objective",
+        0,
+        "--specialist",
+        run_dir / "spec",
+        "--critics",
+        other,
+        "--out",
+        tmp_path / "f.json",
+        "--params",
+        run_dir / "params.yaml",
+    )
     assert res.exit_code == 2 and str(other) in res.stderr and "env_id" in res.stderr
     assert not (tmp_path / "f.json").exists()
 
@@ -431,7 +516,9 @@ def test_critic_fidelity_rejects_critics_of_another_env(run_dir, tmp_path):
 )
 def test_invalid_fit_critics_params_exit_2_before_anything_is_written(run_dir, tmp_path, bad):
     params = tmp_path / "params.yaml"
-    text = TINY_PARAMS.replace("fit_critics:\n  steps: 50\n  batch_size: 64\n  hidden_sizes: [32, 32]", "fit_critics:\n  " + bad)
+    text = TINY_PARAMS.replace(
+        "fit_critics:\n  steps: 50\n  batch_size: 64\n  hidden_sizes: [32, 32]", "fit_critics:\n  " + bad
+    )
     assert text != TINY_PARAMS
     params.write_text(text)
     out = tmp_path / "out"

@@ -20,7 +20,6 @@ import torch
 import typer
 from typer.testing import CliRunner
 
-from pipeline.core.envs import env_spec, make_env
 from pipeline.baselines.mopderl import (
     AgentInit,
     MopderlRun,
@@ -37,24 +36,47 @@ from pipeline.baselines.nsga2 import (
     tournament_pair,
     tournament_winner,
 )
+from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import pareto_mask
+from pipeline.core.population import load_population
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.core.population import load_population
 from stages.mopderl import mopderl as mopderl_stage
 from stages.train_pderl import train_pderl as train_pderl_stage
 
 CAP = 30
-TD3 = {"total_steps": 1000, "learning_starts": 100, "buffer_size": 5000, "batch_size": 32, "hidden_sizes": [16], "device": "cpu"}
+TD3 = {
+    "total_steps": 1000,
+    "learning_starts": 100,
+    "buffer_size": 5000,
+    "batch_size": 32,
+    "hidden_sizes": [16],
+    "device": "cpu",
+}
 PDERL = {
-    "total_frames": 200, "population_size": 3, "mini_buffer_size": 200, "crossover_transitions": 64,
-    "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32, "checkpoint_every": 1, "device": "cpu",
+    "total_frames": 200,
+    "population_size": 3,
+    "mini_buffer_size": 200,
+    "crossover_transitions": 64,
+    "crossover_batch_size": 32,
+    "crossover_epochs": 2,
+    "mutation_states": 32,
+    "checkpoint_every": 1,
+    "device": "cpu",
 }
 MOPDERL = {
-    "total_frames": 1700, "population_size": 4, "children": 3, "eval_episodes": 1, "mini_buffer_size": 200,
-    "crossover_transitions": 64, "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32,
-    "rl_updates_per_frame": 0.1, "device": "cpu",
+    "total_frames": 1700,
+    "population_size": 4,
+    "children": 3,
+    "eval_episodes": 1,
+    "mini_buffer_size": 200,
+    "crossover_transitions": 64,
+    "crossover_batch_size": 32,
+    "crossover_epochs": 2,
+    "mutation_states": 32,
+    "rl_updates_per_frame": 0.1,
+    "device": "cpu",
 }
 
 
@@ -192,8 +214,10 @@ def synthetic_run(spec, seed: int = 0, **over) -> MopderlRun:
                 "action": rng.uniform(-1, 1, size=(n, spec.act_dim)).astype(np.float32),
                 "reward": rng.normal(size=(n, 2)).astype(np.float32),
                 "next_obs": rng.normal(size=(n, spec.obs_dim)).astype(np.float32),
-                "terminated": np.zeros(n, bool), "truncated": np.zeros(n, bool),
-                "episode": np.repeat(np.arange(10), 30), "episode_step": np.tile(np.arange(30), 10).astype(np.int32),
+                "terminated": np.zeros(n, bool),
+                "truncated": np.zeros(n, bool),
+                "episode": np.repeat(np.arange(10), 30),
+                "episode_step": np.tile(np.arange(30), 10).astype(np.int32),
             }
             agents.append(AgentInit(k, actor, copy.deepcopy(actor), critic, copy.deepcopy(critic), [0, 1], rows))
     return MopderlRun(spec, td3, cfg, seed, starts, agents)
@@ -205,7 +229,14 @@ def test_generation_counts_every_frame(hopper):
     lengths = []
     rec = run.initialize(env, lambda ep: lengths.append(ep.length))
     assert len(lengths) == 6 * 2 and rec.frames == run.frames == sum(lengths)
-    assert len(run.members) == 6 and [m.policy_name for m in run.members] == ["pop0", "pop0", "pop1", "pop1", "pop2", "pop2"]
+    assert len(run.members) == 6 and [m.policy_name for m in run.members] == [
+        "pop0",
+        "pop0",
+        "pop1",
+        "pop1",
+        "pop2",
+        "pop2",
+    ]
     assert all(m.origin == "specialist" and m.objective == i % 2 for i, m in enumerate(run.members))
     assert [m.env_samples for m in run.members] == list(np.cumsum(lengths)[1::2])  # frames once each was evaluated
     for ag in run.agents:  # the starting evaluation fed both buffers, before any update
@@ -253,8 +284,16 @@ def test_generation_counts_every_frame(hopper):
 def same_members(a, b) -> None:
     assert len(a) == len(b)
     for x, y in zip(a, b):
-        assert (x.origin, x.objective, x.iteration, x.parents, x.returns, x.returns_std, x.env_samples, x.policy_name) == (
-            y.origin, y.objective, y.iteration, y.parents, y.returns, y.returns_std, y.env_samples, y.policy_name)
+        assert (
+            x.origin,
+            x.objective,
+            x.iteration,
+            x.parents,
+            x.returns,
+            x.returns_std,
+            x.env_samples,
+            x.policy_name,
+        ) == (y.origin, y.objective, y.iteration, y.parents, y.returns, y.returns_std, y.env_samples, y.policy_name)
         assert all(torch.equal(x.actor[k], y.actor[k]) for k in x.actor)
 
 
@@ -314,8 +353,18 @@ def stage(write_params, specialists):
     def invoke(d: Path, overrides=None, seed: int = 0, source: Path | None = None):
         over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "mopderl": MOPDERL} | (overrides or {})
         params = write_params(d, over)
-        args = ["--seed", str(seed), "--specialists", str(source or specialists), "--out", str(d / "out"),
-                "--resume-dir", str(d / "resume"), "--params", str(params)]
+        args = [
+            "--seed",
+            str(seed),
+            "--specialists",
+            str(source or specialists),
+            "--out",
+            str(d / "out"),
+            "--resume-dir",
+            str(d / "resume"),
+            "--params",
+            str(params),
+        ]
         return CliRunner().invoke(app, args)
 
     return invoke
@@ -340,13 +389,20 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     starts = [m for m in members if m.origin == "specialist"]
     assert [(m.objective, m.policy_name) for m in starts] == [(k, f"pop{i}") for k in (0, 1) for i in range(3)]
     assert members[: len(starts)] == starts and all(m.iteration == 0 and m.parents == [] for m in starts)
-    later = members[len(starts):]
+    later = members[len(starts) :]
     assert later and all(m.origin == "mopderl" and m.iteration >= 1 and m.target_weight is None for m in later)
     assert all(m.hidden_sizes == [16] and m.eval_episodes == 1 and len(m.returns) == 2 for m in members)
     samples = [m.env_samples for m in members]
     assert samples == sorted(samples) and samples[0] == CAP  # cumulative phase-2 frames
     rows = list(csv.DictReader(io.StringIO(hist)))
-    assert list(rows[0]) == ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
+    assert list(rows[0]) == [
+        "generation",
+        "env_frames",
+        "new_individuals",
+        "archive_size",
+        "front_size",
+        "archive_hv_norm",
+    ]
     assert [int(r["generation"]) for r in rows] == list(range(len(rows))) and len(rows) >= 3
     assert int(rows[0]["env_frames"]) == 6 * CAP and int(rows[-1]["env_frames"]) >= MOPDERL["total_frames"]
     assert int(rows[-2]["env_frames"]) < MOPDERL["total_frames"]  # stopped at the first generation past the budget

@@ -29,8 +29,6 @@ from morl_baselines.common.pareto import ParetoArchive  # noqa: E402
 from morl_baselines.single_policy.ser.mosac_continuous_action import MOSACActor  # noqa: E402
 
 import pipeline.baselines.morld  # noqa: E402
-from pipeline.core.envs import env_spec, make_env  # noqa: E402
-from pipeline.evaluation.episodes import eval_seeds, evaluate_policy  # noqa: E402
 from pipeline.baselines.morld import (  # noqa: E402
     EVAL_STREAM,
     INSTALL_HINT,
@@ -41,24 +39,38 @@ from pipeline.baselines.morld import (  # noqa: E402
     hidden_sizes_of,
     require_morl_baselines,
 )
-from pipeline.params.morld import MorldParams  # noqa: E402
+from pipeline.core.envs import env_spec, make_env  # noqa: E402
 from pipeline.core.population import Member, actor_state, load_population, member_actor  # noqa: E402
-from stages.morld import CHECKPOINT, morld as morld_stage  # noqa: E402
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy  # noqa: E402
+from pipeline.params.morld import MorldParams  # noqa: E402
+from stages.morld import CHECKPOINT  # noqa: E402
+from stages.morld import morld as morld_stage
 
 REPO = Path(__file__).resolve().parents[1]
 ENV = "mo-swimmer-v5"  # the cheapest env; it never terminates, so every episode runs to the cap
 CAP = 30
 EPISODES = 2
 MORLD = {
-    "total_frames": 400, "exchange_every": 100, "pop_size": 2, "hidden_sizes": [16, 16], "batch_size": 32,
-    "learning_starts": 50, "buffer_size": 1000, "update_passes": 1, "front_eval_episodes": 1,
-    "eval_episodes": EPISODES, "checkpoint_every": 1, "device": "cpu",
+    "total_frames": 400,
+    "exchange_every": 100,
+    "pop_size": 2,
+    "hidden_sizes": [16, 16],
+    "batch_size": 32,
+    "learning_starts": 50,
+    "buffer_size": 1000,
+    "update_passes": 1,
+    "front_eval_episodes": 1,
+    "eval_episodes": EPISODES,
+    "checkpoint_every": 1,
+    "device": "cpu",
 }
 
 
 def random_mosac_actor(obs_dim: int, low: list[float], high: list[float], net_arch: list[int], seed: int) -> MOSACActor:
     """A MOSAC actor with every weight and bias random (its own init zeroes the biases)."""
-    actor = MOSACActor((obs_dim,), (len(low),), 2, np.array(low, np.float32), np.array(high, np.float32), net_arch=net_arch)
+    actor = MOSACActor(
+        (obs_dim,), (len(low),), 2, np.array(low, np.float32), np.array(high, np.float32), net_arch=net_arch
+    )
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in actor.parameters():
@@ -84,7 +96,9 @@ def test_exported_actor_reproduces_mosac_deterministic_action():
     torch.testing.assert_close(theirs, by_hand, rtol=0, atol=0)
     assert (mine >= torch.tensor(low)).all() and (mine <= torch.tensor(high)).all()
     # and through the population format: the state dict loads into pipeline.core.nets.Actor as a member
-    member = Member("morld", None, 0, [], None, [0.0, 0.0], [0.0, 0.0], 1, 0, hidden_sizes_of(ours), actor_state(ours), "pop0")
+    member = Member(
+        "morld", None, 0, [], None, [0.0, 0.0], [0.0, 0.0], 1, 0, hidden_sizes_of(ours), actor_state(ours), "pop0"
+    )
     rebuilt = member_actor(member, {"obs_dim": 8, "act_dim": 3, "action_low": low, "action_high": high})
     with torch.no_grad():
         torch.testing.assert_close(rebuilt(obs), mine, rtol=0, atol=0)
@@ -105,13 +119,21 @@ def test_actor_archive_keeps_what_morld_archive_keeps():
     theirs, ours = ParetoArchive(), ActorArchive(filter_fn, lambda: (7, 700))
     points = np.round(rng.normal(size=(40, 2)), 1)  # rounding makes ties and duplicates
     for i, point in enumerate(points):
-        agent = SimpleNamespace(id=i, weights=np.array([0.5, 0.5]), wrapped=SimpleNamespace(actor=random_mosac_actor(3, [-1.0], [1.0], [4], i)))
+        agent = SimpleNamespace(
+            id=i,
+            weights=np.array([0.5, 0.5]),
+            wrapped=SimpleNamespace(actor=random_mosac_actor(3, [-1.0], [1.0], [4], i)),
+        )
         theirs.add(agent, point)
         ours.add(agent, point)
     assert [tuple(e) for e in ours.evaluations] == [tuple(e) for e in theirs.evaluations]
     assert [r.policy for r in ours.individuals] == [c.id for c in theirs.individuals]
     rec = ours.individuals[0]
-    assert (rec.exchange, rec.frames) == (7, 700) and set(rec.actor) >= {"latent_pi.0.weight", "fc_mean.weight", "action_scale"}
+    assert (rec.exchange, rec.frames) == (7, 700) and set(rec.actor) >= {
+        "latent_pi.0.weight",
+        "fc_mean.weight",
+        "action_scale",
+    }
 
 
 def test_params_checks():
@@ -140,7 +162,9 @@ def test_episodes_capped_and_exported_actors_match_agents():
     exported = {e.name: e for e in run.exported_actors()}
     for i, p in enumerate(run.algo.population):
         with torch.no_grad():
-            torch.testing.assert_close(exported[f"pop{i}"].actor(obs), p.wrapped.actor.get_action(obs)[2], rtol=0, atol=1e-6)
+            torch.testing.assert_close(
+                exported[f"pop{i}"].actor(obs), p.wrapped.actor.get_action(obs)[2], rtol=0, atol=1e-6
+            )
 
 
 def _stage_app() -> typer.Typer:
@@ -155,7 +179,9 @@ def _invoke(params: Path, out: Path):
 
 @pytest.fixture(scope="module")
 def params_file(tmp_path_factory, write_params) -> Path:
-    return write_params(tmp_path_factory.mktemp("morld_params"), {"env": {"id": ENV, "max_episode_steps": CAP}, "morld": MORLD})
+    return write_params(
+        tmp_path_factory.mktemp("morld_params"), {"env": {"id": ENV, "max_episode_steps": CAP}, "morld": MORLD}
+    )
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +194,9 @@ def finished(tmp_path_factory, params_file) -> Path:
 
 
 def test_stage_writes_loadable_population(finished: Path):
-    members, meta = load_population(finished / "population.pt", ("env_id", "obs_dim", "act_dim", "action_low", "action_high"))
+    members, meta = load_population(
+        finished / "population.pt", ("env_id", "obs_dim", "act_dim", "action_low", "action_high")
+    )
     assert (meta["env_id"], meta["obs_dim"], meta["act_dim"], meta["n_objectives"]) == (ENV, 8, 2, 2)
     assert (meta["action_low"], meta["action_high"]) == ([-1.0, -1.0], [1.0, 1.0])
     assert meta["method"] == "morld" and meta["seed"] == 0 and meta["params"]["morld"]["pop_size"] == 2
@@ -220,7 +248,12 @@ def test_killed_run_resumes_to_the_same_population(tmp_path: Path, params_file: 
     want, want_meta = load_population(finished / "population.pt")
     assert [m.policy_name for m in got] == [m.policy_name for m in want]
     for a, b in zip(got, want):
-        assert (a.returns, a.target_weight, a.iteration, a.env_samples) == (b.returns, b.target_weight, b.iteration, b.env_samples)
+        assert (a.returns, a.target_weight, a.iteration, a.env_samples) == (
+            b.returns,
+            b.target_weight,
+            b.iteration,
+            b.env_samples,
+        )
         assert all(torch.equal(a.actor[k], b.actor[k]) for k in b.actor)
     assert got_meta["morld_estimates"] == want_meta["morld_estimates"]
     assert (out / "history.csv").read_text() == (finished / "history.csv").read_text()

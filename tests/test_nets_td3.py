@@ -17,7 +17,6 @@ from pipeline.core.checkpoint import check_matches, load_critics, load_policy, s
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import covered_objectives, init_td3
 from pipeline.specialists.td3 import (
     actor_loss,
     critic_loss,
@@ -26,6 +25,7 @@ from pipeline.specialists.td3 import (
     td3_targets,
     td3_update,
 )
+from pipeline.specialists.td3_training import covered_objectives, init_td3
 
 OBS, ACT = 5, 3
 
@@ -338,8 +338,16 @@ def test_td3_update_touches_the_actor_and_targets_only_on_actor_steps():
 # --- checkpoints --------------------------------------------------------------------------
 
 
-META = {"env_id": "mo-test-v0", "obs_dim": OBS, "act_dim": ACT, "n_objectives": 2, "action_low": [-1.0] * ACT,
-        "action_high": [2.0] * ACT, "hidden_sizes": [8, 8], "seed": 3}
+META = {
+    "env_id": "mo-test-v0",
+    "obs_dim": OBS,
+    "act_dim": ACT,
+    "n_objectives": 2,
+    "action_low": [-1.0] * ACT,
+    "action_high": [2.0] * ACT,
+    "hidden_sizes": [8, 8],
+    "seed": 3,
+}
 
 
 def test_policy_round_trip(tmp_path):

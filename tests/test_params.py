@@ -9,9 +9,9 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.methods import derived_lists
 from pipeline.params.sync import synced_text
-from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 
 REPO = Path(__file__).resolve().parents[1]
@@ -185,18 +185,29 @@ def test_repository_params_file_validates():
 
 
 def test_run_lists_are_derived_from_methods_and_checked():
-    ok = {"seeds": [0, 1], "pderl_seeds": [0, 1], "extract_from": ["td3", "pderl"], "extract_variants": ["mapex"],
-          "posthoc_from": ["pderl"], "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"]}
+    ok = {
+        "seeds": [0, 1],
+        "pderl_seeds": [0, 1],
+        "extract_from": ["td3", "pderl"],
+        "extract_variants": ["mapex"],
+        "posthoc_from": ["pderl"],
+        "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"],
+    }
     assert section(ok, "", RunParams).posthoc_from == ["pderl"]
-    assert derived_lists(ok["methods"], ok["seeds"]) == {k: v for k, v in ok.items() if k not in ("seeds", "methods")} | {
-        "mopderl_seeds": [], "morld_seeds": []}
+    assert derived_lists(ok["methods"], ok["seeds"]) == {
+        k: v for k, v in ok.items() if k not in ("seeds", "methods")
+    } | {"mopderl_seeds": [], "morld_seeds": []}
     # a derived list that disagrees with methods names the list and the command that fixes it
-    with pytest.raises(ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: run `mapex sync-params`"):
+    with pytest.raises(
+        ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: run `mapex sync-params`"
+    ):
         section({**ok, "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_td3"]}, "", RunParams)
     with pytest.raises(ParamsError, match=r"pderl_seeds = \[\], but .* make it \[0, 1\]"):
         section({**ok, "pderl_seeds": []}, "", RunParams)
     # PDERL specialists that no method reads may still be trained
-    assert section({"seeds": [0], "pderl_seeds": [0], "methods": ["mapex_td3", "warmup_only_td3"]}, "", RunParams).pderl_seeds == [0]
+    assert section(
+        {"seeds": [0], "pderl_seeds": [0], "methods": ["mapex_td3", "warmup_only_td3"]}, "", RunParams
+    ).pderl_seeds == [0]
     # stage extract runs a matrix of variants x kinds: a method set that is not a full product is refused
     with pytest.raises(ParamsError, match=r"so add \['warmup_only_pderl'\]"):
         section({**ok, "methods": ["mapex_td3", "warmup_only_td3", "mapex_pderl"]}, "", RunParams)
@@ -207,8 +218,10 @@ def test_run_lists_are_derived_from_methods_and_checked():
 
 
 def test_sync_params_writes_the_derived_block_and_keeps_the_rest():
-    text = ("# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
-            "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n")
+    text = (
+        "# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
+        "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n"
+    )
     synced = synced_text(text)
     raw = yaml.safe_load(synced)
     assert section(raw, "", RunParams).mopderl_seeds == [0, 1]

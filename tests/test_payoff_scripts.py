@@ -23,8 +23,13 @@ TINY = {**TINY_BASE, "extract": {**TINY_BASE["extract"], "epochs": 3}}  # 3 epoc
 
 
 def sh(*args, cwd: Path = ROOT) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHON": sys.executable,
-           "PYTHONPATH": str(ROOT), "MAPEX": f"{sys.executable} -m stages.cli"}
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
+        "PYTHON": sys.executable,
+        "PYTHONPATH": str(ROOT),
+        "MAPEX": f"{sys.executable} -m stages.cli",
+    }
     return subprocess.run(["bash", *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True)
 
 
@@ -35,8 +40,12 @@ def test_payoff_run_resumes_and_reports_both_forms(tmp_path):
     r = sh("benchmarks/device/payoff.sh", work, params)
     assert r.returncode == 0, r.stdout + r.stderr
     progress = (work / "progress.log").read_text()
-    for name in ("train_specialist_seed0", "extract_paper_mapex_seed0", "extract_paper_warmup_only_seed0",
-                 "extract_gentle_mapex_seed0"):
+    for name in (
+        "train_specialist_seed0",
+        "extract_paper_mapex_seed0",
+        "extract_paper_warmup_only_seed0",
+        "extract_gentle_mapex_seed0",
+    ):
         assert f"{name}: done in" in progress, progress
     gentle = yaml.safe_load((work / "gentle.yaml").read_text())["extract"]
     assert (gentle["epochs"], gentle["lr"]) == (1, 1e-4)

@@ -23,6 +23,7 @@ from pipeline.core.buffer import load_buffer
 from pipeline.core.checkpoint import load_critics, load_policy
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
+from pipeline.core.policyset import load_policy_set
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import (
@@ -36,14 +37,28 @@ from pipeline.specialists.pderl import (
     tournament,
     train_pderl,
 )
-from pipeline.core.policyset import load_policy_set
-from stages.train_pderl import CHECKPOINT_PREFIX, train_pderl as train_pderl_stage
+from stages.train_pderl import CHECKPOINT_PREFIX
+from stages.train_pderl import train_pderl as train_pderl_stage
 
 CAP = 30
-TD3 = {"total_steps": 1000, "learning_starts": 100, "buffer_size": 5000, "batch_size": 32, "hidden_sizes": [16, 16], "device": "cpu"}
+TD3 = {
+    "total_steps": 1000,
+    "learning_starts": 100,
+    "buffer_size": 5000,
+    "batch_size": 32,
+    "hidden_sizes": [16, 16],
+    "device": "cpu",
+}
 PDERL = {
-    "total_frames": 400, "population_size": 3, "mini_buffer_size": 200, "crossover_transitions": 64,
-    "crossover_batch_size": 32, "crossover_epochs": 2, "mutation_states": 32, "checkpoint_every": 1, "device": "cpu",
+    "total_frames": 400,
+    "population_size": 3,
+    "mini_buffer_size": 200,
+    "crossover_transitions": 64,
+    "crossover_batch_size": 32,
+    "crossover_epochs": 2,
+    "mutation_states": 32,
+    "checkpoint_every": 1,
+    "device": "cpu",
 }
 
 
@@ -140,8 +155,13 @@ def test_distillation_crossover_follows_the_better_parent():
     a, b = constant_actor(0.5, seed=1), constant_actor(-0.5, seed=2)
     a_before, b_before = copy.deepcopy(a), copy.deepcopy(b)
     buf_a, buf_b = ring_of(states[:64]), ring_of(states[64:])
-    cfg = TrainPderlParams(crossover_transitions=64, crossover_epochs=150, crossover_batch_size=32, crossover_lr=1e-2,
-                           crossover_action_penalty=0.0)
+    cfg = TrainPderlParams(
+        crossover_transitions=64,
+        crossover_epochs=150,
+        crossover_batch_size=32,
+        crossover_lr=1e-2,
+        crossover_action_penalty=0.0,
+    )
     child, used = distillation_crossover(a, b, buf_a, buf_b, toy_critic, cfg, np.random.default_rng(1))
     assert np.array_equal(used, np.concatenate([states[:64], states[64:]]))  # A's latest, then B's
     with torch.no_grad():
@@ -176,8 +196,16 @@ def test_elites_survive_evolution_unchanged():
         ring = ring_of(rng.normal(size=(50, 3)).astype(np.float32), capacity=100)
         pop.append(Individual(Actor(3, 2, [8], [-1, -1], [1, 1]), ring, fitness=float(i)))
     before = copy.deepcopy(pop)
-    cfg = TrainPderlParams(population_size=10, elite_fraction=0.2, mini_buffer_size=100, crossover_transitions=20,
-                           crossover_batch_size=10, crossover_epochs=1, mutation_states=16, mutation_prob=1.0)
+    cfg = TrainPderlParams(
+        population_size=10,
+        elite_fraction=0.2,
+        mini_buffer_size=100,
+        crossover_transitions=20,
+        crossover_batch_size=10,
+        crossover_epochs=1,
+        mutation_states=16,
+        mutation_prob=1.0,
+    )
     report = evolve(pop, lambda o, a: a.sum(dim=1), cfg, np.random.default_rng(1), torch.Generator().manual_seed(0))
     assert report.elites == [9, 8]
     for slot in report.elites:
@@ -191,9 +219,14 @@ def test_elites_survive_evolution_unchanged():
     # children filled exactly the slots no survivor (or elite copy) holds, from survivor parents
     survivors = set(report.elites) | set(report.selected)
     assert set(report.children) == set(range(10)) - survivors - set(report.copies)
-    assert all(a in survivors and b in survivors and before[a].fitness >= before[b].fitness for a, b in report.children.values())
+    assert all(
+        a in survivors and b in survivors and before[a].fitness >= before[b].fitness
+        for a, b in report.children.values()
+    )
     for slot, (a, b) in report.children.items():  # its mini buffer: the parents' latest states
-        assert np.array_equal(pop[slot].ring.chronological(), np.concatenate([before[a].ring.latest(20), before[b].ring.latest(20)]))
+        assert np.array_equal(
+            pop[slot].ring.chronological(), np.concatenate([before[a].ring.latest(20), before[b].ring.latest(20)])
+        )
 
 
 # ----------------------------------------------------------------------- generation loop
@@ -314,7 +347,9 @@ def stage(monkeypatch, write_params):
     def invoke(d: Path, overrides=None, objective: int | list[int] = 1):
         over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "train_pderl": PDERL} | (overrides or {})
         params = write_params(d, over)
-        chosen = [a for k in ([objective] if isinstance(objective, int) else objective) for a in ("--objective", str(k))]
+        chosen = [
+            a for k in ([objective] if isinstance(objective, int) else objective) for a in ("--objective", str(k))
+        ]
         return CliRunner().invoke(app, ["--seed", "0", *chosen, "--out", str(d / "out"), "--params", str(params)])
 
     return invoke
@@ -325,9 +360,17 @@ def artifacts(out: Path) -> dict:
     actor, pmeta = load_policy(out / "policy.pt")
     online, target, cmeta = load_critics(out / "critics.pt")
     data, attrs = load_buffer(out / "buffer.zarr")
-    return {"pset": pset, "actor": actor, "pmeta": pmeta, "critics": (online, target), "cmeta": cmeta,
-            "data": data, "attrs": attrs, "fitness": (out / "fitness.csv").read_text(),
-            "policy_obj": torch.load(out / "policy.pt", weights_only=True)}
+    return {
+        "pset": pset,
+        "actor": actor,
+        "pmeta": pmeta,
+        "critics": (online, target),
+        "cmeta": cmeta,
+        "data": data,
+        "attrs": attrs,
+        "fitness": (out / "fitness.csv").read_text(),
+        "policy_obj": torch.load(out / "policy.pt", weights_only=True),
+    }
 
 
 def same_bits(x: dict, y: dict) -> None:
@@ -343,13 +386,21 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     res = stage(tmp_path / "full")
     assert res.exit_code == 0, res.output
     out = tmp_path / "full" / "out" / "obj1"
-    assert sorted(p.name for p in out.iterdir()) == ["buffer.zarr", "critics.pt", "fitness.csv", "policies.pt", "policy.pt"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "buffer.zarr",
+        "critics.pt",
+        "fitness.csv",
+        "policies.pt",
+        "policy.pt",
+    ]
     full = artifacts(out)
     pset = full["pset"]
     assert pset.names == ["rl", "pop0", "pop1", "pop2"] and all(isinstance(f, float) for f in pset.fitness)
     assert pset.meta["objective"] == 1 and pset.meta["seed"] == 0 and pset.meta["hidden_sizes"] == [16, 16]
     assert pset.meta["trainer"] == "pderl"
-    assert all(torch.equal(p, q) for p, q in zip(pset.actors[0].state_dict().values(), full["actor"].state_dict().values()))
+    assert all(
+        torch.equal(p, q) for p, q in zip(pset.actors[0].state_dict().values(), full["actor"].state_dict().values())
+    )
     cmeta = full["cmeta"]
     assert cmeta["source"] == "joint" and cmeta["objectives"] == [0, 1] and cmeta["buffer_objective"] == 1
     assert cmeta["params"]["train_specialist"]["gamma"] == 0.99 and "provenance" in cmeta
@@ -377,7 +428,9 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     res = stage(tmp_path / "killed")
     assert isinstance(res.exception, Killed)
     out = tmp_path / "killed" / "out" / "obj1"
-    ckpt = tmp_path / "killed" / ".out.resume" / f"{CHECKPOINT_PREFIX}obj1.pt"  # beside OUT, which DVC deletes before a rerun
+    ckpt = (
+        tmp_path / "killed" / ".out.resume" / f"{CHECKPOINT_PREFIX}obj1.pt"
+    )  # beside OUT, which DVC deletes before a rerun
     assert ckpt.is_file() and not out.exists()
     monkeypatch.setattr(PderlRun, "step_generation", real)
     res = stage(tmp_path / "killed")
@@ -414,7 +467,9 @@ def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeyp
     assert one.exit_code == 0, one.output
     parts = []
     real = stage_module.run_side_by_side
-    monkeypatch.setattr(stage_module, "run_side_by_side", lambda fn, args, *a: (parts.append([x[1] for x in args]), real(fn, args, *a)))
+    monkeypatch.setattr(
+        stage_module, "run_side_by_side", lambda fn, args, *a: (parts.append([x[1] for x in args]), real(fn, args, *a))
+    )
     two = stage(tmp_path / "two", {"train_pderl": PDERL | {"processes": 2}}, objective=[0, 1])
     assert two.exit_code == 0, two.output
     assert parts == [[[0], [1]]]  # one worker per objective

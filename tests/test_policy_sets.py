@@ -19,10 +19,10 @@ import torch
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.checkpoint import actor_from_meta, load_policy
 from pipeline.core.envs import make_env
-from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.policyset import load_policy_set, save_policy_set
 from pipeline.core.population import FORMAT, load_population, save_population
+from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 
 EXTRACT = {
     "iterations": 2,
@@ -77,8 +77,20 @@ def specs(trained, tmp_path) -> Path:
 
 def extract(mapex, write_params, tmp_path: Path, specs: Path, name: str = "out", out: Path | None = None, **updates):
     params = write_params(tmp_path, {"extract": {**EXTRACT, **updates}}, name=f"{name}.yaml")
-    return mapex("extract", "--seed", 0, "--specialists", specs, "--out", out or tmp_path / name,
-                 "--resume-dir", tmp_path / f"resume_{name}", "--params", params, cwd=tmp_path)
+    return mapex(
+        "extract",
+        "--seed",
+        0,
+        "--specialists",
+        specs,
+        "--out",
+        out or tmp_path / name,
+        "--resume-dir",
+        tmp_path / f"resume_{name}",
+        "--params",
+        params,
+        cwd=tmp_path,
+    )
 
 
 def assert_refused(r, tmp_path: Path, *fragments: str, name: str = "out") -> None:
@@ -105,7 +117,8 @@ def test_initial_population_is_every_policy_of_every_set(specs, tmp_path, mapex,
     members, meta = load_population(tmp_path / "out" / "population.pt")
     start, children = members[:6], members[6:]
     assert [(m.origin, m.objective, m.policy_name, m.iteration) for m in start] == [
-        ("specialist", k, name, 0) for k in (0, 1) for name in NAMES]
+        ("specialist", k, name, 0) for k in (0, 1) for name in NAMES
+    ]
     assert [m.origin for m in children] == ["child", "child"] and [m.iteration for m in children] == [1, 2]
     assert all(m.policy_name is None and m.objective is None for m in children)
     # each starting policy evaluated (one episode of CAP steps each, cumulative), with its own weights
@@ -113,7 +126,7 @@ def test_initial_population_is_every_policy_of_every_set(specs, tmp_path, mapex,
     assert all(len(m.returns) == 2 and m.eval_episodes == 1 and m.parents == [] for m in start)
     for k in (0, 1):
         pset = load_policy_set(specs / f"obj{k}" / "policies.pt")
-        for m, actor in zip(start[3 * k: 3 * k + 3], pset.actors):
+        for m, actor in zip(start[3 * k : 3 * k + 3], pset.actors):
             assert all(torch.equal(m.actor[n], v) for n, v in actor.state_dict().items())
             assert m.hidden_sizes == list(pset.meta["hidden_sizes"])
     # member i is evaluated on extraction stream i, whichever set it came from
@@ -130,23 +143,63 @@ def test_initial_population_is_every_policy_of_every_set(specs, tmp_path, mapex,
     assert not (tmp_path / "resume_out" / "extract" / "mapex_td3" / "seed0").exists()  # progress removed when done
 
     # evaluate, score and report: every starting policy re-evaluated and shown apart from the children
-    params = write_params(tmp_path, {"env": {"reference_point": [-100.0, -4500.0]}, "evaluate": {"episodes": 1},
-                                     "report": {"dpi": 50, "formats": ["png"]}}, name="post.yaml")
+    params = write_params(
+        tmp_path,
+        {
+            "env": {"reference_point": [-100.0, -4500.0]},
+            "evaluate": {"episodes": 1},
+            "report": {"dpi": 50, "formats": ["png"]},
+        },
+        name="post.yaml",
+    )
     ev, sc = tmp_path / "evaluate" / "mapex_td3" / "seed0", tmp_path / "score" / "mapex_td3" / "seed0"
-    r = mapex("evaluate", "--population", tmp_path / "out" / "population.pt", "--out", ev, "--seed", 0,
-              "--params", params, cwd=tmp_path)
+    r = mapex(
+        "evaluate",
+        "--population",
+        tmp_path / "out" / "population.pt",
+        "--out",
+        ev,
+        "--seed",
+        0,
+        "--params",
+        params,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     rows = read_csv(ev / "evaluated.csv")
     assert [(row["origin"], row["objective"], row["policy_name"]) for row in rows] == [
-        *(("specialist", str(k), name) for k in (0, 1) for name in NAMES), ("child", "", ""), ("child", "", "")]
+        *(("specialist", str(k), name) for k in (0, 1) for name in NAMES),
+        ("child", "", ""),
+        ("child", "", ""),
+    ]
     assert json.loads((ev / "evaluation.json").read_text())["env_samples_evaluation"] == 8 * CAP
-    r = mapex("score", "--population", tmp_path / "out" / "population.pt", "--evaluated", ev, "--out", sc,
-              "--params", params, cwd=tmp_path)
+    r = mapex(
+        "score",
+        "--population",
+        tmp_path / "out" / "population.pt",
+        "--evaluated",
+        ev,
+        "--out",
+        sc,
+        "--params",
+        params,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     metrics = json.loads((sc / "metrics.json").read_text())
     assert (metrics["population"], metrics["starting_policies"], metrics["children"]) == (8, 6, 2)
-    r = mapex("report", "--evaluated", tmp_path / "evaluate", "--scored", tmp_path / "score",
-              "--out", tmp_path / "report", "--params", params, cwd=tmp_path)
+    r = mapex(
+        "report",
+        "--evaluated",
+        tmp_path / "evaluate",
+        "--scored",
+        tmp_path / "score",
+        "--out",
+        tmp_path / "report",
+        "--params",
+        params,
+        cwd=tmp_path,
+    )
     assert r.returncode == 0, r.stderr
     text = (tmp_path / "report" / "report.md").read_text()
     assert "- starting policies per specialist: specialist 0: 3, specialist 1: 3" in text
@@ -205,7 +258,12 @@ def test_resume_with_policy_sets(trained, specs, tmp_path, mapex, write_params):
     td3 = Path(shutil.copytree(trained, tmp_path / "td3specs"))
     r = extract(mapex, write_params, tmp_path, td3, name="grow", out=blocked)
     assert r.returncode != 0
-    assert torch.load(tmp_path / "resume_grow" / "extract" / "mapex_td3" / "seed0" / "state.pt", weights_only=True)["n_items"] == 4
+    assert (
+        torch.load(tmp_path / "resume_grow" / "extract" / "mapex_td3" / "seed0" / "state.pt", weights_only=True)[
+            "n_items"
+        ]
+        == 4
+    )
     for k in (0, 1):
         write_set(td3 / f"obj{k}")
     r = extract(mapex, write_params, tmp_path, td3, name="grow")
@@ -214,12 +272,18 @@ def test_resume_with_policy_sets(trained, specs, tmp_path, mapex, write_params):
     assert [m.origin for m in members] == ["specialist"] * 6 + ["child"] * 2
 
 
-@pytest.mark.parametrize("change, fragments", [
-    ({"objective": 1}, ["obj0/policies.pt (objective = 1)", "obj0/buffer.zarr (objective = 0)"]),
-    ({"env_id": "mo-hopper-v5"}, ["obj0/policies.pt (env_id = 'mo-hopper-v5')", "obj0/buffer.zarr (env_id = 'mo-halfcheetah-v5')"]),
-    ({"seed": 7}, ["obj0/policies.pt (seed = 7)", "obj0/buffer.zarr (seed = 0)"]),
-    ({"obs_dim": 5}, ["obj0/policies.pt (obs_dim = 5)", "obj0/buffer.zarr (obs_dim = 17)"]),
-])
+@pytest.mark.parametrize(
+    "change, fragments",
+    [
+        ({"objective": 1}, ["obj0/policies.pt (objective = 1)", "obj0/buffer.zarr (objective = 0)"]),
+        (
+            {"env_id": "mo-hopper-v5"},
+            ["obj0/policies.pt (env_id = 'mo-hopper-v5')", "obj0/buffer.zarr (env_id = 'mo-halfcheetah-v5')"],
+        ),
+        ({"seed": 7}, ["obj0/policies.pt (seed = 7)", "obj0/buffer.zarr (seed = 0)"]),
+        ({"obs_dim": 5}, ["obj0/policies.pt (obs_dim = 5)", "obj0/buffer.zarr (obs_dim = 17)"]),
+    ],
+)
 def test_a_set_of_another_specialist_is_refused(specs, tmp_path, mapex, write_params, change, fragments):
     if "obs_dim" in change:  # weights that fit the changed dims, so the cross-check is what refuses it
         _, meta = load_policy(specs / "obj0" / "policy.pt")
@@ -246,10 +310,21 @@ def _population(path: Path, drop_meta: str | None = None, drop_member: str | Non
     from pipeline.core.population import Member, actor_state
 
     actor = actor_state(Actor(17, 6, [4], [-1.0] * 6, [1.0] * 6))
-    members = [Member("specialist", 0, 0, [], None, [1.0, 2.0], [0.0, 0.0], 1, 10, [4], actor, "rl"),
-               Member("child", None, 1, [0, 0], [0.6, 0.8], [2.0, 1.0], [0.0, 0.0], 1, 20, [4], actor, None)]
-    meta = {"env_id": "mo-halfcheetah-v5", "obs_dim": 17, "act_dim": 6, "n_objectives": 2, "action_low": [-1.0] * 6,
-            "action_high": [1.0] * 6, "seed": 0, "method": "mapex", "params": {}}
+    members = [
+        Member("specialist", 0, 0, [], None, [1.0, 2.0], [0.0, 0.0], 1, 10, [4], actor, "rl"),
+        Member("child", None, 1, [0, 0], [0.6, 0.8], [2.0, 1.0], [0.0, 0.0], 1, 20, [4], actor, None),
+    ]
+    meta = {
+        "env_id": "mo-halfcheetah-v5",
+        "obs_dim": 17,
+        "act_dim": 6,
+        "n_objectives": 2,
+        "action_low": [-1.0] * 6,
+        "action_high": [1.0] * 6,
+        "seed": 0,
+        "method": "mapex",
+        "params": {},
+    }
     records = [asdict(m) for m in members]
     if version == 1:
         records = [{k: v for k, v in r.items() if k != "policy_name"} for r in records]
@@ -311,8 +386,20 @@ def test_load_population_reads_version_1(tmp_path):
 
 def test_stages_report_a_member_key_missing_in_one_line(tmp_path, cli, tiny_params):
     path = _population(tmp_path / "population.pt", drop_member="returns")
-    for args in (["evaluate", "--population", path, "--out", tmp_path / "ev", "--params", tiny_params],
-                 ["score", "--population", path, "--evaluated", tmp_path / "ev", "--out", tmp_path / "sc", "--params", tiny_params]):
+    for args in (
+        ["evaluate", "--population", path, "--out", tmp_path / "ev", "--params", tiny_params],
+        [
+            "score",
+            "--population",
+            path,
+            "--evaluated",
+            tmp_path / "ev",
+            "--out",
+            tmp_path / "sc",
+            "--params",
+            tiny_params,
+        ],
+    ):
         result = cli(*args)
         assert result.exit_code == 2, result.output
         out = result.stderr

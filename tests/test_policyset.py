@@ -10,8 +10,17 @@ from pipeline.core.checkpoint import save_policy
 from pipeline.core.nets import Actor
 from pipeline.core.policyset import load_policy_set, save_policy_set
 
-META = {"env_id": "toy", "obs_dim": 3, "act_dim": 2, "n_objectives": 2, "action_low": [-1.0, -1.0],
-        "action_high": [1.0, 1.0], "hidden_sizes": [8], "objective": 1, "seed": 0}
+META = {
+    "env_id": "toy",
+    "obs_dim": 3,
+    "act_dim": 2,
+    "n_objectives": 2,
+    "action_low": [-1.0, -1.0],
+    "action_high": [1.0, 1.0],
+    "hidden_sizes": [8],
+    "objective": 1,
+    "seed": 0,
+}
 
 
 def actor(seed: int) -> Actor:
@@ -46,13 +55,31 @@ def test_bad_sets_are_refused(tmp_path):
     with pytest.raises(ValueError, match="lacks"):
         save_policy_set(tmp_path / "p.pt", [actor(0)], ["a"], [None], {"env_id": "toy"})
     path = tmp_path / "policies.pt"
-    torch_save_atomic({"format": "mapex.policy_set", "format_version": 1, "meta": {"env_id": "toy"},
-                       "names": ["a"], "fitness": [None], "actors": [actor(0).state_dict()]}, path)
+    torch_save_atomic(
+        {
+            "format": "mapex.policy_set",
+            "format_version": 1,
+            "meta": {"env_id": "toy"},
+            "names": ["a"],
+            "fitness": [None],
+            "actors": [actor(0).state_dict()],
+        },
+        path,
+    )
     with pytest.raises(ArtifactError, match=r"policies\.pt: metadata lacks"):
         load_policy_set(path)
     wrong = dict(META, hidden_sizes=[4])
-    torch_save_atomic({"format": "mapex.policy_set", "format_version": 1, "meta": wrong,
-                       "names": ["a"], "fitness": [None], "actors": [actor(0).state_dict()]}, path)
+    torch_save_atomic(
+        {
+            "format": "mapex.policy_set",
+            "format_version": 1,
+            "meta": wrong,
+            "names": ["a"],
+            "fitness": [None],
+            "actors": [actor(0).state_dict()],
+        },
+        path,
+    )
     with pytest.raises(ArtifactError, match="weights of actor 'a' do not match"):
         load_policy_set(path)
     with pytest.raises(ArtifactError, match="file not found"):

@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
-from pipeline.params.registry import section_models
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
+from pipeline.params.registry import section_models
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 
@@ -53,14 +53,22 @@ def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
 
 # PDERL's reference code copies the RL actor into the population every generation on Hopper,
 # Walker2d and Ant, every 10 generations on the other envs (train_pderl.rl_sync_period).
-RL_SYNC_PERIOD = {"mo-halfcheetah-v5": 10, "mo-swimmer-v5": 10, "mo-hopper-2obj-v5": 1, "mo-walker2d-v5": 1, "mo-ant-2obj-v5": 1}
+RL_SYNC_PERIOD = {
+    "mo-halfcheetah-v5": 10,
+    "mo-swimmer-v5": 10,
+    "mo-hopper-2obj-v5": 1,
+    "mo-walker2d-v5": 1,
+    "mo-ant-2obj-v5": 1,
+}
 
 
 def test_presets_set_pderls_rl_sync_period_of_their_env():
     """Every preset that configures train_pderl (the five paper presets at least) sets
     rl_sync_period explicitly, to its env's value in PDERL's code: the default, 1, is right
     for three of the five envs only."""
-    configured = [p for p in sorted((ROOT / "presets").rglob("*.yaml")) if "train_pderl" in yaml.safe_load(p.read_text())]
+    configured = [
+        p for p in sorted((ROOT / "presets").rglob("*.yaml")) if "train_pderl" in yaml.safe_load(p.read_text())
+    ]
     assert set(PRESETS) <= set(configured)
     for path in configured:
         raw = load_params(path)
@@ -98,5 +106,7 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
     items = set(r.stdout.split())
     raw = yaml.safe_load(path.read_text())
     for stage in ("evaluate", "score"):
-        assert {i for i in items if i.startswith(stage + "@")} == {f"{stage}@{s}-{m}" for s in raw["seeds"] for m in raw["methods"]}
+        assert {i for i in items if i.startswith(stage + "@")} == {
+            f"{stage}@{s}-{m}" for s in raw["seeds"] for m in raw["methods"]
+        }
     assert "report" in items

@@ -35,8 +35,13 @@ EXTRACT = [(10.0, 1.0), (1.0, 10.0), (6.0, 6.0), (7.0, 3.0), (2.0, 2.0)]
 REEVAL = [(9.0, 1.0), (1.0, 9.0), (5.0, 5.0), (2.0, 2.0), (3.0, 4.0)]
 ITERATION = [0, 0, 1, 2, 2]
 SAMPLES = [100, 200, 300, 400, 500]
-POPULATION_PROVENANCE = {"git_commit": "abc123", "git_dirty": False, "versions": {"torch": "9.9"},
-                         "device": "cpu: test", "torch_threads": 1}
+POPULATION_PROVENANCE = {
+    "git_commit": "abc123",
+    "git_dirty": False,
+    "versions": {"torch": "9.9"},
+    "device": "cpu: test",
+    "torch_threads": 1,
+}
 
 
 @contextlib.contextmanager
@@ -59,29 +64,87 @@ def write_params(directory: Path, ref: list[float] | None = (0.0, 0.0), score_se
 
 def write_population(path: Path, meta_drop: tuple[str, ...] = (), extract=EXTRACT, seed: int = 0) -> None:
     actor = actor_state(Actor(17, 6, [4], [-1.0] * 6, [1.0] * 6))
-    members = [Member(origin="specialist" if i < 2 else "child", objective=i if i < 2 else None, iteration=it,
-                      parents=[] if i < 2 else [0, 1], target_weight=None if i < 2 else [0.6, 0.8],
-                      returns=list(r), returns_std=[0.0, 0.0], eval_episodes=5, env_samples=s, hidden_sizes=[4], actor=actor)
-               for i, (r, it, s) in enumerate(zip(extract, ITERATION, SAMPLES))]
-    meta = dict(env_id=ENV_ID, obs_dim=17, act_dim=6, n_objectives=2, action_low=[-1.0] * 6, action_high=[1.0] * 6,
-                seed=seed, method="mapex", params={}, provenance=POPULATION_PROVENANCE)
+    members = [
+        Member(
+            origin="specialist" if i < 2 else "child",
+            objective=i if i < 2 else None,
+            iteration=it,
+            parents=[] if i < 2 else [0, 1],
+            target_weight=None if i < 2 else [0.6, 0.8],
+            returns=list(r),
+            returns_std=[0.0, 0.0],
+            eval_episodes=5,
+            env_samples=s,
+            hidden_sizes=[4],
+            actor=actor,
+        )
+        for i, (r, it, s) in enumerate(zip(extract, ITERATION, SAMPLES))
+    ]
+    meta = dict(
+        env_id=ENV_ID,
+        obs_dim=17,
+        act_dim=6,
+        n_objectives=2,
+        action_low=[-1.0] * 6,
+        action_high=[1.0] * 6,
+        seed=seed,
+        method="mapex",
+        params={},
+        provenance=POPULATION_PROVENANCE,
+    )
     save_population(path, members, {k: v for k, v in meta.items() if k not in meta_drop})
 
 
 def write_evaluated(directory: Path, record: dict | None = None, drop_column: str | None = None) -> None:
     """evaluated.csv and evaluation.json as the evaluate stage writes them."""
     directory.mkdir(parents=True, exist_ok=True)
-    header = ["id", "origin", "objective", "iteration", "parents", "env_samples",
-              "obj0_extract", "obj1_extract", "obj0", "obj1", "obj0_std", "obj1_std"]
+    header = [
+        "id",
+        "origin",
+        "objective",
+        "iteration",
+        "parents",
+        "env_samples",
+        "obj0_extract",
+        "obj1_extract",
+        "obj0",
+        "obj1",
+        "obj0_std",
+        "obj1_std",
+    ]
     with open(directory / "evaluated.csv", "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow([h for h in header if h != drop_column])
         for i, (x, r, it, s) in enumerate(zip(EXTRACT, REEVAL, ITERATION, SAMPLES)):
-            row = dict(zip(header, [i, "specialist" if i < 2 else "child", i if i < 2 else "", it, "" if i < 2 else "0;1",
-                                    s, *x, *r, 0.5, 0.5]))
+            row = dict(
+                zip(
+                    header,
+                    [
+                        i,
+                        "specialist" if i < 2 else "child",
+                        i if i < 2 else "",
+                        it,
+                        "" if i < 2 else "0;1",
+                        s,
+                        *x,
+                        *r,
+                        0.5,
+                        0.5,
+                    ],
+                )
+            )
             w.writerow([v for k, v in row.items() if k != drop_column])
-    base = {"env_id": ENV_ID, "method": "mapex", "seed": 0, "episodes": 10, "seed_stream": 1, "max_episode_steps": 750,
-            "population": 5, "env_samples_evaluation": 37500, "provenance": {"git_commit": "def456", "versions": {}}}
+    base = {
+        "env_id": ENV_ID,
+        "method": "mapex",
+        "seed": 0,
+        "episodes": 10,
+        "seed_stream": 1,
+        "max_episode_steps": 750,
+        "population": 5,
+        "env_samples_evaluation": 37500,
+        "provenance": {"git_commit": "def456", "versions": {}},
+    }
     (directory / "evaluation.json").write_text(json.dumps(base if record is None else record))
 
 
@@ -104,8 +167,16 @@ def run(tmp_path) -> Path:
 
 
 def score_run(root: Path, params: Path | None = None) -> tuple[int, str]:
-    return invoke("--population", root / "population.pt", "--evaluated", root / "evaluated", "--out", root / "out",
-                  "--params", params or write_params(root))
+    return invoke(
+        "--population",
+        root / "population.pt",
+        "--evaluated",
+        root / "evaluated",
+        "--out",
+        root / "out",
+        "--params",
+        params or write_params(root),
+    )
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
@@ -148,7 +219,10 @@ def test_front_csv_sorted_along_objective_0(run):
     assert code == 0, out
     rows = read_rows(run / "out" / "front.csv")
     assert [(r["id"], r["origin"], r["iteration"], float(r["obj0"]), float(r["obj1"])) for r in rows] == [
-        ("1", "specialist", "0", 1.0, 9.0), ("2", "child", "1", 5.0, 5.0), ("0", "specialist", "0", 9.0, 1.0)]
+        ("1", "specialist", "0", 1.0, 9.0),
+        ("2", "child", "1", 5.0, 5.0),
+        ("0", "specialist", "0", 9.0, 1.0),
+    ]
 
 
 def test_hypervolume_history_hand_computed(run):
@@ -156,8 +230,16 @@ def test_hypervolume_history_hand_computed(run):
     assert code == 0, out
     rows = read_rows(run / "out" / "hypervolume.csv")
     assert list(rows[0]) == ["iteration", "population", "env_samples", "hypervolume_extract", "hypervolume"]
-    got = [(int(r["iteration"]), int(r["population"]), int(r["env_samples"]), float(r["hypervolume_extract"]),
-            float(r["hypervolume"])) for r in rows]
+    got = [
+        (
+            int(r["iteration"]),
+            int(r["population"]),
+            int(r["env_samples"]),
+            float(r["hypervolume_extract"]),
+            float(r["hypervolume"]),
+        )
+        for r in rows
+    ]
     # extraction-time: it 0: 10 + 10 - 1 = 19; it 1 adds (6,6): 10*1 + 6*5 + 1*4 = 44; it 2 adds (7,3): 46.
     # re-evaluated: it 0: 9 + 9 - 1 = 17; it 1 adds (5,5): 9 + 20 + 4 = 33; it 2 adds two dominated points: 33.
     assert got == [(0, 2, 200, 19.0, 17.0), (1, 3, 300, 44.0, 33.0), (2, 5, 500, 46.0, 33.0)]

@@ -59,7 +59,9 @@ def source(tmp_path_factory) -> Path:
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
     (root / "params.yaml").write_text(yaml.safe_dump(TINY, sort_keys=False))
     # valid params, but dvc.yaml's train_pderl matrix needs pderl_seeds
-    (root / "no_pderl.yaml").write_text(yaml.safe_dump({k: v for k, v in TINY.items() if k != "pderl_seeds"}, sort_keys=False))
+    (root / "no_pderl.yaml").write_text(
+        yaml.safe_dump({k: v for k, v in TINY.items() if k != "pderl_seeds"}, sort_keys=False)
+    )
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n/sweeps/\n")
     git(root, "init", "-q")
     git(root, "config", "user.email", "test@example.com")
@@ -125,24 +127,38 @@ def test_grid_errors_name_file_and_key(tmp_path, source):
 def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
     commit = git(source, "rev-parse", "HEAD")
     grid = {
-        "envs": [{"name": "cheetah", "id": "mo-halfcheetah-v5", "params": {"extract": {"iterations": 3}}}, "mo-hopper-2obj-v5"],
+        "envs": [
+            {"name": "cheetah", "id": "mo-halfcheetah-v5", "params": {"extract": {"iterations": 3}}},
+            "mo-hopper-2obj-v5",
+        ],
         "seeds": [1, 2],
-        "overrides": {"joint": {}, "posthoc": {"extract_variants": [], "posthoc_from": ["td3"], "methods": ["mapex_posthoc_td3"]}},
+        "overrides": {
+            "joint": {},
+            "posthoc": {"extract_variants": [], "posthoc_from": ["td3"], "methods": ["mapex_posthoc_td3"]},
+        },
     }
     path = write_grid(tmp_path / "grid.yaml", grid)
     cells = {c.name: c.params for c in plan_cells(load_grid(path), path, source, commit)}
     assert list(cells) == ["cheetah.joint", "cheetah.posthoc", "mo-hopper-2obj-v5.joint", "mo-hopper-2obj-v5.posthoc"]
     assert cells["cheetah.joint"]["extract"]["iterations"] == 3
     assert cells["cheetah.joint"]["extract"]["beta"] == TINY["extract"]["beta"]  # the rest of the base stays
-    assert cells["cheetah.posthoc"]["methods"] == ["mapex_posthoc_td3"] and cells["cheetah.joint"]["methods"] == TINY["methods"]
-    assert cells["mo-hopper-2obj-v5.joint"]["env"]["reference_point"] == [-100.0, -3390.0]  # presets/reference_points.yaml
+    assert (
+        cells["cheetah.posthoc"]["methods"] == ["mapex_posthoc_td3"]
+        and cells["cheetah.joint"]["methods"] == TINY["methods"]
+    )
+    assert cells["mo-hopper-2obj-v5.joint"]["env"]["reference_point"] == [
+        -100.0,
+        -3390.0,
+    ]  # presets/reference_points.yaml
     assert cells["mo-hopper-2obj-v5.joint"]["extract"]["iterations"] == TINY["extract"]["iterations"]
     assert all(c["seeds"] == [1, 2] for c in cells.values())
 
 
 def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source):
     grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]})
-    result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run")
+    result = run_cli(
+        grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run"
+    )
     assert result.exit_code == 0, result.output
     assert "mo-hopper-2obj-v5: planned" in result.output
     ws = tmp_path / "work" / "mo-hopper-2obj-v5"
@@ -153,11 +169,18 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert not (ws / "dvc.lock").exists()
 
     items = {i.name: i for i in stage_items(ws)}
-    listed = subprocess.run([str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True)
+    listed = subprocess.run(
+        [str(BIN / "dvc"), "stage", "list", "--name-only"], cwd=ws, capture_output=True, text=True, check=True
+    )
     assert set(items) == set(listed.stdout.split())
     assert items["critic_fidelity@0-td3-1"].upstream == ("train_specialist@0",)
     assert items["critic_fidelity@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
-    assert items["report"].upstream == ("evaluate@0-mapex_td3", "evaluate@0-warmup_only_td3", "score@0-mapex_td3", "score@0-warmup_only_td3")
+    assert items["report"].upstream == (
+        "evaluate@0-mapex_td3",
+        "evaluate@0-warmup_only_td3",
+        "score@0-mapex_td3",
+        "score@0-warmup_only_td3",
+    )
     assert "data/evaluate/mapex_td3/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
     assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
     order = list(items)
@@ -166,8 +189,12 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert sorted(sub) == ["extract@0-td3-mapex", "train_specialist@0"]  # posthoc_from: [] -> no post-hoc fits
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         stage_items(ws, ["nope"])
-    bad = write_grid(tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}})
-    result = run_cli(bad, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run")
+    bad = write_grid(
+        tmp_path / "bad.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0], "resources": {"evaluation": {"cpus": 2}}}
+    )
+    result = run_cli(
+        bad, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run"
+    )
     assert result.exit_code == 2 and "resources: ['evaluation'] are not dvc.yaml stages" in result.output
 
     # signatures: what DVC's run-cache key depends on besides code. An extract param changes
@@ -183,9 +210,16 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     # extraction still does not, so a post-hoc refit never reruns it
     params.update(posthoc_from=["td3"], methods=[*params["methods"], "mapex_posthoc_td3"])
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == ["extract@0-td3-mapex", "train_specialist@0"]
+    assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == [
+        "extract@0-td3-mapex",
+        "train_specialist@0",
+    ]
     assert sorted(i.name for i in stage_items(ws, ["extract_posthoc@0-td3"])) == [
-        "extract_posthoc@0-td3", "fit_critics@0-td3-0", "fit_critics@0-td3-1", "train_specialist@0"]
+        "extract_posthoc@0-td3",
+        "fit_critics@0-td3-0",
+        "fit_critics@0-td3-1",
+        "train_specialist@0",
+    ]
     assert {"critic_fidelity_posthoc@0-td3-0", "evaluate@0-mapex_posthoc_td3"} <= {i.name for i in stage_items(ws)}
 
 
@@ -258,13 +292,27 @@ def swept(cluster, source, tmp_path_factory):
     serial = base / "serial"
     git(base, "clone", "-q", str(source), str(serial))
     checkout_cell(serial, commit, cell.params_text)
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "PYTHONPATH": str(serial), "MAPEX_TORCH_THREADS": "1"}
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "PYTHONPATH": str(serial),
+        "MAPEX_TORCH_THREADS": "1",
+    }
     log = open(base / "serial.log", "w")
     proc = subprocess.Popen([str(BIN / "dvc"), "repro"], cwd=serial, env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
         result = run_cli(
-            grid, "--remote", base / "remote", "--repo", source, "--workdir", base / "work", "--max-retries", 2,
-            "--scratch", base / "scratch",
+            grid,
+            "--remote",
+            base / "remote",
+            "--repo",
+            source,
+            "--workdir",
+            base / "work",
+            "--max-retries",
+            2,
+            "--scratch",
+            base / "scratch",
         )
     finally:
         rc = proc.wait()
@@ -314,7 +362,17 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
         "targets": ["critic_fidelity@0-td3-0"],
     }
     path = write_grid(tmp_path / "two.yaml", grid)
-    result = run_cli(path, "--remote", base / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", base / "scratch")
+    result = run_cli(
+        path,
+        "--remote",
+        base / "remote",
+        "--repo",
+        source,
+        "--workdir",
+        tmp_path / "work",
+        "--scratch",
+        base / "scratch",
+    )
     assert result.exit_code == 0, result.output
     out = result.output
     assert "hopper.a: done (0 ran, 2 restored)" in out and "hopper.b: done (1 ran, 1 restored)" in out
@@ -327,11 +385,19 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
         return yaml.safe_load((cell / "dvc.lock").read_text())["stages"]
 
     work, first = tmp_path / "work", lock(base / "work" / "mo-hopper-2obj-v5")
-    ha, hb, ca, cb = lock(work / "hopper.a"), lock(work / "hopper.b"), lock(work / "cheetah.a"), lock(work / "cheetah.b")
+    ha, hb, ca, cb = (
+        lock(work / "hopper.a"),
+        lock(work / "hopper.b"),
+        lock(work / "cheetah.a"),
+        lock(work / "cheetah.b"),
+    )
     assert all(sorted(x) == sorted(SHARED) for x in (ha, hb, ca, cb))
     assert all(ha[k] == first[k] for k in SHARED)
     for a, b in ((ha, hb), (ca, cb)):
-        assert a["train_specialist@0"] == b["train_specialist@0"] and a["critic_fidelity@0-td3-0"]["outs"] != b["critic_fidelity@0-td3-0"]["outs"]
+        assert (
+            a["train_specialist@0"] == b["train_specialist@0"]
+            and a["critic_fidelity@0-td3-0"]["outs"] != b["critic_fidelity@0-td3-0"]["outs"]
+        )
     assert ca["train_specialist@0"]["outs"] != ha["train_specialist@0"]["outs"]
 
 
@@ -343,12 +409,24 @@ def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(clus
         tmp_path / "bad.yaml",
         {"envs": [{"name": "nope", "id": "mo-nope-v5"}], "seeds": [0], "targets": ["critic_fidelity@0-td3-0"]},
     )
-    result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--scratch", tmp_path / "scratch")
+    result = run_cli(
+        grid,
+        "--remote",
+        tmp_path / "remote",
+        "--repo",
+        source,
+        "--workdir",
+        tmp_path / "work",
+        "--scratch",
+        tmp_path / "scratch",
+    )
     assert result.exit_code == 1, result.output
     out = result.output
     assert "nope train_specialist@0: FAILED" in out and "mo-nope-v5" in out  # the stage's own error line
     assert "nope critic_fidelity@0-td3-0: not run: upstream train_specialist@0 failed" in out
-    assert "stages failed in nope: critic_fidelity@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
+    assert (
+        "stages failed in nope: critic_fidelity@0-td3-0, train_specialist@0 (fix the cause and rerun the sweep" in out
+    )
     assert not (tmp_path / "work" / "nope" / "dvc.lock").exists()
     assert list((tmp_path / "scratch" / "nope").iterdir()) == []  # its clone is cleaned up
 
@@ -360,7 +438,9 @@ def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(clus
 @pytest.fixture
 def s3_server():
     pytest.importorskip("dvc_s3", reason="dvc-s3 is a test-only install (make test installs it)")
-    moto_server = pytest.importorskip("moto.server", reason="moto[server] is a test-only install (make test installs it)")
+    moto_server = pytest.importorskip(
+        "moto.server", reason="moto[server] is a test-only install (make test installs it)"
+    )
     import boto3
 
     with socket.socket() as sock:  # a free port
@@ -369,8 +449,9 @@ def s3_server():
     server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
     server.start()
     url = f"http://127.0.0.1:{port}"
-    s3 = boto3.client("s3", endpoint_url=url, aws_access_key_id="testing", aws_secret_access_key="testing",
-                      region_name="us-east-1")
+    s3 = boto3.client(
+        "s3", endpoint_url=url, aws_access_key_id="testing", aws_secret_access_key="testing", region_name="us-east-1"
+    )
     s3.create_bucket(Bucket="mapex-sweep")
     yield url, s3
     server.stop()
@@ -383,18 +464,39 @@ def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_pat
     base, _, _ = swept
     url, s3 = s3_server
     grid = write_grid(tmp_path / "s3.yaml", {**GRID, "targets": ["critic_fidelity@0-td3-0"]})
-    args = [grid, "--remote", "s3://mapex-sweep/remote", "--repo", source, "--workdir", tmp_path / "work",
-            "--scratch", tmp_path / "scratch", "--remote-option", f"endpointurl={url}",
-            "--remote-option", "access_key_id=testing", "--remote-option", "secret_access_key=testing"]
+    args = [
+        grid,
+        "--remote",
+        "s3://mapex-sweep/remote",
+        "--repo",
+        source,
+        "--workdir",
+        tmp_path / "work",
+        "--scratch",
+        tmp_path / "scratch",
+        "--remote-option",
+        f"endpointurl={url}",
+        "--remote-option",
+        "access_key_id=testing",
+        "--remote-option",
+        "secret_access_key=testing",
+    ]
     result = run_cli(*args)
     assert result.exit_code == 0, result.output
     assert "mo-hopper-2obj-v5: done (2 ran, 0 restored)" in result.output
     lock = yaml.safe_load((tmp_path / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
     local = yaml.safe_load((base / "work" / "mo-hopper-2obj-v5" / "dvc.lock").read_text())["stages"]
     assert sorted(lock) == sorted(SHARED) and all(lock[k] == local[k] for k in SHARED)
-    keys = [o["Key"] for page in s3.get_paginator("list_objects_v2").paginate(Bucket="mapex-sweep") for o in page.get("Contents", [])]
+    keys = [
+        o["Key"]
+        for page in s3.get_paginator("list_objects_v2").paginate(Bucket="mapex-sweep")
+        for o in page.get("Contents", [])
+    ]
     assert any(k.startswith("remote/files/md5/") for k in keys) and any(k.startswith("remote/runs/") for k in keys)
-    assert "endpointurl" not in subprocess.run(["git", "show", "HEAD:.dvc/config"], cwd=source, capture_output=True, text=True).stdout
+    assert (
+        "endpointurl"
+        not in subprocess.run(["git", "show", "HEAD:.dvc/config"], cwd=source, capture_output=True, text=True).stdout
+    )
     again = run_cli(*args)
     assert again.exit_code == 0 and "mo-hopper-2obj-v5: up to date" in again.output
     bad = run_cli(*args[:-6], "--remote-option", "endpointurl")
@@ -402,9 +504,13 @@ def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_pat
 
 
 def test_resume_root_gives_each_task_its_own_shared_progress_dir(tmp_path):
-    task = StageTask("hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    task = StageTask(
+        "hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path)
+    )
     assert task_resume_dir(task) == tmp_path / "hopper.a" / "extract_0-td3-mapex"
-    other = StageTask("hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    other = StageTask(
+        "hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path)
+    )
     assert task_resume_dir(other) != task_resume_dir(task)  # cells never share progress
     assert task_resume_dir(StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
 

@@ -26,11 +26,11 @@ from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
 from pipeline.core.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
-from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import SpecialistsRun, continue_training, train_specialist
 from pipeline.core.resume import FORMAT as CHECKPOINT_FORMAT
 from pipeline.core.resume import FORMAT_VERSION as CHECKPOINT_VERSION
 from pipeline.core.resume import Checkpoint
+from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.td3_training import SpecialistsRun, continue_training, train_specialist
 
 CAP = 100  # the tiny preset's episode cap
 TOTAL = 350  # its total_steps
@@ -51,7 +51,9 @@ class Run:
 def train(tmp_path_factory, write_params, mapex, name: str, objective: int, seed: int, overrides=None) -> Run:
     d = tmp_path_factory.mktemp(name)
     params = write_params(d, overrides)
-    proc = mapex("train-specialist", "--objective", objective, "--seed", seed, "--out", d / "out", "--params", params, cwd=d)
+    proc = mapex(
+        "train-specialist", "--objective", objective, "--seed", seed, "--out", d / "out", "--params", params, cwd=d
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert sorted(p.name for p in (d / "out").iterdir()) == [f"obj{objective}"]
     return Run(d / "out" / f"obj{objective}", objective, seed, proc.stderr)
@@ -111,8 +113,14 @@ def test_buffer_holds_every_step_with_its_metadata(cheetah):
     assert (attrs["obs_dim"], attrs["act_dim"], attrs["n_objectives"]) == (17, 6, 2)
     assert attrs["max_episode_steps"] == CAP and attrs["n_transitions"] == TOTAL
     assert {name: data[name].shape for name in FIELDS} == {
-        "obs": (TOTAL, 17), "action": (TOTAL, 6), "reward": (TOTAL, 2), "next_obs": (TOTAL, 17),
-        "terminated": (TOTAL,), "truncated": (TOTAL,), "episode": (TOTAL,), "episode_step": (TOTAL,),
+        "obs": (TOTAL, 17),
+        "action": (TOTAL, 6),
+        "reward": (TOTAL, 2),
+        "next_obs": (TOTAL, 17),
+        "terminated": (TOTAL,),
+        "truncated": (TOTAL,),
+        "episode": (TOTAL,),
+        "episode_step": (TOTAL,),
     }
     assert np.all(np.abs(data["action"]) <= 1.0)
     # The energy objective is -||a||^2 based: never positive, and not constant.
@@ -188,9 +196,12 @@ def test_critics_cover_only_the_primary_when_secondary_is_off(hopper):
     assert meta["objectives"] == [0] and meta["buffer_objective"] == 0
     assert online.n_members == target.n_members == 2
     assert online.weights[0].shape == (2, 11 + 3, 32)
-    assert torch_load_checked(hopper.out / "critics.pt", CRITICS_FORMAT, 1)["meta"]["params"]["train_specialist"][
-        "secondary_critics"
-    ] is False
+    assert (
+        torch_load_checked(hopper.out / "critics.pt", CRITICS_FORMAT, 1)["meta"]["params"]["train_specialist"][
+            "secondary_critics"
+        ]
+        is False
+    )
 
 
 # --- determinism --------------------------------------------------------------------------
@@ -200,7 +211,12 @@ def state_dicts(out: Path) -> dict[str, torch.Tensor]:
     pol = torch_load_checked(out / "policy.pt", POLICY_FORMAT, 1)
     cri = torch_load_checked(out / "critics.pt", CRITICS_FORMAT, 1)
     flat = {}
-    for part, sd in (("actor", pol["actor"]), ("actor_target", pol["actor_target"]), ("online", cri["online"]), ("target", cri["target"])):
+    for part, sd in (
+        ("actor", pol["actor"]),
+        ("actor_target", pol["actor_target"]),
+        ("online", cri["online"]),
+        ("target", cri["target"]),
+    ):
         flat |= {f"{part}.{k}": v for k, v in sd.items()}
     return flat
 
@@ -266,7 +282,9 @@ def test_bad_params_exit_2_with_one_message_and_write_nothing(tmp_path, write_pa
 
 
 @pytest.mark.parametrize(
-    ("overrides", "expected"), BAD_PARAMS, ids=["out-of-range", "unknown-key", "cross-field", "env-section", "top-level", "env-id"]
+    ("overrides", "expected"),
+    BAD_PARAMS,
+    ids=["out-of-range", "unknown-key", "cross-field", "env-section", "top-level", "env-id"],
 )
 def test_bad_params_messages(overrides, expected, tmp_path, write_params, cli):
     """The same command in-process (interpreter start-up costs seconds here)."""
@@ -306,11 +324,15 @@ def test_update_schedule_and_episode_records(monkeypatch):
         return real_update(state, batch, noise, update_actor, **kw)
 
     monkeypatch.setattr(specialist_mod, "stacked_update", counting_update)
-    cfg = TrainSpecialistParams(total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3)
+    cfg = TrainSpecialistParams(
+        total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3
+    )
     env = make_env("mo-swimmer-v5", 15)
     spec = env_spec(env, "mo-swimmer-v5", 15)
     seen: list[tuple[int, int | None]] = []
-    result = train_specialist(env, spec, cfg, 0, 0, torch.device("cpu"), on_step=lambda t, r: seen.append((t, r and r.episode)))
+    result = train_specialist(
+        env, spec, cfg, 0, 0, torch.device("cpu"), on_step=lambda t, r: seen.append((t, r and r.episode))
+    )
     env.close()
     assert calls == [False, False, True] * 3 + [False]
     assert [t for t, _ in seen] == list(range(1, 41))
@@ -336,8 +358,14 @@ def test_out_of_range_objective_in_the_core():
 
 RESUME = {
     "env": {"id": "mo-hopper-2obj-v5", "max_episode_steps": 40},
-    "train_specialist": {"total_steps": 300, "learning_starts": 100, "batch_size": 32, "hidden_sizes": [16, 16],
-                         "buffer_size": 180, "checkpoint_every": 70},
+    "train_specialist": {
+        "total_steps": 300,
+        "learning_starts": 100,
+        "batch_size": 32,
+        "hidden_sizes": [16, 16],
+        "buffer_size": 180,
+        "checkpoint_every": 70,
+    },
 }
 RESUME_CFG = TrainSpecialistParams(**RESUME["train_specialist"], device="cpu")
 PAPER_ENVS = ["mo-hopper-2obj-v5", "mo-halfcheetah-v5", "mo-ant-2obj-v5", "mo-walker2d-v5", "mo-swimmer-v5"]
@@ -350,8 +378,18 @@ PAPER_ENVS = ["mo-hopper-2obj-v5", "mo-halfcheetah-v5", "mo-ant-2obj-v5", "mo-wa
 
 DEVICES = [
     pytest.param("cpu", False, id="cpu"),
-    pytest.param("cuda", True, id="cuda-graphs", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")),
-    pytest.param("cuda", False, id="cuda-eager", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")),
+    pytest.param(
+        "cuda",
+        True,
+        id="cuda-graphs",
+        marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU"),
+    ),
+    pytest.param(
+        "cuda",
+        False,
+        id="cuda-eager",
+        marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU"),
+    ),
 ]
 
 
@@ -514,7 +552,9 @@ def count_steps(monkeypatch, die_at: int | None = None, objective: int = 0) -> S
 
 def run_stage(cli, d: Path, write_params, train_specialist=None):
     """The stage in-process on the RESUME preset, its train_specialist section updated."""
-    params = write_params(d, {"env": RESUME["env"], "train_specialist": {**RESUME["train_specialist"], **(train_specialist or {})}})
+    params = write_params(
+        d, {"env": RESUME["env"], "train_specialist": {**RESUME["train_specialist"], **(train_specialist or {})}}
+    )
     return cli("train-specialist", "--seed", 0, "--out", d / "out", "--params", params)
 
 
@@ -536,7 +576,9 @@ def assert_same_artifacts(a: Path, b: Path) -> None:
     [(True, 0, 250, 210, "specialist_state_obj0-obj1.pt"), (False, 1, 150, 140, "specialist_state_obj1.pt")],
     ids=["stacked", "one-at-a-time"],
 )
-def test_killed_stage_resumes_to_identical_artifacts(batched, objective, die_at, resumed_at, checkpoint, tmp_path, write_params, cli, monkeypatch):
+def test_killed_stage_resumes_to_identical_artifacts(
+    batched, objective, die_at, resumed_at, checkpoint, tmp_path, write_params, cli, monkeypatch
+):
     """The stage dies between two checkpoints; the rerun resumes from the last one, takes
     only the steps left, ends with the same bytes as a run never stopped, and removes the
     checkpoint. One at a time: it dies in the second specialist, after the first was saved."""
@@ -573,11 +615,24 @@ def test_sigkilled_stage_resumes_from_shared_storage(device, graphs, tmp_path, w
     shared = {**env, "MAPEX_RESUME_ROOT": str(tmp_path / "shared")}
 
     def command(out: Path) -> list[str]:
-        return [sys.executable, "-m", "stages.cli", "train-specialist", "--seed", "0", "--out", str(out), "--params", str(params)]
+        return [
+            sys.executable,
+            "-m",
+            "stages.cli",
+            "train-specialist",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+            "--params",
+            str(params),
+        ]
 
     for d in ("ref", "node_a", "node_b"):
         (tmp_path / d).mkdir()
-    ref = subprocess.run(command(tmp_path / "ref" / "out"), cwd=tmp_path / "ref", env=env, capture_output=True, text=True, timeout=300)
+    ref = subprocess.run(
+        command(tmp_path / "ref" / "out"), cwd=tmp_path / "ref", env=env, capture_output=True, text=True, timeout=300
+    )
     assert ref.returncode == 0, ref.stderr[-3000:]
     out = tmp_path / "run" / "out"
     ckpt = tmp_path / "shared" / "out" / "specialist_state_obj0-obj1.pt"
@@ -591,7 +646,9 @@ def test_sigkilled_stage_resumes_from_shared_storage(device, graphs, tmp_path, w
     t = torch.load(ckpt, weights_only=True)["state"]["counters"]["t"]
     assert 70 <= t < 1000 and t % 70 == 0
     assert not (out / "obj0").exists() and not (out / "obj1").exists()
-    again = subprocess.run(command(out), cwd=tmp_path / "node_b", env=shared, capture_output=True, text=True, timeout=300)
+    again = subprocess.run(
+        command(out), cwd=tmp_path / "node_b", env=shared, capture_output=True, text=True, timeout=300
+    )
     assert again.returncode == 0, again.stderr[-3000:]
     assert f"resuming from step {t} of {ckpt}" in again.stderr
     if device == "cpu":
@@ -645,12 +702,26 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
 
     def command(out: Path) -> list[str]:
-        return [sys.executable, "-m", "stages.cli", "train-specialist", "--seed", "0", "--out", str(out), "--params", str(params)]
+        return [
+            sys.executable,
+            "-m",
+            "stages.cli",
+            "train-specialist",
+            "--seed",
+            "0",
+            "--out",
+            str(out),
+            "--params",
+            str(params),
+        ]
 
     ref = subprocess.run(command(tmp_path / "ref"), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert ref.returncode == 0, ref.stderr[-3000:]
     out = tmp_path / "run"
-    ckpts = [tmp_path / ".run.resume" / "specialist_state_obj0.pt", tmp_path / ".run.resume" / "specialist_state_obj1.pt"]
+    ckpts = [
+        tmp_path / ".run.resume" / "specialist_state_obj0.pt",
+        tmp_path / ".run.resume" / "specialist_state_obj1.pt",
+    ]
     proc = subprocess.Popen(command(out), cwd=tmp_path, env=env, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     while not all(c.exists() for c in ckpts) and proc.poll() is None and time.time() < deadline:
@@ -733,8 +804,12 @@ def test_unreadable_or_foreign_checkpoints_are_ignored(tmp_path):
     assert load_checkpoint(bad, "fp") is None and "cannot be read" in said[-1]
     torch.save({"format": "something.else", "format_version": 1}, bad)
     assert load_checkpoint(bad, "fp") is None and "not a mapex.checkpoint" in said[-1]
-    torch.save({"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": "old", "state": {}}, bad)
+    torch.save(
+        {"format": CHECKPOINT_FORMAT, "format_version": CHECKPOINT_VERSION, "fingerprint": "old", "state": {}}, bad
+    )
     assert load_checkpoint(bad, "fp") is None and "changed since it was written" in said[-1]
     assert load_checkpoint(bad, "old") == {}
     n = len(said)
-    assert load_checkpoint(tmp_path / "missing.pt", "fp") is None and len(said) == n  # no checkpoint yet: nothing to say
+    assert (
+        load_checkpoint(tmp_path / "missing.pt", "fp") is None and len(said) == n
+    )  # no checkpoint yet: nothing to say

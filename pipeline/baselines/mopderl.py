@@ -107,11 +107,11 @@ from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume
+from pipeline.core.population import Member, actor_state
+from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
-from pipeline.core.population import Member, actor_state
-from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.specialists.td3_learner import TD3Learner
 from pipeline.specialists.td3_training import stack_td3
 
@@ -149,8 +149,6 @@ def crossover_critic(
     if not others:
         return kb
     return others[0] if len(others) == 1 else others[int(rng.integers(len(others)))]
-
-
 
 
 # ------------------------------------------------------------------------- individuals
@@ -266,7 +264,9 @@ class MopderlRun:
         if len(starts) < 2:
             raise ValueError(f"MOPDERL needs at least two starting actors, got {len(starts)}")
         if sorted(a.objective for a in agents) != list(range(spec.n_objectives)):
-            raise ValueError(f"one RL agent per objective 0..{spec.n_objectives - 1} needed, got {[a.objective for a in agents]}")
+            raise ValueError(
+                f"one RL agent per objective 0..{spec.n_objectives - 1} needed, got {[a.objective for a in agents]}"
+            )
         self.spec, self.td3_cfg, self.cfg, self.seed = spec, td3_cfg, cfg, seed
         self.device = torch.device(device)
         self.seeds = mopderl_seeds(seed)
@@ -297,10 +297,20 @@ class MopderlRun:
             raise ValueError(f"agent {a.objective}: its critics cover {a.objectives}, not its own objective")
         # The specialists' TD3 machinery with S = 1 (on CUDA: device buffer, CUDA graphs), with
         # fresh optimizers: the specialists' artifacts hold no optimizer state.
-        state = stack_td3(c, [a.actor], [a.critic], [list(a.objectives)], [list(a.objectives).index(a.objective)], d,
-                          actor_targets=[a.actor_target], critic_targets=[a.critic_target])
+        state = stack_td3(
+            c,
+            [a.actor],
+            [a.critic],
+            [list(a.objectives)],
+            [list(a.objectives).index(a.objective)],
+            d,
+            actor_targets=[a.actor_target],
+            critic_targets=[a.critic_target],
+        )
         seeds = agent_seeds(self.seed, a.objective)
-        learner = TD3Learner(self.spec, c, state, np.random.default_rng(seeds["rows"]), seeds["smoothing"], seeds["cuda_rows"], d)
+        learner = TD3Learner(
+            self.spec, c, state, np.random.default_rng(seeds["rows"]), seeds["smoothing"], seeds["cuda_rows"], d
+        )
         if len(a.buffer["obs"]):
             learner.buffer.fill(a.buffer)
         next_episode = int(np.asarray(a.buffer["episode"])[-1]) + 1 if len(a.buffer["obs"]) else 0
@@ -313,7 +323,9 @@ class MopderlRun:
         return self.frames >= self.cfg.total_frames
 
     @torch.no_grad()
-    def run_episode(self, env: gym.Env, actor: Actor, ring: StateRing | None, agents: Sequence[RLAgent], noise: bool) -> EpisodeResult:
+    def run_episode(
+        self, env: gym.Env, actor: Actor, ring: StateRing | None, agents: Sequence[RLAgent], noise: bool
+    ) -> EpisodeResult:
         """One episode of `actor` (plus exploration noise if `noise`); its transitions go into
         each of `agents`' buffers (and its states into `ring`). Counts its frames."""
         obs, _ = env.reset(seed=episode_seed(self.seeds["episodes"], self.episodes))
@@ -326,7 +338,11 @@ class MopderlRun:
         while True:
             a = actor(torch.as_tensor(obs, device=self.device).unsqueeze(0))[0].cpu().numpy()
             if noise:
-                a = a + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32) * scale
+                a = (
+                    a
+                    + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32)
+                    * scale
+                )
                 a = np.clip(a, low, high).astype(np.float32)
             next_obs, reward, terminated, truncated, _ = env.step(a)
             next_obs = np.asarray(next_obs, np.float32)
@@ -346,7 +362,9 @@ class MopderlRun:
         self.frames += step
         return EpisodeResult(step, returns)
 
-    def evaluate(self, env: gym.Env, ind: Individual, on_episode: Callable[[EpisodeResult], None] | None = None) -> None:
+    def evaluate(
+        self, env: gym.Env, ind: Individual, on_episode: Callable[[EpisodeResult], None] | None = None
+    ) -> None:
         """Fitness of `ind`: mean (and std) return vector over `eval_episodes` deterministic
         episodes, whose transitions go to its mini buffer and every agent's buffer."""
         rets = []
@@ -416,8 +434,17 @@ class MopderlRun:
             self._enter(ind)
         self._update_archive(self.population)
         self.generation = 0
-        rec = GenerationRecord(0, self.frames, len(self.population), len(self.archive), len(self.archive), self._front_size(),
-                               [ag.updates for ag in self.agents], [], normalised_hypervolume(self.archive_returns()))
+        rec = GenerationRecord(
+            0,
+            self.frames,
+            len(self.population),
+            len(self.archive),
+            len(self.archive),
+            self._front_size(),
+            [ag.updates for ag in self.agents],
+            [],
+            normalised_hypervolume(self.archive_returns()),
+        )
         self.history.append(rec)
         return rec
 
@@ -426,11 +453,19 @@ class MopderlRun:
         self.next_uid += 1
         return ind
 
-    def _mutated_clone(self, actor: Actor, ring: StateRing, states: np.ndarray, kind: int, parents: list[int]) -> Individual:
+    def _mutated_clone(
+        self, actor: Actor, ring: StateRing, states: np.ndarray, kind: int, parents: list[int]
+    ) -> Individual:
         clone = copy.deepcopy(actor)
         clone.zero_grad(set_to_none=True)
         c = self.cfg
-        proximal_mutation(clone, torch.as_tensor(states, device=self.device), c.mutation_std, self.mutation_gen, c.mutation_min_sensitivity)
+        proximal_mutation(
+            clone,
+            torch.as_tensor(states, device=self.device),
+            c.mutation_std,
+            self.mutation_gen,
+            c.mutation_min_sensitivity,
+        )
         return self._new(clone, ring, kind, parents)
 
     def make_offspring(self) -> list[Individual]:
@@ -467,7 +502,9 @@ class MopderlRun:
         for ind in pop + new:  # a snapshot: clones are not cloned again
             if rng.random() < c.mutation_prob:
                 ring = ind.ring.copy()
-                new.append(self._mutated_clone(ind.actor, ring, ring.sample(c.mutation_states, rng), ind.kind, [ind.uid]))
+                new.append(
+                    self._mutated_clone(ind.actor, ring, ring.sample(c.mutation_states, rng), ind.kind, [ind.uid])
+                )
         for ag in self.agents:
             b = ag.buffer
             rows = np.sort(rng.choice(b.size, size=min(c.mutation_states, b.size), replace=False))
@@ -476,7 +513,9 @@ class MopderlRun:
             new.append(self._mutated_clone(ag.learner.actor(), ring, b.take(0, rows), ag.objective, []))
         return new
 
-    def step_generation(self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None) -> GenerationRecord:
+    def step_generation(
+        self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None
+    ) -> GenerationRecord:
         """Run one generation (see the module docstring); returns its record."""
         new = self.make_offspring()
         for ind in new:
@@ -492,8 +531,17 @@ class MopderlRun:
             if on_episode is not None:
                 on_episode(ep)
         self.train_agents()
-        rec = GenerationRecord(self.generation, self.frames, len(new), entered, len(self.archive), self._front_size(),
-                               [ag.updates for ag in self.agents], rl_returns, normalised_hypervolume(self.archive_returns()))
+        rec = GenerationRecord(
+            self.generation,
+            self.frames,
+            len(new),
+            entered,
+            len(self.archive),
+            self._front_size(),
+            [ag.updates for ag in self.agents],
+            rl_returns,
+            normalised_hypervolume(self.archive_returns()),
+        )
         self.history.append(rec)
         return rec
 
@@ -507,9 +555,15 @@ class MopderlRun:
 
         def ind_state(ind: Individual) -> dict[str, Any]:
             return {
-                "uid": ind.uid, "actor": _cpu(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "kind": ind.kind,
-                "parents": list(ind.parents), "generation": ind.generation, "name": ind.name,
-                "fitness": [float(x) for x in ind.fitness], "fitness_std": [float(x) for x in ind.fitness_std],
+                "uid": ind.uid,
+                "actor": _cpu(ind.actor.state_dict()),
+                "ring": ind.ring.state_dict(),
+                "kind": ind.kind,
+                "parents": list(ind.parents),
+                "generation": ind.generation,
+                "name": ind.name,
+                "fitness": [float(x) for x in ind.fitness],
+                "fitness_std": [float(x) for x in ind.fitness_std],
                 "env_samples": ind.env_samples,
             }
 
@@ -517,14 +571,20 @@ class MopderlRun:
             return {
                 "objective": ag.objective,
                 "learner": ag.learner.state_dict(),
-                "added": ag.added, "next_episode": ag.next_episode,
+                "added": ag.added,
+                "next_episode": ag.next_episode,
             }
 
         return {
             "format": STATE_FORMAT,
             "format_version": STATE_VERSION,
             "seed": self.seed,
-            "counters": {"generation": self.generation, "frames": self.frames, "episodes": self.episodes, "next_uid": self.next_uid},
+            "counters": {
+                "generation": self.generation,
+                "frames": self.frames,
+                "episodes": self.episodes,
+                "next_uid": self.next_uid,
+            },
             "population": [ind_state(ind) for ind in self.population],
             "archive": [{"uid": u, "fitness": [float(x) for x in f]} for u, f in self.archive],
             "member_of": [[u, m] for u, m in self.member_of.items()],
@@ -559,10 +619,20 @@ class MopderlRun:
                 actor.load_state_dict(s["actor"])
                 ring = self._ring()
                 ring.load_state_dict(s["ring"])
-                population.append(Individual(
-                    s["uid"], actor, ring, s["kind"], list(s["parents"]), s["generation"], s["name"],
-                    np.array(s["fitness"], dtype=float), np.array(s["fitness_std"], dtype=float), s["env_samples"],
-                ))
+                population.append(
+                    Individual(
+                        s["uid"],
+                        actor,
+                        ring,
+                        s["kind"],
+                        list(s["parents"]),
+                        s["generation"],
+                        s["name"],
+                        np.array(s["fitness"], dtype=float),
+                        np.array(s["fitness_std"], dtype=float),
+                        s["env_samples"],
+                    )
+                )
             for ag, s in zip(self.agents, state["agents"]):
                 ag.learner.load_state_dict(s["learner"])
                 ag.added, ag.next_episode = s["added"], s["next_episode"]
@@ -576,5 +646,10 @@ class MopderlRun:
         self.noise_rng.bit_generator.state = state["rng"]["noise"]
         self.mutation_gen.set_state(state["rng"]["mutation"])
         c = state["counters"]
-        self.generation, self.frames, self.episodes, self.next_uid = c["generation"], c["frames"], c["episodes"], c["next_uid"]
+        self.generation, self.frames, self.episodes, self.next_uid = (
+            c["generation"],
+            c["frames"],
+            c["episodes"],
+            c["next_uid"],
+        )
         self.history = [GenerationRecord(**r) for r in state["history"]]

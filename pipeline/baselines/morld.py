@@ -59,11 +59,11 @@ import torch
 from torch import nn
 
 from pipeline.core.envs import EnvSpec, make_env
-from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies
 from pipeline.core.nets import Actor
-from pipeline.params.morld import MorldParams
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds
+from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies
+from pipeline.params.morld import MorldParams
 
 MORL_BASELINES_VERSION = "1.3.0"
 INSTALL_HINT = 'pip install -e ".[baselines]"'
@@ -122,10 +122,13 @@ def check_mosac_actor(module: nn.Module) -> None:
     latent = getattr(module, "latent_pi", None)
     missing = [a for a in ("fc_mean", "action_scale", "action_bias") if not hasattr(module, a)]
     if not isinstance(latent, nn.Sequential) or missing:
-        raise ValueError(f"{type(module).__name__} is not a MOSAC actor (latent_pi: {type(latent).__name__}, missing {missing})")
+        raise ValueError(
+            f"{type(module).__name__} is not a MOSAC actor (latent_pi: {type(latent).__name__}, missing {missing})"
+        )
     layers = list(latent)
     pattern_ok = (
-        len(layers) >= 2 and len(layers) % 2 == 0
+        len(layers) >= 2
+        and len(layers) % 2 == 0
         and all(isinstance(m, nn.Linear) for m in layers[0::2])
         and all(type(m) is nn.ReLU for m in layers[1::2])
         and isinstance(module.fc_mean, nn.Linear)
@@ -159,8 +162,12 @@ def actor_from_mosac_state(state: dict[str, torch.Tensor]) -> Actor:
     centre = state["action_bias"].reshape(-1).float()
     obs_dim, act_dim = weights[0].shape[1], weights[-1].shape[0]
     if scale.numel() != act_dim or centre.numel() != act_dim:
-        raise ValueError(f"action_scale {tuple(scale.shape)} / action_bias {tuple(centre.shape)} do not match {act_dim} actions")
-    actor = Actor(obs_dim, act_dim, [w.shape[0] for w in weights[:-1]], (centre - scale).tolist(), (centre + scale).tolist())
+        raise ValueError(
+            f"action_scale {tuple(scale.shape)} / action_bias {tuple(centre.shape)} do not match {act_dim} actions"
+        )
+    actor = Actor(
+        obs_dim, act_dim, [w.shape[0] for w in weights[:-1]], (centre - scale).tolist(), (centre + scale).tolist()
+    )
     linears = [m for m in actor.net if isinstance(m, nn.Linear)]
     with torch.no_grad():
         for lin, w, b in zip(linears, weights, biases):
@@ -234,8 +241,13 @@ class ActorArchive:
     def add(self, candidate, evaluation: np.ndarray) -> None:
         check_mosac_actor(candidate.wrapped.actor)
         exchange, frames = self._clock()
-        record = ArchivedActor(int(candidate.id), np.array(candidate.weights, dtype=np.float64), mosac_state(candidate.wrapped.actor),
-                               exchange, frames)
+        record = ArchivedActor(
+            int(candidate.id),
+            np.array(candidate.weights, dtype=np.float64),
+            mosac_state(candidate.wrapped.actor),
+            exchange,
+            frames,
+        )
         self.individuals.append(record)
         self.evaluations.append(evaluation)
         keep = {tuple(x) for x in self._filter(self.evaluations)}
@@ -290,8 +302,14 @@ class MorldRun:
     seeds torch's and numpy's global RNGs (MORLD draws from them).
     """
 
-    def __init__(self, spec: EnvSpec, cfg: MorldParams, seed: int, device: torch.device | str = "cpu",
-                 on_step: Callable[[], None] | None = None):
+    def __init__(
+        self,
+        spec: EnvSpec,
+        cfg: MorldParams,
+        seed: int,
+        device: torch.device | str = "cpu",
+        on_step: Callable[[], None] | None = None,
+    ):
         MORLD, filter_fn = require_morl_baselines()
         self.spec, self.cfg, self.seed = spec, cfg, seed
         self.device = torch.device(device)
@@ -301,17 +319,37 @@ class MorldRun:
         self.env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps), on_step)
         self.eval_env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps))
         policy_args = {
-            "net_arch": list(cfg.hidden_sizes), "batch_size": cfg.batch_size, "learning_starts": cfg.learning_starts,
-            "buffer_size": cfg.buffer_size, "policy_lr": cfg.policy_lr, "q_lr": cfg.q_lr, "tau": cfg.tau,
-            "policy_freq": cfg.policy_freq, "target_net_freq": cfg.target_net_freq, "alpha": cfg.alpha,
-            "autotune": cfg.autotune, "device": self.device,  # MORLD passes no device on to its agents
+            "net_arch": list(cfg.hidden_sizes),
+            "batch_size": cfg.batch_size,
+            "learning_starts": cfg.learning_starts,
+            "buffer_size": cfg.buffer_size,
+            "policy_lr": cfg.policy_lr,
+            "q_lr": cfg.q_lr,
+            "tau": cfg.tau,
+            "policy_freq": cfg.policy_freq,
+            "target_net_freq": cfg.target_net_freq,
+            "alpha": cfg.alpha,
+            "autotune": cfg.autotune,
+            "device": self.device,  # MORLD passes no device on to its agents
         }
         with _quiet():
             self.algo = MORLD(
-                self.env, scalarization_method=cfg.scalarization, evaluation_mode=cfg.evaluation_mode, policy_name="MOSAC",
-                policy_args=policy_args, gamma=cfg.gamma, pop_size=cfg.pop_size, seed=seed, exchange_every=cfg.exchange_every,
-                neighborhood_size=cfg.neighborhood_size, shared_buffer=cfg.shared_buffer, update_passes=cfg.update_passes,
-                weight_init_method=cfg.weight_init, weight_adaptation_method=cfg.weight_adaptation, log=False, device=self.device,
+                self.env,
+                scalarization_method=cfg.scalarization,
+                evaluation_mode=cfg.evaluation_mode,
+                policy_name="MOSAC",
+                policy_args=policy_args,
+                gamma=cfg.gamma,
+                pop_size=cfg.pop_size,
+                seed=seed,
+                exchange_every=cfg.exchange_every,
+                neighborhood_size=cfg.neighborhood_size,
+                shared_buffer=cfg.shared_buffer,
+                update_passes=cfg.update_passes,
+                weight_init_method=cfg.weight_init,
+                weight_adaptation_method=cfg.weight_adaptation,
+                log=False,
+                device=self.device,
             )
         self.algo.archive = ActorArchive(filter_fn, lambda: (self.exchange, int(self.algo.global_step)))
         self.started = False
@@ -343,7 +381,9 @@ class MorldRun:
         return evals
 
     def _record(self, trained: int) -> ExchangeRecord:
-        rec = ExchangeRecord(self.exchange, self.frames, self.eval_env.frames, trained, len(self.algo.archive.individuals))
+        rec = ExchangeRecord(
+            self.exchange, self.frames, self.eval_env.frames, trained, len(self.algo.archive.individuals)
+        )
         self.history.append(rec)
         return rec
 
@@ -394,14 +434,33 @@ class MorldRun:
         for i, p in enumerate(self.algo.population):
             state = mosac_state(p.wrapped.actor)
             finals.append(state)
-            out.append(ExportedActor(f"pop{i}", actor_from_mosac(p.wrapped.actor), self.eval_weights[i].tolist(), self.exchange,
-                                     self.frames, self.last_evals[i].tolist()))
+            out.append(
+                ExportedActor(
+                    f"pop{i}",
+                    actor_from_mosac(p.wrapped.actor),
+                    self.eval_weights[i].tolist(),
+                    self.exchange,
+                    self.frames,
+                    self.last_evals[i].tolist(),
+                )
+            )
         archive = self.algo.archive
         for j, (rec, ev) in enumerate(zip(archive.individuals, archive.evaluations)):
-            if any(state.keys() == rec.actor.keys() and all(torch.equal(state[k], rec.actor[k]) for k in state) for state in finals):
+            if any(
+                state.keys() == rec.actor.keys() and all(torch.equal(state[k], rec.actor[k]) for k in state)
+                for state in finals
+            ):
                 continue
-            out.append(ExportedActor(f"archive{j}", actor_from_mosac_state(rec.actor), rec.weights.tolist(), rec.exchange, rec.frames,
-                                     np.asarray(ev, dtype=np.float64).tolist()))
+            out.append(
+                ExportedActor(
+                    f"archive{j}",
+                    actor_from_mosac_state(rec.actor),
+                    rec.weights.tolist(),
+                    rec.exchange,
+                    rec.frames,
+                    np.asarray(ev, dtype=np.float64).tolist(),
+                )
+            )
         return out
 
     # -- checkpoint -------------------------------------------------------------------------
@@ -429,10 +488,15 @@ class MorldRun:
         agents = []
         for p, b in zip(algo.population, index):
             w = p.wrapped
-            agent = {name: {k: v.detach().cpu().clone() for k, v in getattr(w, name).state_dict().items()} for name in _NETS}
+            agent = {
+                name: {k: v.detach().cpu().clone() for k, v in getattr(w, name).state_dict().items()} for name in _NETS
+            }
             agent |= {
-                "actor_optimizer": w.actor_optimizer.state_dict(), "q_optimizer": w.q_optimizer.state_dict(),
-                "alpha": float(w.alpha), "global_step": int(w.global_step), "buffer": b,
+                "actor_optimizer": w.actor_optimizer.state_dict(),
+                "q_optimizer": w.q_optimizer.state_dict(),
+                "alpha": float(w.alpha),
+                "global_step": int(w.global_step),
+                "buffer": b,
                 "weights": torch.from_numpy(np.array(p.weights, dtype=np.float64)),
             }
             if w.autotune:
@@ -444,11 +508,26 @@ class MorldRun:
             # view would drag the whole preallocated array into the file)
             return torch.from_numpy(a if n == len(a) else a[:n].copy())
 
-        bufs = [{"ptr": int(b.ptr), "size": int(b.size), "max_size": int(b.max_size),
-                 **{k: rows(getattr(b, k), b.size) for k in ("obs", "next_obs", "actions", "rewards", "dones")}} for b in buffers]
-        archive = [{"policy": r.policy, "weights": torch.from_numpy(r.weights.copy()), "actor": r.actor, "exchange": r.exchange,
-                    "frames": r.frames, "evaluation": torch.from_numpy(np.array(e, dtype=np.float64))}
-                   for r, e in zip(algo.archive.individuals, algo.archive.evaluations)]
+        bufs = [
+            {
+                "ptr": int(b.ptr),
+                "size": int(b.size),
+                "max_size": int(b.max_size),
+                **{k: rows(getattr(b, k), b.size) for k in ("obs", "next_obs", "actions", "rewards", "dones")},
+            }
+            for b in buffers
+        ]
+        archive = [
+            {
+                "policy": r.policy,
+                "weights": torch.from_numpy(r.weights.copy()),
+                "actor": r.actor,
+                "exchange": r.exchange,
+                "frames": r.frames,
+                "evaluation": torch.from_numpy(np.array(e, dtype=np.float64)),
+            }
+            for r, e in zip(algo.archive.individuals, algo.archive.evaluations)
+        ]
         np_state = np.random.get_state(legacy=False)
         rng = {
             "torch": torch.get_rng_state(),
@@ -461,12 +540,19 @@ class MorldRun:
         }
         return {
             "version": STATE_VERSION,
-            "agents": agents, "buffers": bufs, "archive": archive, "rng": rng,
-            "global_step": int(algo.global_step), "iteration": int(algo.iteration), "current_policy": int(algo.current_policy),
-            "exchange": self.exchange, "history": [asdict(r) for r in self.history],
+            "agents": agents,
+            "buffers": bufs,
+            "archive": archive,
+            "rng": rng,
+            "global_step": int(algo.global_step),
+            "iteration": int(algo.iteration),
+            "current_policy": int(algo.current_policy),
+            "exchange": self.exchange,
+            "history": [asdict(r) for r in self.history],
             "eval_weights": [torch.from_numpy(w.copy()) for w in self.eval_weights],
             "last_evals": [torch.from_numpy(e.copy()) for e in self.last_evals],
-            "frames_eval": int(self.eval_env.frames), "frames_train": int(self.env.frames),
+            "frames_eval": int(self.eval_env.frames),
+            "frames_train": int(self.env.frames),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -476,13 +562,17 @@ class MorldRun:
         algo = self.algo
         buffers, index = self._buffers()
         if len(state["agents"]) != len(algo.population) or [a["buffer"] for a in state["agents"]] != index:
-            raise ValueError(f"{len(state['agents'])} agents / buffer layout {[a['buffer'] for a in state['agents']]} saved, "
-                             f"the run has {len(algo.population)} / {index}")
+            raise ValueError(
+                f"{len(state['agents'])} agents / buffer layout {[a['buffer'] for a in state['agents']]} saved, "
+                f"the run has {len(algo.population)} / {index}"
+            )
         for b, saved in zip(buffers, state["buffers"]):
             n = saved["size"]
             if saved["max_size"] != b.max_size or saved["obs"].shape[1:] != b.obs.shape[1:]:
-                raise ValueError(f"replay buffer of {saved['max_size']} rows x {tuple(saved['obs'].shape[1:])} saved, "
-                                 f"the run's has {b.max_size} x {b.obs.shape[1:]}")
+                raise ValueError(
+                    f"replay buffer of {saved['max_size']} rows x {tuple(saved['obs'].shape[1:])} saved, "
+                    f"the run's has {b.max_size} x {b.obs.shape[1:]}"
+                )
             for k in ("obs", "next_obs", "actions", "rewards", "dones"):
                 getattr(b, k)[:n] = saved[k][:n].numpy()
             b.ptr, b.size = saved["ptr"], n
@@ -503,10 +593,16 @@ class MorldRun:
             p.weights = weights
             w.set_weights(weights)
         archive = algo.archive
-        archive.individuals = [ArchivedActor(r["policy"], r["weights"].numpy().copy(), r["actor"], r["exchange"], r["frames"])
-                               for r in state["archive"]]
+        archive.individuals = [
+            ArchivedActor(r["policy"], r["weights"].numpy().copy(), r["actor"], r["exchange"], r["frames"])
+            for r in state["archive"]
+        ]
         archive.evaluations = [r["evaluation"].numpy().copy() for r in state["archive"]]
-        algo.global_step, algo.iteration, algo.current_policy = state["global_step"], state["iteration"], state["current_policy"]
+        algo.global_step, algo.iteration, algo.current_policy = (
+            state["global_step"],
+            state["iteration"],
+            state["current_policy"],
+        )
         self.exchange = state["exchange"]
         self.history = [ExchangeRecord(**r) for r in state["history"]]
         self.eval_weights = [w.numpy().copy() for w in state["eval_weights"]]
@@ -533,7 +629,9 @@ class MorldRun:
 # -- export ---------------------------------------------------------------------------------
 
 
-def evaluate_exported(actors: Sequence[Actor], spec: EnvSpec, seed: int, episodes: int, chunk: int = 8) -> list[EvalResult]:
+def evaluate_exported(
+    actors: Sequence[Actor], spec: EnvSpec, seed: int, episodes: int, chunk: int = 8
+) -> list[EvalResult]:
     """Deterministic evaluation of each actor for `episodes` episodes; actor i on
     eval_seeds(seed, EVAL_STREAM, i, episodes), `chunk` actors at a time in one batch."""
     width = min(chunk, len(actors))
@@ -541,7 +639,7 @@ def evaluate_exported(actors: Sequence[Actor], spec: EnvSpec, seed: int, episode
     try:
         results: list[EvalResult] = []
         for start in range(0, len(actors), chunk):
-            group = list(actors[start:start + chunk])
+            group = list(actors[start : start + chunk])
             seeds = [eval_seeds(seed, EVAL_STREAM, i, episodes) for i in range(start, start + len(group))]
             results += evaluate_policies(group, envs, seeds)
         return results
@@ -566,9 +664,18 @@ def export_members(run: MorldRun, episodes: int) -> tuple[list[Member], dict[str
     results = evaluate_exported([e.actor for e in exported], run.spec, run.seed, episodes)
     members = [
         Member(
-            origin="morld", objective=None, iteration=e.exchange, parents=[], target_weight=e.weights,
-            returns=r.mean.tolist(), returns_std=r.std.tolist(), eval_episodes=episodes, env_samples=e.frames,
-            hidden_sizes=hidden_sizes_of(e.actor), actor=actor_state(e.actor), policy_name=e.name,
+            origin="morld",
+            objective=None,
+            iteration=e.exchange,
+            parents=[],
+            target_weight=e.weights,
+            returns=r.mean.tolist(),
+            returns_std=r.std.tolist(),
+            eval_episodes=episodes,
+            env_samples=e.frames,
+            hidden_sizes=hidden_sizes_of(e.actor),
+            actor=actor_state(e.actor),
+            policy_name=e.name,
         )
         for e, r in zip(exported, results)
     ]

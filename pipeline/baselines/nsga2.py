@@ -94,7 +94,9 @@ def nsga2_select(points: np.ndarray, n: int) -> list[int]:
     return sorted(int(i) for i in preference_order(ranks, crowd)[:n])
 
 
-def tournament_pair(positions: np.ndarray, size: int, used: set[tuple[int, int]], rng: np.random.Generator) -> tuple[int, int]:
+def tournament_pair(
+    positions: np.ndarray, size: int, used: set[tuple[int, int]], rng: np.random.Generator
+) -> tuple[int, int]:
     """Parents (better, worse) of one crossover, by tournament.
 
     Draws `size` entrants (with replacement) from the population, orders the distinct ones by

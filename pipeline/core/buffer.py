@@ -163,7 +163,12 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
         if attrs.get("checksums", {}).get(name) != _crc(arr):
             raise ArtifactError(f"{path}: array {name!r} fails its checksum (a chunk is missing or damaged)")
         data[name] = arr
-    expect = {"obs": attrs["obs_dim"], "next_obs": attrs["obs_dim"], "action": attrs["act_dim"], "reward": attrs["n_objectives"]}
+    expect = {
+        "obs": attrs["obs_dim"],
+        "next_obs": attrs["obs_dim"],
+        "action": attrs["act_dim"],
+        "reward": attrs["n_objectives"],
+    }
     for name, dim in expect.items():
         if data[name].ndim != 2 or data[name].shape[1] != dim:
             raise ArtifactError(f"{path}: array {name!r} has shape {data[name].shape}, expected (T, {dim})")
@@ -186,8 +191,13 @@ class StackedReplay:
         self.n, self.capacity, self.device = n, capacity, torch.device(device)
         o, a, m = obs_dim, act_dim, n_objectives
         # column slices of the packed row: obs | action | reward | next_obs | terminated
-        self.cols = {"obs": slice(0, o), "action": slice(o, o + a), "reward": slice(o + a, o + a + m),
-                     "next_obs": slice(o + a + m, 2 * o + a + m), "terminated": slice(2 * o + a + m, 2 * o + a + m + 1)}
+        self.cols = {
+            "obs": slice(0, o),
+            "action": slice(o, o + a),
+            "reward": slice(o + a, o + a + m),
+            "next_obs": slice(o + a + m, 2 * o + a + m),
+            "terminated": slice(2 * o + a + m, 2 * o + a + m + 1),
+        }
         width = 2 * o + a + m + 1
         self.rows = torch.zeros(n, capacity, width, device=self.device)
         on_cuda = self.device.type == "cuda"
@@ -228,7 +238,13 @@ class StackedReplay:
         """Rows idx (S, B) long, on the device, of each specialist's ring -> Batch with a leading S."""
         got = torch.gather(self.rows, 1, idx.unsqueeze(-1).expand(-1, -1, self.rows.shape[2]))  # (S, B, F)
         c = self.cols
-        return Batch(got[..., c["obs"]], got[..., c["action"]], got[..., c["reward"]], got[..., c["next_obs"]], got[..., c["terminated"]].squeeze(-1))
+        return Batch(
+            got[..., c["obs"]],
+            got[..., c["action"]],
+            got[..., c["reward"]],
+            got[..., c["next_obs"]],
+            got[..., c["terminated"]].squeeze(-1),
+        )
 
     def take(self, s: int, idx: np.ndarray, name: str = "obs") -> np.ndarray:
         """Field `name` of specialist s's ring slots `idx` (storage positions), as numpy."""

@@ -40,7 +40,12 @@ def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
 
 
 def save_policy(path: str | Path, actor: Actor, meta: dict[str, Any], actor_target: Actor | None = None) -> None:
-    obj: dict[str, Any] = {"format": POLICY_FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "actor": _cpu_state(actor)}
+    obj: dict[str, Any] = {
+        "format": POLICY_FORMAT,
+        "format_version": FORMAT_VERSION,
+        "meta": meta,
+        "actor": _cpu_state(actor),
+    }
     if actor_target is not None:
         obj["actor_target"] = _cpu_state(actor_target)
     torch_save_atomic(obj, path)

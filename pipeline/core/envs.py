@@ -43,9 +43,7 @@ def make_env(env_id: str, max_episode_steps: int) -> gym.Env:
         raise EnvError(f"env.id = {env_id!r}: cannot build it ({exc})") from None
     if not isinstance(env.action_space, gym.spaces.Box):
         env.close()
-        raise EnvError(
-            f"env.id = {env_id!r}: action space is {env.action_space}, expected a continuous Box"
-        )
+        raise EnvError(f"env.id = {env_id!r}: action space is {env.action_space}, expected a continuous Box")
     reward_space = getattr(env.unwrapped, "reward_space", None)
     if reward_space is None or len(reward_space.shape) != 1 or reward_space.shape[0] < 2:
         env.close()

@@ -30,9 +30,28 @@ _KNOWN_WRAPPERS = (gym.wrappers.TimeLimit, gym.wrappers.OrderEnforcing, gym.wrap
 # xpos still belongs to the last substep's start, not to the current qpos. So they are saved
 # as they are, not recomputed on restore.
 _MJ_DERIVED = (
-    "xpos", "xquat", "xmat", "xipos", "ximat", "xanchor", "xaxis", "geom_xpos", "geom_xmat",
-    "site_xpos", "site_xmat", "subtree_com", "cinert", "cdof", "cvel", "cacc", "cfrc_int",
-    "cfrc_ext", "qacc", "qfrc_actuator", "actuator_force", "sensordata",
+    "xpos",
+    "xquat",
+    "xmat",
+    "xipos",
+    "ximat",
+    "xanchor",
+    "xaxis",
+    "geom_xpos",
+    "geom_xmat",
+    "site_xpos",
+    "site_xmat",
+    "subtree_com",
+    "cinert",
+    "cdof",
+    "cvel",
+    "cacc",
+    "cfrc_int",
+    "cfrc_ext",
+    "qacc",
+    "qfrc_actuator",
+    "actuator_force",
+    "sensordata",
 )
 
 
@@ -54,7 +73,9 @@ def env_checkpoint_problem(env: gym.Env) -> str | None:
         import mujoco
     except ImportError:  # pragma: no cover - mujoco comes with the MuJoCo envs
         return "mujoco is not installed"
-    if not isinstance(getattr(u, "model", None), mujoco.MjModel) or not isinstance(getattr(u, "data", None), mujoco.MjData):
+    if not isinstance(getattr(u, "model", None), mujoco.MjModel) or not isinstance(
+        getattr(u, "data", None), mujoco.MjData
+    ):
         return f"{type(u).__name__} is not a MuJoCo env (only MuJoCo physics state is saved)"
     return None
 
@@ -110,7 +131,9 @@ def restore_env_state(env: gym.Env, state: dict[str, Any]) -> None:
         raise ValueError(f"physics state of shape {tuple(physics.shape)} does not fit this env's model")
     chain = _wrapper_chain(env)
     if [type(w).__name__ for w in chain] != [w["type"] for w in state["wrappers"]]:
-        raise ValueError(f"env wrappers {[w['type'] for w in state['wrappers']]} were saved, this env has {[type(w).__name__ for w in chain]}")
+        raise ValueError(
+            f"env wrappers {[w['type'] for w in state['wrappers']]} were saved, this env has {[type(w).__name__ for w in chain]}"
+        )
     mujoco.mj_setState(u.model, u.data, physics, sig)
     mujoco.mj_forward(u.model, u.data)  # derived quantities not saved: consistent with the state
     for k, v in state["derived"].items():

@@ -98,10 +98,16 @@ class CriticEnsemble(nn.Module):
         nn.Module.__init__(out)
         out.n_members = sum(e.n_members for e in ensembles)
         out.weights = nn.ParameterList(
-            [nn.Parameter(torch.cat([e.weights[i].detach() for e in ensembles]).clone()) for i in range(len(first.weights))]
+            [
+                nn.Parameter(torch.cat([e.weights[i].detach() for e in ensembles]).clone())
+                for i in range(len(first.weights))
+            ]
         )
         out.biases = nn.ParameterList(
-            [nn.Parameter(torch.cat([e.biases[i].detach() for e in ensembles]).clone()) for i in range(len(first.biases))]
+            [
+                nn.Parameter(torch.cat([e.biases[i].detach() for e in ensembles]).clone())
+                for i in range(len(first.biases))
+            ]
         )
         return out
 
@@ -152,10 +158,16 @@ class StackedActor(nn.Module):
         linears = [[m for m in a.net if isinstance(m, nn.Linear)] for a in actors]
         self.hidden_sizes = [lin.out_features for lin in linears[0][:-1]]
         self.weights = nn.ParameterList(
-            [nn.Parameter(torch.stack([ls[i].weight.detach().T for ls in linears]).contiguous()) for i in range(len(linears[0]))]
+            [
+                nn.Parameter(torch.stack([ls[i].weight.detach().T for ls in linears]).contiguous())
+                for i in range(len(linears[0]))
+            ]
         )
         self.biases = nn.ParameterList(
-            [nn.Parameter(torch.stack([ls[i].bias.detach()[None] for ls in linears]).clone()) for i in range(len(linears[0]))]
+            [
+                nn.Parameter(torch.stack([ls[i].bias.detach()[None] for ls in linears]).clone())
+                for i in range(len(linears[0]))
+            ]
         )
         self.register_buffer("scale", torch.stack([a.scale[None] for a in actors]).clone())  # (S, 1, a)
         self.register_buffer("centre", torch.stack([a.centre[None] for a in actors]).clone())

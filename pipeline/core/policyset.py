@@ -39,7 +39,11 @@ def _state(actor: Actor) -> dict:
 
 
 def save_policy_set(
-    path: str | Path, actors: Sequence[Actor], names: Sequence[str], fitness: Sequence[float | None], meta: dict[str, Any]
+    path: str | Path,
+    actors: Sequence[Actor],
+    names: Sequence[str],
+    fitness: Sequence[float | None],
+    meta: dict[str, Any],
 ) -> None:
     if not actors:
         raise ValueError("a policy set holds at least one actor")
@@ -83,7 +87,9 @@ def load_policy_set(path: str | Path) -> PolicySet:
     if not (isinstance(names, list) and isinstance(fitness, list) and isinstance(states, list)):
         raise ArtifactError(f"{path}: 'names', 'fitness' and 'actors' must be lists")
     if not states or not len(states) == len(names) == len(fitness):
-        raise ArtifactError(f"{path}: {len(states)} actors, {len(names)} names, {len(fitness)} fitness values (need equal, >= 1)")
+        raise ArtifactError(
+            f"{path}: {len(states)} actors, {len(names)} names, {len(fitness)} fitness values (need equal, >= 1)"
+        )
     actors = []
     for name, state in zip(names, states):
         actor = actor_from_meta(meta)

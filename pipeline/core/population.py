@@ -80,7 +80,10 @@ def actor_state(actor: Actor) -> dict[str, torch.Tensor]:
 
 
 def save_population(path: str | Path, members: list[Member], meta: dict[str, Any]) -> None:
-    torch_save_atomic({"format": FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "members": [asdict(m) for m in members]}, path)
+    torch_save_atomic(
+        {"format": FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "members": [asdict(m) for m in members]},
+        path,
+    )
 
 
 def _load_any_version(path: str | Path) -> tuple[dict[str, Any], int]:

@@ -93,12 +93,17 @@ class Checkpoint:
             self.say(f"{self.path}: ignored, starting over (not a {FORMAT} v{FORMAT_VERSION} file)")
             return None
         if obj.get("fingerprint") != self.fp:
-            self.say(f"{self.path}: params, inputs, code, device, threads or libraries changed since it was written; starting over")
+            self.say(
+                f"{self.path}: params, inputs, code, device, threads or libraries changed since it was written; starting over"
+            )
             return None
         state, n = obj.get("state"), obj.get("n_items", 0)
         if n:
             try:
-                state = {**state, "log": [torch_load_checked(self._item(i), ITEM_FORMAT, FORMAT_VERSION)["item"] for i in range(n)]}
+                state = {
+                    **state,
+                    "log": [torch_load_checked(self._item(i), ITEM_FORMAT, FORMAT_VERSION)["item"] for i in range(n)],
+                }
             except (ArtifactError, KeyError) as exc:
                 self.say(f"{self.path}: ignored, starting over (an entry it counts cannot be read: {exc})")
                 return None
@@ -117,9 +122,16 @@ class Checkpoint:
                 for old in self._items():  # entries of an earlier run must not linger
                     old.unlink(missing_ok=True)
             for i in range(self.written, len(log)):
-                torch_save_atomic({"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "item": log[i]}, self._item(i))
-        obj = {"format": FORMAT, "format_version": FORMAT_VERSION, "fingerprint": self.fp, "state": rest,
-               "n_items": 0 if log is None else len(log)}
+                torch_save_atomic(
+                    {"format": ITEM_FORMAT, "format_version": FORMAT_VERSION, "item": log[i]}, self._item(i)
+                )
+        obj = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "fingerprint": self.fp,
+            "state": rest,
+            "n_items": 0 if log is None else len(log),
+        }
         with atomic_path(self.path) as tmp:
             torch.save(obj, tmp)
         self.written = obj["n_items"]
@@ -145,7 +157,13 @@ def resume(ckpt: Checkpoint, fresh: Callable[[], R]) -> tuple[R, bool]:
         return run, False
     try:
         run.load_state_dict(state)
-    except (ValueError, KeyError, RuntimeError, TypeError, ArtifactError) as exc:  # right fingerprint, yet it does not fit
+    except (
+        ValueError,
+        KeyError,
+        RuntimeError,
+        TypeError,
+        ArtifactError,
+    ) as exc:  # right fingerprint, yet it does not fit
         ckpt.say(f"{ckpt.path}: cannot be resumed ({exc}); starting over")
         if hasattr(run, "close"):
             run.close()

@@ -52,7 +52,9 @@ def save_specialist(slot: Path, meta: dict, objective: int, result) -> None:
 
     `result` has buffer, actor, actor_target, critic, critic_target and objectives (a TD3
     specialist's result, or PDERL's RL agent)."""
-    save_buffer(slot / "buffer.zarr", result.buffer, {key: meta[key] for key in _BUFFER_META_KEYS} | {"objective": objective})
+    save_buffer(
+        slot / "buffer.zarr", result.buffer, {key: meta[key] for key in _BUFFER_META_KEYS} | {"objective": objective}
+    )
     save_policy(slot / "policy.pt", result.actor, meta | {"objective": objective}, result.actor_target)
     save_critics(
         slot / "critics.pt",
@@ -132,20 +134,26 @@ def check_posthoc_buffer(crit_path: Path, cmeta: dict, buf_path: Path, attrs: di
     and those must be the checksums of `buf_path` (its arrays, `attrs["checksums"]`)."""
     theirs = cmeta.get("buffer_checksums")
     if theirs is None:
-        raise ArtifactError(f"{crit_path}: the post-hoc critics do not record which buffer they were fitted on (they are "
-                            f"without 'buffer_checksums'), so they cannot be checked against {buf_path}; refit them with fit-critics")
+        raise ArtifactError(
+            f"{crit_path}: the post-hoc critics do not record which buffer they were fitted on (they are "
+            f"without 'buffer_checksums'), so they cannot be checked against {buf_path}; refit them with fit-critics"
+        )
     ours = attrs.get("checksums", {})
     if theirs != ours:
         differ = sorted(k for k in set(theirs) | set(ours) if theirs.get(k) != ours.get(k))
-        raise ArtifactError(f"{crit_path} was fitted on a different buffer than {buf_path}: the checksums of {differ} differ")
+        raise ArtifactError(
+            f"{crit_path} was fitted on a different buffer than {buf_path}: the checksums of {differ} differ"
+        )
 
 
 def check_critics(crit_path: Path, cmeta: dict, buf_path: Path, attrs: dict, mode: str, n_objectives: int) -> None:
     """The critics are of the kind the reader asks for (mode "posthoc" or "joint"), cover every
     objective and, if fitted post hoc, were fitted on exactly this buffer."""
     if cmeta.get("source") != mode:
-        raise ArtifactError(f"{crit_path}: critics of source {cmeta.get('source')!r} beside {buf_path}, but the variant "
-                            f"reads {mode!r} critics (mapex_posthoc: posthoc; the others: joint)")
+        raise ArtifactError(
+            f"{crit_path}: critics of source {cmeta.get('source')!r} beside {buf_path}, but the variant "
+            f"reads {mode!r} critics (mapex_posthoc: posthoc; the others: joint)"
+        )
     if cmeta["objectives"] != list(range(n_objectives)):
         raise ArtifactError(
             f"{crit_path}: critics covering objectives {cmeta['objectives']}; expected all of {list(range(n_objectives))} "

@@ -44,8 +44,10 @@ def oversubscribed(processes: int, threads: int) -> str | None:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     if processes * threads <= cores:
         return None
-    return (f"warning: {processes} processes x {threads} torch threads on {cores} cores: oversubscribed, "
-            f"expect it to be slow; lower MAPEX_TORCH_THREADS or processes")
+    return (
+        f"warning: {processes} processes x {threads} torch threads on {cores} cores: oversubscribed, "
+        f"expect it to be slow; lower MAPEX_TORCH_THREADS or processes"
+    )
 
 
 class WorkerError(RuntimeError):

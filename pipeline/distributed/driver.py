@@ -44,7 +44,11 @@ def _repo_root(path: Path) -> Path:
 
 
 def _check_clean(repo: Path, commit: str) -> None:
-    dirty = [line for line in _git(repo, "status", "--porcelain", "--untracked-files=no", "--", ".", ":!dvc.lock").splitlines() if line]
+    dirty = [
+        line
+        for line in _git(repo, "status", "--porcelain", "--untracked-files=no", "--", ".", ":!dvc.lock").splitlines()
+        if line
+    ]
     if dirty:
         files = ", ".join(line[3:] for line in dirty[:10]) + (", ..." if len(dirty) > 10 else "")
         raise SweepError(
@@ -115,7 +119,9 @@ def run_sweep(
     source = git_url or str(repo)
     remote = _remote_location(remote)
     workdir = (Path(workdir) if workdir is not None else repo / "sweeps" / grid_path.stem).resolve()
-    log(f"sweep {grid_path.name}: {len(cells)} cell(s), code commit {commit[:12]}, remote {remote}, workspaces in {workdir}")
+    log(
+        f"sweep {grid_path.name}: {len(cells)} cell(s), code commit {commit[:12]}, remote {remote}, workspaces in {workdir}"
+    )
 
     plans, results = _plan_workspaces(grid, grid_path, cells, workdir, source, commit, log)
     todo = [p for p in plans if not p.up_to_date]
@@ -132,8 +138,17 @@ def run_sweep(
         cluster = ray.cluster_resources()
         log(f"ray: {cluster.get('CPU', 0):g} CPU, {cluster.get('GPU', 0):g} GPU, {len(ray.nodes())} node(s)")
         pending = _submit_tasks(
-            ray, todo, grid, cluster.get("GPU", 0), source=source, commit=commit, remote=remote, scratch=scratch,
-            options=options, resume_root=resume_root, max_retries=max_retries,
+            ray,
+            todo,
+            grid,
+            cluster.get("GPU", 0),
+            source=source,
+            commit=commit,
+            remote=remote,
+            scratch=scratch,
+            options=options,
+            resume_root=resume_root,
+            max_retries=max_retries,
         )
         _collect_results(ray, pending, results, log)
     finally:
@@ -150,7 +165,9 @@ def _remote_settings(remote_options: dict[str, str] | None) -> tuple[tuple[str, 
     options = tuple(sorted((remote_options or {}).items()))
     bad = [k for k, _ in options if not re.fullmatch(r"[a-z_]+", k)]
     if bad:
-        raise SweepError(f"--remote-option: {bad} are not DVC remote setting names (e.g. endpointurl, access_key_id)", 2)
+        raise SweepError(
+            f"--remote-option: {bad} are not DVC remote setting names (e.g. endpointurl, access_key_id)", 2
+        )
     return options
 
 
@@ -188,7 +205,9 @@ def _plan_workspaces(
             known = {i.stage for i in plan.items} | set(GPU_STAGES)
             unknown = sorted(set(grid.resources) - known)
             if unknown:
-                raise GridError(f"{grid_path}: resources: {unknown} are not dvc.yaml stages (have {sorted({i.stage for i in plan.items})})")
+                raise GridError(
+                    f"{grid_path}: resources: {unknown} are not dvc.yaml stages (have {sorted({i.stage for i in plan.items})})"
+                )
             log(f"  {cell.name}: {len(plan.items)} stage items")
         plans.append(plan)
     return plans, results
@@ -218,8 +237,18 @@ def _start_ray(ray, address: str | None, workers: int | None) -> bool:
 
 
 def _submit_tasks(
-    ray, todo: list[CellPlan], grid: Grid, cluster_gpus: float, *, source: str, commit: str, remote: str,
-    scratch: str | None, options: tuple[tuple[str, str], ...], resume_root: Path | None, max_retries: int,
+    ray,
+    todo: list[CellPlan],
+    grid: Grid,
+    cluster_gpus: float,
+    *,
+    source: str,
+    commit: str,
+    remote: str,
+    scratch: str | None,
+    options: tuple[tuple[str, str], ...],
+    resume_root: Path | None,
+    max_retries: int,
 ) -> dict[Any, list[tuple[str, StageItem]]]:
     """Submit the stage items of every cell to run as Ray tasks, each after its upstream's;
     returns each task's ref -> the (cell, item) pairs it computes."""
@@ -236,11 +265,24 @@ def _submit_tasks(
             else:
                 cpus, gpus, threads = _resources(grid, it.stage, cluster_gpus, stage_processes(p.cell.params, it.stage))
                 task = StageTask(
-                    p.cell.name, it.name, source, commit, p.cell.params_text, remote, it.pull, threads, gpus, scratch,
-                    options, str(Path(resume_root).resolve()) if resume_root else None,
+                    p.cell.name,
+                    it.name,
+                    source,
+                    commit,
+                    p.cell.params_text,
+                    remote,
+                    it.pull,
+                    threads,
+                    gpus,
+                    scratch,
+                    options,
+                    str(Path(resume_root).resolve()) if resume_root else None,
                 )
                 ref = remote_fn.options(
-                    num_cpus=cpus, num_gpus=gpus, max_retries=max_retries, retry_exceptions=False,
+                    num_cpus=cpus,
+                    num_gpus=gpus,
+                    max_retries=max_retries,
+                    retry_exceptions=False,
                     name=f"{p.cell.name}:{it.name}",
                 ).remote(task, *[refs[u] for u in it.upstream])
                 by_signature[it.signature] = ref
@@ -287,8 +329,12 @@ def _collect_results(
 
 
 def _write_locks(
-    todo: list[CellPlan], results: dict[str, CellResult], remote: str, targets: list[str] | None,
-    options: tuple[tuple[str, str], ...], log: Callable[[str], None],
+    todo: list[CellPlan],
+    results: dict[str, CellResult],
+    remote: str,
+    targets: list[str] | None,
+    options: tuple[tuple[str, str], ...],
+    log: Callable[[str], None],
 ) -> None:
     """Write the dvc.lock of every cell whose tasks all succeeded; mark each cell done or failed."""
     for p in todo:
@@ -304,7 +350,9 @@ def _write_locks(
             log(f"  {p.cell.name}: writing dvc.lock failed:\n{exc}")
             continue
         res.status = "done"
-        log(f"  {p.cell.name}: dvc.lock written ({len(res.executed)} ran, {len(res.restored)} restored) in {p.workspace}")
+        log(
+            f"  {p.cell.name}: dvc.lock written ({len(res.executed)} ran, {len(res.restored)} restored) in {p.workspace}"
+        )
 
 
 def _raise_if_failed(results: dict[str, CellResult]) -> None:
@@ -312,4 +360,9 @@ def _raise_if_failed(results: dict[str, CellResult]) -> None:
     failed = [r for r in results.values() if r.status == "failed"]
     if failed:
         lines = [f"{r.name}: {', '.join(sorted(r.failed))}" for r in failed]
-        raise SweepError("stages failed in " + "; ".join(lines) + " (fix the cause and rerun the sweep: completed stages are restored, not recomputed)", exit_code=1)
+        raise SweepError(
+            "stages failed in "
+            + "; ".join(lines)
+            + " (fix the cause and rerun the sweep: completed stages are restored, not recomputed)",
+            exit_code=1,
+        )

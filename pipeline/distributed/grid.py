@@ -32,7 +32,9 @@ class EnvSpec(_Strict):
 
     name: str | None = Field(None, description="cell name prefix (default: the env id)")
     id: str | None = Field(None, description="MO-Gymnasium env id, set as env.id on the base params")
-    preset: str | None = Field(None, description="params file (repository path) replacing the base, e.g. presets/paper/mo-hopper-2obj-v5.yaml")
+    preset: str | None = Field(
+        None, description="params file (repository path) replacing the base, e.g. presets/paper/mo-hopper-2obj-v5.yaml"
+    )
     params: dict[str, Any] = Field(default_factory=dict, description="params merged in, section by section")
 
     @field_validator("name")
@@ -48,10 +50,13 @@ class ResourceSpec(_Strict):
 
     cpus: float = Field(1.0, gt=0, description="CPUs reserved per task")
     gpus: float | Literal["auto"] = Field(
-        "auto", description="GPUs per task (fractions share one GPU); auto: 1 for the training stages when the cluster has a GPU, else 0"
+        "auto",
+        description="GPUs per task (fractions share one GPU); auto: 1 for the training stages when the cluster has a GPU, else 0",
     )
     threads: int | None = Field(
-        None, ge=1, description="MAPEX_TORCH_THREADS for the stage (default: cpus, at least 1; shared among a stage's processes)"
+        None,
+        ge=1,
+        description="MAPEX_TORCH_THREADS for the stage (default: cpus, at least 1; shared among a stage's processes)",
     )
 
     @field_validator("gpus")
@@ -63,15 +68,21 @@ class ResourceSpec(_Strict):
 
 
 class Grid(_Strict):
-    base: str = Field("params.yaml", description="params file (repository path, read at the commit) each env starts from")
+    base: str = Field(
+        "params.yaml", description="params file (repository path, read at the commit) each env starts from"
+    )
     envs: list[EnvSpec] = Field(min_length=1, description="env ids, preset paths (*.yaml) or mappings")
-    seeds: list[int] | None = Field(None, min_length=1, description="the seeds of every cell (default: the params' own)")
+    seeds: list[int] | None = Field(
+        None, min_length=1, description="the seeds of every cell (default: the params' own)"
+    )
     overrides: dict[str, dict[str, Any]] | None = Field(
         None, description="named param override sets; each env runs once per set (default: one cell per env)"
     )
     resources: dict[str, ResourceSpec] = Field(default_factory=dict, description="per dvc.yaml stage name")
     targets: list[str] | None = Field(
-        None, min_length=1, description="dvc.yaml stages or stage items to reproduce, with their upstream (default: all)"
+        None,
+        min_length=1,
+        description="dvc.yaml stages or stage items to reproduce, with their upstream (default: all)",
     )
 
     @field_validator("envs", mode="before")
@@ -229,7 +240,9 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
             cell_params = with_run_lists(cell_params, f"{grid_path}: cell {name}")
             validate_params(cell_params, f"{grid_path}: cell {name}")
             # No cell or grid name in the text, so that cells of equal params are equal checkouts.
-            text = "# params of a `mapex sweep` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(cell_params, sort_keys=False)
+            text = "# params of a `mapex sweep` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(
+                cell_params, sort_keys=False
+            )
             cells.append(Cell(name, cell_params, text))
     names = [c.name for c in cells]
     dupes = sorted({n for n in names if names.count(n) > 1})

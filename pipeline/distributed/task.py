@@ -64,9 +64,9 @@ def _remove_dead_clones(root: Path, item: str, host: str) -> None:
         return
     prefix = f"{_safe(item)}.{host}."
     for d in root.iterdir():
-        if d.name.startswith(prefix) and d.name[len(prefix):].isdigit():
+        if d.name.startswith(prefix) and d.name[len(prefix) :].isdigit():
             try:
-                os.kill(int(d.name[len(prefix):]), 0)
+                os.kill(int(d.name[len(prefix) :]), 0)
             except ProcessLookupError:
                 shutil.rmtree(d, ignore_errors=True)
             except PermissionError:
@@ -174,7 +174,9 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
         if not entry:
             raise StageFailed(task.cell, task.item, "dvc repro wrote no dvc.lock entry for it")
         if _keep_own_run(clone, entry) == 0:
-            raise StageFailed(task.cell, task.item, "no run-cache entry matches its dvc.lock entry (is every out cached?)")
+            raise StageFailed(
+                task.cell, task.item, "no run-cache entry matches its dvc.lock entry (is every out cached?)"
+            )
         try:
             t = time.monotonic()
             _run_dvc(clone, env, "push", "--quiet", "--run-cache", task.item)

@@ -37,7 +37,10 @@ def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
 
 
 def _has_commit(clone: Path, commit: str) -> bool:
-    return subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=clone, capture_output=True).returncode == 0
+    return (
+        subprocess.run(["git", "cat-file", "-e", f"{commit}^{{commit}}"], cwd=clone, capture_output=True).returncode
+        == 0
+    )
 
 
 def _fetch_commit(clone: Path, source: str, commit: str) -> None:
@@ -105,7 +108,9 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
             for t in targets:
                 hits = [s for s in graph if s.name == t or s.name.split("@")[0] == t]
                 if not hits:
-                    raise ValueError(f"target {t!r} is no stage or stage item of dvc.yaml (have {sorted({s.name.split('@')[0] for s in graph})})")
+                    raise ValueError(
+                        f"target {t!r} is no stage or stage item of dvc.yaml (have {sorted({s.name.split('@')[0] for s in graph})})"
+                    )
                 for s in hits:
                     keep |= {s} | nx.descendants(graph, s)
             graph = graph.subgraph(keep)
@@ -130,12 +135,19 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
             }
             key = json.dumps(
                 {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
-                sort_keys=True, default=str,
+                sort_keys=True,
+                default=str,
             )
             signatures[stage.name] = hashlib.sha256(key.encode()).hexdigest()
-            items.append(StageItem(
-                stage.name, stage.name.split("@")[0], tuple(u.name for u in ups), tuple(sorted(pull)), signatures[stage.name],
-            ))
+            items.append(
+                StageItem(
+                    stage.name,
+                    stage.name.split("@")[0],
+                    tuple(u.name for u in ups),
+                    tuple(sorted(pull)),
+                    signatures[stage.name],
+                )
+            )
     return items
 
 
@@ -148,7 +160,9 @@ def prepare_workspace(ws: Path, cell: Cell, source: str, commit: str, targets: l
     """
     if ws.exists():
         if _git_config(ws, CELL_KEY) != cell.name:
-            raise SweepError(f"{ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir")
+            raise SweepError(
+                f"{ws} exists and is not the sweep workspace of cell {cell.name}; move it or pick another --workdir"
+            )
         _fetch_commit(ws, source, commit)
     else:
         ws.parent.mkdir(parents=True, exist_ok=True)
@@ -157,8 +171,11 @@ def prepare_workspace(ws: Path, cell: Cell, source: str, commit: str, targets: l
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ws, capture_output=True, text=True).stdout.strip()
     params = ws / "params.yaml"
     if (
-        head == commit and params.is_file() and params.read_text() == cell.params_text
-        and (ws / "dvc.lock").is_file() and _dvc_status_clean(ws, targets)
+        head == commit
+        and params.is_file()
+        and params.read_text() == cell.params_text
+        and (ws / "dvc.lock").is_file()
+        and _dvc_status_clean(ws, targets)
     ):
         return True
     _git(ws, "checkout", "--quiet", "--force", "--detach", commit)
@@ -184,7 +201,9 @@ def _dvc_status_clean(ws: Path, targets: list[str] | None = None) -> bool:
         return False
 
 
-def write_lock(ws: Path, remote: str, targets: list[str] | None = None, remote_options: tuple[tuple[str, str], ...] = ()) -> str:
+def write_lock(
+    ws: Path, remote: str, targets: list[str] | None = None, remote_options: tuple[tuple[str, str], ...] = ()
+) -> str:
     """`dvc repro --pull` in the cell workspace: every stage restored from the remote's run-cache,
     dvc.lock written once. `mapex` is shadowed by a failing stub, so nothing is recomputed here."""
     configure_remote(ws, remote, remote_options)
@@ -194,7 +213,7 @@ def write_lock(ws: Path, remote: str, targets: list[str] | None = None, remote_o
         stub = stub_dir / "mapex"
         stub.write_text(
             "#!/bin/sh\necho \"mapex sweep: this stage's run is not in the remote's run-cache; "
-            "the driver does not compute stages (rerun the sweep)\" >&2\nexit 3\n"
+            'the driver does not compute stages (rerun the sweep)" >&2\nexit 3\n'
         )
         stub.chmod(0o755)
         env = dict(os.environ)

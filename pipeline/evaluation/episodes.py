@@ -51,7 +51,9 @@ def evaluate_policy(actor: Actor, envs: list[gym.Env], seeds: list[int]) -> Eval
 
 
 @torch.no_grad()
-def evaluate_policies(actors: Sequence[Actor], envs: Sequence[gym.Env], seeds: Sequence[Sequence[int]]) -> list[EvalResult]:
+def evaluate_policies(
+    actors: Sequence[Actor], envs: Sequence[gym.Env], seeds: Sequence[Sequence[int]]
+) -> list[EvalResult]:
     """Run policy i for one episode per seed in seeds[i], every episode of every policy at once.
 
     Episodes take the envs in order (policy 0's on the first len(seeds[0]) envs, ...), each

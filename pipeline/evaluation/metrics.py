@@ -275,8 +275,10 @@ def hypervolume_history(
     ref = np.asarray(ref, dtype=float)
     points = {name: _as_points(r, len(ref)) for name, r in returns.items()}
     if it.ndim != 1 or samples.shape != it.shape or any(len(p) != len(it) for p in points.values()):
-        raise ValueError(f"iteration {it.shape}, env_samples {samples.shape} and returns "
-                         f"{ {k: p.shape for k, p in points.items()} } must describe the same members")
+        raise ValueError(
+            f"iteration {it.shape}, env_samples {samples.shape} and returns "
+            f"{ {k: p.shape for k, p in points.items()} } must describe the same members"
+        )
     steps = np.unique(it)
     upto = [it <= t for t in steps]
     out = {

@@ -55,7 +55,6 @@ from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.core.pareto import pareto_mask, population_scale
 from pipeline.core.seeding import torch_generator
 
-
 # ---------------------------------------------------------------- step 1: gaps and weights
 
 
@@ -67,9 +66,7 @@ def front_edges(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     by the population's per-objective range.
     """
     if returns.shape[1] != 2:
-        raise ValueError(
-            f"gap identification is defined for 2 objectives (paper, Step 1), got {returns.shape[1]}"
-        )
+        raise ValueError(f"gap identification is defined for 2 objectives (paper, Step 1), got {returns.shape[1]}")
     lo, span = population_scale(returns)
     ids = np.flatnonzero(pareto_mask(returns))
     # Ties on objective 0 are broken by objective 1 so the order is total and reproducible.
@@ -172,7 +169,9 @@ def mean_parent_action(parents: Sequence[Actor], obs: torch.Tensor, chunk: int =
     return torch.cat(out)
 
 
-def regression_step(actor: Actor, opt: torch.optim.Optimizer, obs, target, weight=None, max_grad_norm=None, pred=None) -> torch.Tensor:
+def regression_step(
+    actor: Actor, opt: torch.optim.Optimizer, obs, target, weight=None, max_grad_norm=None, pred=None
+) -> torch.Tensor:
     """One Adam step on mean_b weight_b * ||pi(s_b) - target_b||^2 (weight None = 1).
 
     `pred` = actor(obs) if the caller already computed it (with grad), to avoid a second pass.
@@ -188,7 +187,15 @@ def regression_step(actor: Actor, opt: torch.optim.Optimizer, obs, target, weigh
     return loss.detach()
 
 
-def warm_up(actor: Actor, obs: torch.Tensor, target: torch.Tensor, steps: int, lr: float, batch_size: int, rng: np.random.Generator) -> None:
+def warm_up(
+    actor: Actor,
+    obs: torch.Tensor,
+    target: torch.Tensor,
+    steps: int,
+    lr: float,
+    batch_size: int,
+    rng: np.random.Generator,
+) -> None:
     """Regress `actor` onto `target` actions at hybrid states (paper eq. L_init), `steps` steps."""
     opt = torch.optim.Adam(actor.parameters(), lr=lr)
     n = len(obs)
@@ -202,8 +209,12 @@ def warm_up(actor: Actor, obs: torch.Tensor, target: torch.Tensor, steps: int, l
 
 @torch.no_grad()
 def critic_values(
-    critics: Sequence[CriticEnsemble], obs: torch.Tensor, action: torch.Tensor, origin: torch.Tensor,
-    chunk: int = 65_536, gather: bool | None = None,
+    critics: Sequence[CriticEnsemble],
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    origin: torch.Tensor,
+    chunk: int = 65_536,
+    gather: bool | None = None,
 ) -> torch.Tensor:
     """Q^(k)_m(s, a) for each row with k = the row's origin: (B, m), min over the twin heads.
 
@@ -215,8 +226,12 @@ def critic_values(
     """
     gather = obs.is_cuda if gather is None else gather
     if len(obs) > chunk:
-        return torch.cat([critic_values(critics, obs[i : i + chunk], action[i : i + chunk], origin[i : i + chunk], chunk, gather)
-                          for i in range(0, len(obs), chunk)])
+        return torch.cat(
+            [
+                critic_values(critics, obs[i : i + chunk], action[i : i + chunk], origin[i : i + chunk], chunk, gather)
+                for i in range(0, len(obs), chunk)
+            ]
+        )
     if gather:
         # On a GPU, evaluating every critic on every row and selecting costs little, while
         # indexing by a boolean mask would make the host wait for the device at every step.
@@ -232,8 +247,12 @@ def critic_values(
 
 
 def mixed_advantage(
-    q_sa: torch.Tensor, q_pi: torch.Tensor, weight: torch.Tensor, norm: str,
-    scale: torch.Tensor | None = None, mask: torch.Tensor | None = None,
+    q_sa: torch.Tensor,
+    q_pi: torch.Tensor,
+    weight: torch.Tensor,
+    norm: str,
+    scale: torch.Tensor | None = None,
+    mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """A_mixed = w . (Q(s, a) - Q(s, pi_new(s))) per row (paper eqs. "mixed advantage").
 
@@ -316,7 +335,9 @@ def advantage_weighted_regression(
                 omega = fixed[idx]
             else:
                 q_pi = critic_values(critics, obs, pred.detach(), hybrid.origin[idx])
-                omega = awr_weight(mixed_advantage(q_sa_all[idx], q_pi, weight, cfg.norm, scale), cfg.beta, cfg.omega_max)
+                omega = awr_weight(
+                    mixed_advantage(q_sa_all[idx], q_pi, weight, cfg.norm, scale), cfg.beta, cfg.omega_max
+                )
             regression_step(actor, opt, obs, act, omega, cfg.max_grad_norm, pred=pred)
             omega_sum += omega.sum()
             clipped += (omega >= cfg.omega_max * (1 - 1e-6)).sum()
@@ -374,8 +395,13 @@ class ChildStart:
 
 
 def start_child(
-    returns: np.ndarray, actors: Sequence[Actor], buffers: Sequence[dict[str, np.ndarray]], cfg: ChildConfig,
-    rng: np.random.Generator, torch_seed: int, device,
+    returns: np.ndarray,
+    actors: Sequence[Actor],
+    buffers: Sequence[dict[str, np.ndarray]],
+    cfg: ChildConfig,
+    rng: np.random.Generator,
+    torch_seed: int,
+    device,
 ) -> ChildStart:
     """Steps 1-2 for one child: parents by roulette, target weight, hybrid buffer, the mean parent
     action a_bar(s) at its states, and a fresh actor initialised from `torch_seed`.
@@ -390,7 +416,13 @@ def start_child(
     ref = actors[parents[0]]
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(torch_seed)
-        actor = Actor(hybrid.obs.shape[1], hybrid.action.shape[1], cfg.hidden_sizes, (ref.centre - ref.scale).cpu(), (ref.centre + ref.scale).cpu())
+        actor = Actor(
+            hybrid.obs.shape[1],
+            hybrid.action.shape[1],
+            cfg.hidden_sizes,
+            (ref.centre - ref.scale).cpu(),
+            (ref.centre + ref.scale).cpu(),
+        )
     return ChildStart(parents, w, hybrid, a_bar, actor.to(device))
 
 
@@ -457,7 +489,9 @@ def stack_hybrids(hybrids: Sequence[Hybrid]) -> StackedHybrid:
     )
 
 
-def warmup_schedule(n: int, steps: int, batch_size: int, rng: np.random.Generator, gen: torch.Generator | None = None, device="cpu") -> torch.Tensor:
+def warmup_schedule(
+    n: int, steps: int, batch_size: int, rng: np.random.Generator, gen: torch.Generator | None = None, device="cpu"
+) -> torch.Tensor:
     """One child's warm-up minibatch rows: (steps, min(batch_size, n)) int64, drawn with
     replacement from `rng` exactly as `warm_up` draws them, or on the device from `gen`."""
     b = min(batch_size, n)
@@ -482,12 +516,18 @@ def epoch_schedule(
     dev = gen.device if gen is not None else torch.device(device)
     idx = torch.zeros(epochs, width, dtype=torch.int64, device=dev)
     for e in range(epochs):
-        idx[e, :n] = torch.randperm(n, generator=gen, device=dev) if gen is not None else torch.from_numpy(rng.permutation(n)).to(dev)
+        idx[e, :n] = (
+            torch.randperm(n, generator=gen, device=dev)
+            if gen is not None
+            else torch.from_numpy(rng.permutation(n)).to(dev)
+        )
     mask = (torch.arange(width, device=dev) < n).float().expand(epochs, width)
     return idx.view(epochs * steps, batch_size), mask.reshape(epochs * steps, batch_size)
 
 
-def stack_schedules(rows: Sequence[torch.Tensor], masks: Sequence[torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+def stack_schedules(
+    rows: Sequence[torch.Tensor], masks: Sequence[torch.Tensor] | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """K per-child schedules (T_j, b_j) -> one time-major schedule: idx (T, K, b) int32 and
     mask (T, K, b) float, T = max T_j, b = max b_j, everything past a child's own rows and
     steps masked out (masks: per child, default all real).
@@ -552,7 +592,9 @@ def _adam(actor: StackedActor, lr: float) -> torch.optim.Optimizer:
     return torch.optim.Adam(actor.parameters(), lr=lr)
 
 
-def stacked_warm_up(actor: StackedActor, obs: torch.Tensor, target: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor, lr: float) -> None:
+def stacked_warm_up(
+    actor: StackedActor, obs: torch.Tensor, target: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor, lr: float
+) -> None:
     """`warm_up` for K children at once (paper eq. L_init): obs (K, N, o), target (K, N, a)
     = each child's mean parent action; rows, mask (T, K, b) from `stack_schedules`."""
     opt = _adam(actor, lr)
@@ -563,8 +605,14 @@ def stacked_warm_up(actor: StackedActor, obs: torch.Tensor, target: torch.Tensor
 
 @torch.no_grad()
 def fixed_weights(
-    actor: StackedActor, data: StackedHybrid, critics: Sequence[CriticEnsemble], q_sa: torch.Tensor,
-    weight: torch.Tensor, scale: torch.Tensor, cfg: AdvantageConfig, gather: bool | None = None,
+    actor: StackedActor,
+    data: StackedHybrid,
+    critics: Sequence[CriticEnsemble],
+    q_sa: torch.Tensor,
+    weight: torch.Tensor,
+    scale: torch.Tensor,
+    cfg: AdvantageConfig,
+    gather: bool | None = None,
 ) -> torch.Tensor:
     """omega of every hybrid row with Q(s, pi_new(s)) computed once, after warm-up
     (advantage_recompute = once): (K, N), each child over its own rows as
@@ -603,8 +651,13 @@ def stacked_awr(
     of the weights (mean, fraction clipped at omega_max).
     """
     k, m = len(data.lengths), critics[0].n_members // 2
-    q_sa = pad_stack([critic_values(critics, data.obs[j, :n], data.action[j, :n], data.origin[j, :n], gather=gather)
-                      for j, n in enumerate(data.lengths)], data.obs.shape[1])
+    q_sa = pad_stack(
+        [
+            critic_values(critics, data.obs[j, :n], data.action[j, :n], data.origin[j, :n], gather=gather)
+            for j, n in enumerate(data.lengths)
+        ],
+        data.obs.shape[1],
+    )
     fixed = fixed_weights(actor, data, critics, q_sa, weight, scale, cfg, gather) if cfg.recompute == "once" else None
     opt = _adam(actor, cfg.lr)
     params = list(actor.parameters())
@@ -622,7 +675,9 @@ def stacked_awr(
             omega = gather_rows(fixed, idx)
         else:
             origin = gather_rows(data.origin, idx)
-            q_pi = critic_values(critics, obs.flatten(0, 1), pred.detach().flatten(0, 1), origin.flatten(), gather=gather).view(k, -1, m)
+            q_pi = critic_values(
+                critics, obs.flatten(0, 1), pred.detach().flatten(0, 1), origin.flatten(), gather=gather
+            ).view(k, -1, m)
             mixed = mixed_advantage(gather_rows(q_sa, idx), q_pi, weight, cfg.norm, scale, real)
             omega = awr_weight(mixed, cfg.beta, cfg.omega_max)
         stacked_regression_step(actor, opt, obs, act, real, omega, cfg.max_grad_norm, pred=pred)
@@ -662,16 +717,27 @@ def train_stacked(
         raise ValueError(f"a child's hybrid buffer is empty (lengths {data.lengths})")
     device = data.obs.device
     actor = StackedActor([c.actor for c in children])
-    rows, mask = stack_schedules([warmup_schedule(n, cfg.warmup_steps, cfg.warmup_batch_size, rng, gen, device)
-                                  for n, rng, gen in zip(data.lengths, rngs, gens)])
-    stacked_warm_up(actor, data.obs, pad_stack([c.a_bar for c in children], data.obs.shape[1]), rows, mask, cfg.warmup_lr)
+    rows, mask = stack_schedules(
+        [
+            warmup_schedule(n, cfg.warmup_steps, cfg.warmup_batch_size, rng, gen, device)
+            for n, rng, gen in zip(data.lengths, rngs, gens)
+        ]
+    )
+    stacked_warm_up(
+        actor, data.obs, pad_stack([c.a_bar for c in children], data.obs.shape[1]), rows, mask, cfg.warmup_lr
+    )
     if cfg.adv.epochs == 0:
         return actor, [{"omega_mean": float("nan"), "omega_clipped": float("nan")} for _ in children]
-    sched = [epoch_schedule(n, cfg.adv.epochs, cfg.adv.batch_size, rng, gen, device) for n, rng, gen in zip(data.lengths, rngs, gens)]
+    sched = [
+        epoch_schedule(n, cfg.adv.epochs, cfg.adv.batch_size, rng, gen, device)
+        for n, rng, gen in zip(data.lengths, rngs, gens)
+    ]
     rows, mask = stack_schedules([i for i, _ in sched], [m for _, m in sched])
     weight = torch.as_tensor(np.stack([c.weight for c in children]), dtype=torch.float32, device=device)
     scale = torch.as_tensor(span, dtype=torch.float32, device=device)
-    stats = stacked_awr(actor, data, critics, weight, scale, cfg.adv, rows, mask, [len(i) for i, _ in sched], on_step, gather)
+    stats = stacked_awr(
+        actor, data, critics, weight, scale, cfg.adv, rows, mask, [len(i) for i, _ in sched], on_step, gather
+    )
     return actor, stats
 
 

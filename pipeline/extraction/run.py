@@ -49,16 +49,33 @@ def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
 def child_config(cfg: ExtractParams) -> ChildConfig:
     """The `extract` params that shape one child's training."""
     return ChildConfig(
-        tuple(cfg.hidden_sizes), cfg.child_buffer_size, cfg.weight_norm, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size,
-        AdvantageConfig(cfg.epochs, cfg.beta, cfg.omega_max, cfg.lr, cfg.batch_size, cfg.max_grad_norm, cfg.advantage_recompute,
-                        cfg.advantage_norm),
+        tuple(cfg.hidden_sizes),
+        cfg.child_buffer_size,
+        cfg.weight_norm,
+        cfg.warmup_steps,
+        cfg.warmup_lr,
+        cfg.warmup_batch_size,
+        AdvantageConfig(
+            cfg.epochs,
+            cfg.beta,
+            cfg.omega_max,
+            cfg.lr,
+            cfg.batch_size,
+            cfg.max_grad_norm,
+            cfg.advantage_recompute,
+            cfg.advantage_norm,
+        ),
     )
 
 
 def history_row(iteration: int, members: Sequence[Member]) -> dict[str, int]:
     returns = np.array([m.returns for m in members])
-    return {"iteration": iteration, "population": len(members), "front_size": int(pareto_mask(returns).sum()),
-            "env_samples": members[-1].env_samples}
+    return {
+        "iteration": iteration,
+        "population": len(members),
+        "front_size": int(pareto_mask(returns).sum()),
+        "env_samples": members[-1].env_samples,
+    }
 
 
 def history_csv(rows: Sequence[dict]) -> str:
@@ -78,9 +95,17 @@ class ExtractionRun:
     a child's actor is rebuilt from). envs: cfg.eval_episodes * cfg.children_per_iteration envs.
     """
 
-    def __init__(self, starts: Sequence[StartingPolicy], buffers: Sequence[dict[str, np.ndarray]],
-                 critics: Sequence[CriticEnsemble], cfg: ExtractParams, meta: dict[str, Any], seed: int,
-                 envs: Sequence[gym.Env], device: torch.device) -> None:
+    def __init__(
+        self,
+        starts: Sequence[StartingPolicy],
+        buffers: Sequence[dict[str, np.ndarray]],
+        critics: Sequence[CriticEnsemble],
+        cfg: ExtractParams,
+        meta: dict[str, Any],
+        seed: int,
+        envs: Sequence[gym.Env],
+        device: torch.device,
+    ) -> None:
         self.starts, self.buffers, self.cfg, self.meta, self.seed = list(starts), list(buffers), cfg, meta, seed
         self.critics = [c.to(device) for c in critics]
         self.envs, self.device = list(envs), device
@@ -113,8 +138,14 @@ class ExtractionRun:
         return eval_seeds(self.seed, EVAL_STREAM, member, self.cfg.eval_episodes)
 
     def _member(self, res: EvalResult, actor, **origin) -> Member:
-        return Member(**origin, returns=res.mean.tolist(), returns_std=res.std.tolist(), eval_episodes=self.cfg.eval_episodes,
-                      env_samples=self.samples + res.env_samples, actor=actor_state(actor))
+        return Member(
+            **origin,
+            returns=res.mean.tolist(),
+            returns_std=res.std.tolist(),
+            eval_episodes=self.cfg.eval_episodes,
+            env_samples=self.samples + res.env_samples,
+            actor=actor_state(actor),
+        )
 
     def start(self) -> None:
         """Evaluate the starting policies: they become members 0 .. n_start - 1 (a TD3
@@ -123,8 +154,19 @@ class ExtractionRun:
             raise RuntimeError("start runs once, before any iteration")
         for i, (s, actor) in enumerate(zip(self.starts, self.actors)):
             res = evaluate_policy(actor, self.envs, self._seeds(i))
-            self.members.append(self._member(res, actor, origin="specialist", objective=s.objective, iteration=0, parents=[],
-                                             target_weight=None, hidden_sizes=s.hidden_sizes, policy_name=s.name))
+            self.members.append(
+                self._member(
+                    res,
+                    actor,
+                    origin="specialist",
+                    objective=s.objective,
+                    iteration=0,
+                    parents=[],
+                    target_weight=None,
+                    hidden_sizes=s.hidden_sizes,
+                    policy_name=s.name,
+                )
+            )
         self.history.append(history_row(0, self.members))
 
     def step(self, on_step: Callable[[], None] | None = None) -> None:
@@ -137,9 +179,19 @@ class ExtractionRun:
         ids = range(len(self.members), len(self.members) + self.k)
         self.last = evaluate_policies([a for a, _ in children], self.envs, [self._seeds(i) for i in ids])
         for (child, rec), res in zip(children, self.last):
-            self.members.append(self._member(res, child, origin="child", objective=None, iteration=it, parents=list(rec.parents),
-                                             target_weight=rec.weight.tolist(), hidden_sizes=list(self.cfg.hidden_sizes),
-                                             policy_name=None))
+            self.members.append(
+                self._member(
+                    res,
+                    child,
+                    origin="child",
+                    objective=None,
+                    iteration=it,
+                    parents=list(rec.parents),
+                    target_weight=rec.weight.tolist(),
+                    hidden_sizes=list(self.cfg.hidden_sizes),
+                    policy_name=None,
+                )
+            )
             self.actors.append(child)
         self.history.append(history_row(it, self.members))
 
@@ -155,9 +207,13 @@ class ExtractionRun:
         ValueError if it is not the starting policies plus whole iterations."""
         members = [Member(**m) for m in state["log"]]
         if len(members) < self.n_start or (len(members) - self.n_start) % self.k:
-            raise ValueError(f"{len(members)} members are not the {self.n_start} starting policies plus whole iterations of {self.k}")
+            raise ValueError(
+                f"{len(members)} members are not the {self.n_start} starting policies plus whole iterations of {self.k}"
+            )
         self.members, self.history = members, list(state["history"])
-        self.actors = self.actors[: self.n_start] + [member_actor(m, self.meta).to(self.device) for m in members[self.n_start :]]
+        self.actors = self.actors[: self.n_start] + [
+            member_actor(m, self.meta).to(self.device) for m in members[self.n_start :]
+        ]
 
 
 def variant_config(cfg: ExtractParams, variant: str) -> ExtractParams:

@@ -64,9 +64,7 @@ def load_params(path: str | Path) -> dict[str, Any]:
         raise ParamsError(f"{path}: expected a mapping of sections at the top level, got {type(raw).__name__}")
     unknown = sorted(set(raw) - set(KNOWN_SECTIONS))
     if unknown:
-        raise ParamsError(
-            f"{path}: unknown top-level key(s) {unknown}; expected some of {list(KNOWN_SECTIONS)}"
-        )
+        raise ParamsError(f"{path}: unknown top-level key(s) {unknown}; expected some of {list(KNOWN_SECTIONS)}")
     return raw
 
 
@@ -97,4 +95,3 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     except ValidationError as exc:
         lines = [_describe(e, name) for e in exc.errors()]
         raise ParamsError(f"{path}: invalid params:\n  " + "\n  ".join(lines)) from None
-

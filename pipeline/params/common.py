@@ -39,10 +39,13 @@ class RunParams(Strict):
     the list and the command that fixes it.
     """
 
-    seeds: list[int] = Field([0], min_length=1, description="run seeds; each seed is one independent run of every method")
+    seeds: list[int] = Field(
+        [0], min_length=1, description="run seeds; each seed is one independent run of every method"
+    )
     objectives: list[int] = Field([0, 1], min_length=1, description="objective indices, one specialist each")
     methods: list[str] = Field(
-        ["mapex_td3", "warmup_only_td3"], min_length=1,
+        ["mapex_td3", "warmup_only_td3"],
+        min_length=1,
         description="what runs and is compared, one data/fronts/<method>/seedS each: <variant>_<kind> (variants mapex, "
         "mapex_posthoc, warmup_only; kinds td3, pderl), mopderl, morld (pipeline/params/methods.py)",
     )
@@ -52,7 +55,8 @@ class RunParams(Strict):
         ["td3"], min_length=1, description="derived: kinds of specialists stage extract starts from (td3, pderl)"
     )
     extract_variants: list[Literal["mapex", "warmup_only"]] = Field(
-        ["mapex", "warmup_only"], description="derived: variants stage extract runs from each kind, with the joint critics"
+        ["mapex", "warmup_only"],
+        description="derived: variants stage extract runs from each kind, with the joint critics",
     )
     posthoc_from: list[Literal["td3", "pderl"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
@@ -85,6 +89,8 @@ class RunParams(Strict):
             if key == "pderl_seeds" and not value and sorted(given) == sorted(self.seeds):
                 same = True  # PDERL specialists no method reads may still be trained
             if not same:
-                raise ValueError(f"{key} = {given}, but methods {self.methods} and seeds {self.seeds} make it {value}: "
-                                 "run `mapex sync-params` (it rewrites the generated lists of params.yaml)")
+                raise ValueError(
+                    f"{key} = {given}, but methods {self.methods} and seeds {self.seeds} make it {value}: "
+                    "run `mapex sync-params` (it rewrites the generated lists of params.yaml)"
+                )
         return self

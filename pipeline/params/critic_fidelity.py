@@ -12,7 +12,9 @@ from pipeline.params.common import Strict
 
 
 class CriticFidelityParams(Strict):
-    episodes: int = Field(10, gt=0, description="score the last this-many episodes of the buffer (closest to the final policy)")
+    episodes: int = Field(
+        10, gt=0, description="score the last this-many episodes of the buffer (closest to the final policy)"
+    )
     tail_tolerance: float = Field(
         0.01,
         gt=0,

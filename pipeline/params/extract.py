@@ -28,7 +28,9 @@ PAPER_ENV_SETTINGS: dict[str, tuple[int, float, float]] = {
 
 class ExtractParams(Strict):
     iterations: int = Field(
-        1200, ge=0, description="iterations of Algorithm 1, each adding children_per_iteration children (paper: 1,200 of 1)"
+        1200,
+        ge=0,
+        description="iterations of Algorithm 1, each adding children_per_iteration children (paper: 1,200 of 1)",
     )
     children_per_iteration: int = Field(
         1,
@@ -39,17 +41,29 @@ class ExtractParams(Strict):
     )
     child_buffer_size: int = Field(200_000, gt=0, description="rows of each child's hybrid buffer (paper: 200,000)")
     eval_episodes: int = Field(5, gt=0, description="evaluation episodes per policy (paper: 5)")
-    warmup_steps: int = Field(1000, ge=0, description="gradient steps regressing onto the mean parent action (paper: 1,000)")
+    warmup_steps: int = Field(
+        1000, ge=0, description="gradient steps regressing onto the mean parent action (paper: 1,000)"
+    )
     warmup_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the warm-up (paper: 3e-4)")
     warmup_batch_size: int = Field(256, gt=0, description="minibatch of the warm-up (paper: 256)")
-    epochs: int | None = Field(None, ge=0, description="passes over the hybrid buffer; null = the paper's value for env.id")
+    epochs: int | None = Field(
+        None, ge=0, description="passes over the hybrid buffer; null = the paper's value for env.id"
+    )
     beta: float | None = Field(None, gt=0, description="AWR temperature; null = the paper's value for env.id")
-    omega_max: float | None = Field(None, gt=0, description="clip of the AWR weight; null = the paper's value for env.id")
+    omega_max: float | None = Field(
+        None, gt=0, description="clip of the AWR weight; null = the paper's value for env.id"
+    )
     lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the weighted regression (precursor: 3e-4)")
     batch_size: int = Field(256, gt=0, description="minibatch of the weighted regression (precursor: 256)")
-    max_grad_norm: float | None = Field(None, gt=0, description="clip the child's gradient norm (precursor: 1.0); null = off")
-    hidden_sizes: list[Annotated[int, Field(gt=0)]] = Field([256, 256], min_length=1, description="hidden widths of each child policy (positive)")
-    weight_norm: Literal["l2", "l1"] = Field("l2", description="target weight = centroid / its L2 norm (paper) or L1 sum (precursor)")
+    max_grad_norm: float | None = Field(
+        None, gt=0, description="clip the child's gradient norm (precursor: 1.0); null = off"
+    )
+    hidden_sizes: list[Annotated[int, Field(gt=0)]] = Field(
+        [256, 256], min_length=1, description="hidden widths of each child policy (positive)"
+    )
+    weight_norm: Literal["l2", "l1"] = Field(
+        "l2", description="target weight = centroid / its L2 norm (paper) or L1 sum (precursor)"
+    )
     advantage_recompute: Literal["every_step", "once"] = Field(
         "every_step", description="Q(s, pi_new(s)) at every step (Algorithm 1) or once after warm-up (precursor)"
     )

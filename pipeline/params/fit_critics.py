@@ -25,23 +25,42 @@ from pipeline.params.common import Strict
 
 class FitCriticsParams(Strict):
     steps: int = Field(
-        100_000, gt=0, description="most gradient steps of the critic ensemble (fewer when fidelity stops improving; precursor code: 5000 fixed)"
+        100_000,
+        gt=0,
+        description="most gradient steps of the critic ensemble (fewer when fidelity stops improving; precursor code: 5000 fixed)",
     )
     check_every: int = Field(
-        1000, ge=0, description="gradient steps between fidelity checks of the stopping rule (0: no checks, exactly `steps` steps)"
+        1000,
+        ge=0,
+        description="gradient steps between fidelity checks of the stopping rule (0: no checks, exactly `steps` steps)",
     )
-    patience: int = Field(5, ge=1, description="stop after this many checks in a row without improving the best fidelity error")
-    min_improvement: float = Field(0.005, ge=0, description="a check improves if it lowers the best mean normalised error by more than this")
-    fidelity_episodes: int = Field(10, gt=0, description="stopping rule: score on the buffer's last this-many episodes (as critic_fidelity.episodes)")
+    patience: int = Field(
+        5, ge=1, description="stop after this many checks in a row without improving the best fidelity error"
+    )
+    min_improvement: float = Field(
+        0.005, ge=0, description="a check improves if it lowers the best mean normalised error by more than this"
+    )
+    fidelity_episodes: int = Field(
+        10,
+        gt=0,
+        description="stopping rule: score on the buffer's last this-many episodes (as critic_fidelity.episodes)",
+    )
     tail_tolerance: float = Field(
-        0.01, gt=0, lt=1, description="stopping rule: drop cut-episode states whose missing tail weight gamma^H exceeds this (as critic_fidelity)"
+        0.01,
+        gt=0,
+        lt=1,
+        description="stopping rule: drop cut-episode states whose missing tail weight gamma^H exceeds this (as critic_fidelity)",
     )
     batch_size: int = Field(256, gt=0, description="transitions per gradient step, drawn uniformly with replacement")
     lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the critic ensemble")
     gamma: float = Field(0.99, ge=0, lt=1, description="discount factor of the fitted critics")
     tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target critics")
-    policy_noise: float = Field(0.2, ge=0, description="std of the target-policy smoothing noise (0: no smoothing, as the precursor)")
+    policy_noise: float = Field(
+        0.2, ge=0, description="std of the target-policy smoothing noise (0: no smoothing, as the precursor)"
+    )
     noise_clip: float = Field(0.5, ge=0, description="clip of the target-policy smoothing noise")
     target_update_freq: int = Field(2, ge=1, description="gradient steps per soft update of the target critics")
     hidden_sizes: list[PositiveInt] = Field([256, 256], min_length=1, description="hidden layer widths of every critic")
-    device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present; results are bitwise reproducible on cpu")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="'auto' picks cuda when present; results are bitwise reproducible on cpu"
+    )

@@ -23,16 +23,19 @@ class Method(NamedTuple):
 
 
 # In the report's usual order: the paper's MAPEX first.
-METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("mapex_pderl", "mapex", "pderl", "MAPEX", "tab:blue", "extract"),
-    Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "MAPEX-PostHoc", "tab:cyan", "extract_posthoc"),
-    Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "extract"),
-    Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
-    Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
-    Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
-    Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
-    Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
-)}
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("mapex_pderl", "mapex", "pderl", "MAPEX", "tab:blue", "extract"),
+        Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "MAPEX-PostHoc", "tab:cyan", "extract_posthoc"),
+        Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "extract"),
+        Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
+        Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
+        Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
+        Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
+        Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
+    )
+}
 
 # Extraction variants (stage extract --variant): what each changes in section `extract`.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
@@ -89,8 +92,10 @@ def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
     variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
     missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
     if missing:
-        raise ValueError(f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
-                         f"(a DVC matrix), so add {missing} (or drop the methods that need them)")
+        raise ValueError(
+            f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
+            f"(a DVC matrix), so add {missing} (or drop the methods that need them)"
+        )
     if not kinds:  # no joint-critic extraction: extract runs no item, and critic_fidelity (a matrix over
         # extract_from) scores the joint critics of the specialists the methods start from (TD3's are always trained)
         kinds = [k for k in SPECIALIST_KINDS if any(m.kind == k for m in chosen)] or ["td3"]

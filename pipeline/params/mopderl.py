@@ -31,7 +31,8 @@ DEFAULT_EVAL_EPISODES = 1
 
 class MopderlParams(Strict):
     total_frames: int | None = Field(
-        None, gt=0,
+        None,
+        gt=0,
         description="phase-2 env frames: every evaluation episode and RL exploration episode, the evaluation of the "
         "starting population included. null = the paper's stage-2 budget for env.id (2M; Hopper 1.75M, Swimmer 1M). "
         "The last generation started below the budget runs to its end",
@@ -40,25 +41,38 @@ class MopderlParams(Strict):
         20, ge=2, description="individuals kept by NSGA-II survivor selection (authors' code: 10 per objective, 20)"
     )
     children: int = Field(
-        20, ge=0, description="distillation-crossover children of population pairs per generation (authors' code: "
+        20,
+        ge=0,
+        description="distillation-crossover children of population pairs per generation (authors' code: "
         "population size); one more child per RL agent comes on top",
     )
     tournament_size: int = Field(
-        4, ge=2, description="entrants (drawn with replacement) of each parent tournament on (Pareto rank, crowding) "
+        4,
+        ge=2,
+        description="entrants (drawn with replacement) of each parent tournament on (Pareto rank, crowding) "
         "(authors' code: 4)",
     )
     eval_episodes: int | None = Field(
-        None, ge=1, description="episodes per new individual; its fitness is their mean return vector. null = the "
+        None,
+        ge=1,
+        description="episodes per new individual; its fitness is their mean return vector. null = the "
         "authors' code for env.id (1; Hopper 3, Walker2d 5)",
     )
     mini_buffer_size: int = Field(
-        8_000, gt=0, description="states kept per individual (authors' code: 8,000, half of it from each parent at crossover)"
+        8_000,
+        gt=0,
+        description="states kept per individual (authors' code: 8,000, half of it from each parent at crossover)",
     )
     mutation_prob: float = Field(
-        0.9, ge=0, le=1, description="chance that each individual (survivors and this generation's children) also "
+        0.9,
+        ge=0,
+        le=1,
+        description="chance that each individual (survivors and this generation's children) also "
         "gets a proximally mutated clone (authors' code: 0.9); each RL actor always gets one",
     )
-    mutation_std: float = Field(0.05, ge=0, description="std of the Gaussian weight noise before scaling (authors' code: 0.05)")
+    mutation_std: float = Field(
+        0.05, ge=0, description="std of the Gaussian weight noise before scaling (authors' code: 0.05)"
+    )
     mutation_states: int = Field(
         256, ge=1, description="states the action sensitivity of a mutation is measured on (authors' code: 256)"
     )
@@ -68,14 +82,21 @@ class MopderlParams(Strict):
     crossover_transitions: int = Field(
         4_000, ge=1, description="latest states taken from each parent to distil a child on (authors' code: 4,000)"
     )
-    crossover_epochs: int = Field(12, ge=1, description="passes over the child's distillation states (authors' code: 12)")
+    crossover_epochs: int = Field(
+        12, ge=1, description="passes over the child's distillation states (authors' code: 12)"
+    )
     crossover_batch_size: int = Field(128, ge=1, description="minibatch of the distillation (authors' code: 128)")
-    crossover_lr: float = Field(1e-3, gt=0, le=1, description="Adam learning rate of the distillation (authors' code: 1e-3)")
+    crossover_lr: float = Field(
+        1e-3, gt=0, le=1, description="Adam learning rate of the distillation (authors' code: 1e-3)"
+    )
     crossover_action_penalty: float = Field(
-        1 / 128, ge=0, description="weight of mean(a^2) beside the summed squared action error, as in train_pderl",
+        1 / 128,
+        ge=0,
+        description="weight of mean(a^2) beside the summed squared action error, as in train_pderl",
     )
     rl_updates_per_frame: float = Field(
-        1.0, ge=0,
+        1.0,
+        ge=0,
         description="TD3 updates of each RL agent per frame added to its replay buffer in a generation, rounded "
         "down (authors' code: 1.0). Below 1 is a cheaper deviation",
     )

@@ -21,7 +21,8 @@ from pipeline.params.common import Strict
 
 class MorldParams(Strict):
     total_frames: int = Field(
-        4_000_000, gt=0,
+        4_000_000,
+        gt=0,
         description="training env frames (paper: 4,000,000; Swimmer 2,000,000). Spent in whole exchanges of "
         "exchange_every frames, so a budget that is not a multiple is rounded up, as MORL/D does. MORL/D's own "
         "archive evaluations and our final evaluation are not counted (both are reported separately)",
@@ -36,17 +37,25 @@ class MorldParams(Strict):
         "uniform", description="initial weights: uniform (equally spaced on the simplex; library default) or random"
     )
     scalarization: Literal["ws"] = Field(
-        "ws", description="weighted sum (paper). The library's Tchebycheff keeps its reference point in a closure, "
+        "ws",
+        description="weighted sum (paper). The library's Tchebycheff keeps its reference point in a closure, "
         "which a checkpoint cannot hold, so it is not offered",
     )
-    evaluation_mode: Literal["ser", "esr"] = Field("ser", description="how MORL/D scores its agents for its archive (paper: ser)")
-    gamma: float = Field(0.99, gt=0, le=1, description="discount of MOSAC and of MORL/D's archive returns (paper: 0.99)")
-    neighborhood_size: int = Field(1, ge=0, description="neighbours per weight vector (library default 1; used by sharing)")
+    evaluation_mode: Literal["ser", "esr"] = Field(
+        "ser", description="how MORL/D scores its agents for its archive (paper: ser)"
+    )
+    gamma: float = Field(
+        0.99, gt=0, le=1, description="discount of MOSAC and of MORL/D's archive returns (paper: 0.99)"
+    )
+    neighborhood_size: int = Field(
+        1, ge=0, description="neighbours per weight vector (library default 1; used by sharing)"
+    )
     update_passes: int = Field(
         10, ge=0, description="after each turn, updates made by every other agent on the (shared) buffer (library: 10)"
     )
     front_eval_episodes: int = Field(
-        5, ge=1,
+        5,
+        ge=1,
         description="MORL/D's archive evaluation: calls per agent per exchange, each averaging 5 stochastic episodes "
         "(library default 5, i.e. 25 episodes). Its discounted returns only decide what the archive keeps",
     )
@@ -56,7 +65,9 @@ class MorldParams(Strict):
     )
     batch_size: int = Field(128, gt=0, description="MOSAC minibatch (library default 128)")
     learning_starts: int = Field(
-        1_000, ge=0, description="frames of uniform random actions before the first agent's updates start (library: 1,000)"
+        1_000,
+        ge=0,
+        description="frames of uniform random actions before the first agent's updates start (library: 1,000)",
     )
     buffer_size: int = Field(1_000_000, gt=0, description="replay buffer rows (library default 1,000,000)")
     policy_lr: float = Field(3e-4, gt=0, description="MOSAC actor learning rate (library default 3e-4)")
@@ -68,7 +79,8 @@ class MorldParams(Strict):
     autotune: bool = Field(True, description="tune the entropy coefficient automatically (library default true)")
     # ours
     eval_episodes: int = Field(
-        5, ge=1,
+        5,
+        ge=1,
         description="deterministic episodes per exported actor (tanh of the mean action); their mean undiscounted "
         "return is the member's `returns` in population.pt (MAPEX's extraction: 5)",
     )

@@ -26,8 +26,16 @@ def section_models() -> dict[str, type[BaseModel]]:
     from pipeline.params.train_specialist import TrainSpecialistParams
 
     return {
-        "env": EnvParams, "": RunParams, "train_specialist": TrainSpecialistParams, "train_pderl": TrainPderlParams,
-        "fit_critics": FitCriticsParams, "critic_fidelity": CriticFidelityParams, "extract": ExtractParams,
-        "mopderl": MopderlParams, "morld": MorldParams, "evaluate": EvaluateParams, "score": ScoreParams,
+        "env": EnvParams,
+        "": RunParams,
+        "train_specialist": TrainSpecialistParams,
+        "train_pderl": TrainPderlParams,
+        "fit_critics": FitCriticsParams,
+        "critic_fidelity": CriticFidelityParams,
+        "extract": ExtractParams,
+        "mopderl": MopderlParams,
+        "morld": MorldParams,
+        "evaluate": EvaluateParams,
+        "score": ScoreParams,
         "report": ReportParams,
     }

@@ -16,11 +16,15 @@ class ReportParams(Strict):
     )
     figure_width: float = Field(11.0, gt=2, le=40, description="width of a figure in inches")
     min_difference: float = Field(
-        0.05, ge=0, lt=1,
+        0.05,
+        ge=0,
+        lt=1,
         description="with one seed, the relative hypervolume difference below which the verdict is a tie",
     )
     noise_sems: float = Field(
-        2.0, gt=0, le=10,
+        2.0,
+        gt=0,
+        le=10,
         description="with >= 2 seeds, how many SEMs the mean paired hypervolume difference must exceed to count",
     )
 

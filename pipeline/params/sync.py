@@ -56,7 +56,9 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
         if m:
             value = m.group(2).split("#", 1)[0].strip()
             if not value.startswith("["):
-                raise ValueError(f"{where}: {m.group(1)} is written over several lines; delete it (it is derived from methods)")
+                raise ValueError(
+                    f"{where}: {m.group(1)} is written over several lines; delete it (it is derived from methods)"
+                )
             continue
         kept.append(line)
     at = next((i for i, line in enumerate(kept) if re.match(r"^methods\s*:", line)), None)

@@ -28,7 +28,8 @@ def n_elites(elite_fraction: float, population_size: int) -> int:
 
 class TrainPderlParams(Strict):
     total_frames: int = Field(
-        2_000_000, gt=0,
+        2_000_000,
+        gt=0,
         description="env frames per objective, every population evaluation and RL episode included "
         "(paper: 2M per MAPEX specialist, Swimmer 1M; MOPDERL's warm-up 1M). The last generation "
         "started below the budget runs to its end, then a final evaluation of every actor follows",
@@ -42,7 +43,9 @@ class TrainPderlParams(Strict):
         "artifacts do not change",
     )
     elite_fraction: float = Field(
-        0.1, gt=0, lt=1,
+        0.1,
+        gt=0,
+        lt=1,
         description="fraction of the population kept unchanged as elites, at least one "
         "(PDERL code: 0.1; 0.2 on Hopper, Walker2d, Ant)",
     )
@@ -56,24 +59,30 @@ class TrainPderlParams(Strict):
     mutation_prob: float = Field(0.9, ge=0, le=1, description="chance that a non-elite is mutated (PDERL: 0.9)")
     mutation_std: float = Field(0.05, ge=0, description="std of the Gaussian weight noise before scaling (PDERL: 0.05)")
     mutation_states: int = Field(
-        256, ge=1, description="states from the individual's mini buffer the action sensitivity is measured on (PDERL: 256)"
+        256,
+        ge=1,
+        description="states from the individual's mini buffer the action sensitivity is measured on (PDERL: 256)",
     )
     mutation_min_sensitivity: float = Field(
         0.01, gt=0, description="sensitivities below this are raised to it before dividing (PDERL: 0.01)"
     )
     crossover_transitions: int = Field(
-        4_000, ge=1, description="latest states taken from each parent's mini buffer to distil the child on (PDERL: 4,000)"
+        4_000,
+        ge=1,
+        description="latest states taken from each parent's mini buffer to distil the child on (PDERL: 4,000)",
     )
     crossover_epochs: int = Field(12, ge=1, description="passes over the child's distillation states (PDERL: 12)")
     crossover_batch_size: int = Field(128, ge=1, description="minibatch of the distillation (PDERL: 128)")
     crossover_lr: float = Field(1e-3, gt=0, le=1, description="Adam learning rate of the distillation (PDERL: 1e-3)")
     crossover_action_penalty: float = Field(
-        1 / 128, ge=0,
+        1 / 128,
+        ge=0,
         description="weight of mean(a^2) beside the summed squared action error (per row); 1/128 is PDERL's "
         "sum-over-batch loss plus mean(a^2) at batch 128, rescaled",
     )
     rl_sync_period: int = Field(
-        1, ge=1,
+        1,
+        ge=1,
         description="every this many generations the RL actor replaces the worst individual "
         "(PDERL code: 1 on Hopper, Walker2d, Ant; 10 elsewhere)",
     )

@@ -55,11 +55,7 @@ class TrainSpecialistParams(Strict):
         if any(h <= 0 for h in self.hidden_sizes):
             raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
         if self.learning_starts < self.batch_size:
-            raise ValueError(
-                f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})"
-            )
+            raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
         if self.learning_starts >= self.total_steps:
-            raise ValueError(
-                f"learning_starts ({self.learning_starts}) must be < total_steps ({self.total_steps})"
-            )
+            raise ValueError(f"learning_starts ({self.learning_starts}) must be < total_steps ({self.total_steps})")
         return self

@@ -46,7 +46,9 @@ def _shared_legend(fig: Figure, axes) -> None:
             seen.setdefault(name, handle)
     if seen:
         cols = 4 if max(map(len, seen)) <= 32 else 3 if max(map(len, seen)) <= 44 else 2
-        fig.legend(list(seen.values()), list(seen), loc="outside lower center", ncols=min(cols, len(seen)), fontsize="small")
+        fig.legend(
+            list(seen.values()), list(seen), loc="outside lower center", ncols=min(cols, len(seen)), fontsize="small"
+        )
 
 
 def _front_line(ax, points: np.ndarray, **kw) -> None:
@@ -65,9 +67,17 @@ def _starting_policies(ax, run: Run, pts: np.ndarray) -> None:
     for k, n in run.starting_counts().items():
         sel = spec & (objective == k)
         name = "specialist" if k < 0 else f"specialist {k}"
-        ax.scatter(pts[sel, 0], pts[sel, 1], marker="*", s=220 if n == 1 else 110,
-                   color=SPECIALIST_COLOURS[k % len(SPECIALIST_COLOURS)] if k >= 0 else "tab:red", edgecolors="black",
-                   lw=0.8, zorder=5, label=name if n == 1 else f"{name}: {n} starting policies")
+        ax.scatter(
+            pts[sel, 0],
+            pts[sel, 1],
+            marker="*",
+            s=220 if n == 1 else 110,
+            color=SPECIALIST_COLOURS[k % len(SPECIALIST_COLOURS)] if k >= 0 else "tab:red",
+            edgecolors="black",
+            lw=0.8,
+            zorder=5,
+            label=name if n == 1 else f"{name}: {n} starting policies",
+        )
 
 
 def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
@@ -88,16 +98,32 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
         pts, child = run.returns[:, :2], run.origin != "specialist"  # whatever the method made
         for other in variants:
             if other != v:
-                _front_line(ax, runs[other].returns[runs[other].on_front, :2], color=colour(other),
-                            ls="--", lw=1.2, alpha=0.8, label=f"{label(other)} front")
+                _front_line(
+                    ax,
+                    runs[other].returns[runs[other].on_front, :2],
+                    color=colour(other),
+                    ls="--",
+                    lw=1.2,
+                    alpha=0.8,
+                    label=f"{label(other)} front",
+                )
         _front_line(ax, pts[run.on_front], color="black", lw=1.2, label=f"{label(v)} front")
         if child.any():
-            mappable = ax.scatter(pts[child, 0], pts[child, 1], c=np.maximum(run.iteration[child], 1), cmap="viridis", norm=norm,
-                                  s=22, alpha=0.85, label="made by the method (colour: iteration)")
+            mappable = ax.scatter(
+                pts[child, 0],
+                pts[child, 1],
+                c=np.maximum(run.iteration[child], 1),
+                cmap="viridis",
+                norm=norm,
+                s=22,
+                alpha=0.85,
+                label="made by the method (colour: iteration)",
+            )
         nd = child & run.on_front
         if nd.any():
-            ax.scatter(pts[nd, 0], pts[nd, 1], s=70, facecolors="none", edgecolors="black", lw=1.2,
-                       label="non-dominated")
+            ax.scatter(
+                pts[nd, 0], pts[nd, 1], s=70, facecolors="none", edgecolors="black", lw=1.2, label="non-dominated"
+            )
         _starting_policies(ax, run, pts)
         ax.set_title(label(v))
         ax.set_xlabel(names[0])
@@ -134,11 +160,25 @@ def _band(ax, x: np.ndarray, curves: np.ndarray, colour: str, name: str, n: int,
         sd = np.nanstd(curves, axis=0, ddof=1)
     sem = np.where(counts > 1, sd / np.sqrt(np.maximum(counts, 1)), 0.0)
     ok = counts > 0
-    ax.plot(x[ok], mean[ok], color=colour, lw=1.6, ls=ls, drawstyle="steps-post",
-            label=f"{name} (mean of {n} seed{'s' if n > 1 else ''})")
+    ax.plot(
+        x[ok],
+        mean[ok],
+        color=colour,
+        lw=1.6,
+        ls=ls,
+        drawstyle="steps-post",
+        label=f"{name} (mean of {n} seed{'s' if n > 1 else ''})",
+    )
     if n > 1:
-        ax.fill_between(x[ok], (mean - sem)[ok], (mean + sem)[ok], step="post", color=colour,
-                        alpha=0.25 if ls == "-" else 0.12, lw=0)
+        ax.fill_between(
+            x[ok],
+            (mean - sem)[ok],
+            (mean + sem)[ok],
+            step="post",
+            color=colour,
+            alpha=0.25 if ls == "-" else 0.12,
+            lw=0,
+        )
 
 
 HISTORY_CURVES = (("hypervolume_extract", "-", "extraction-time"), ("hypervolume", "--", "re-evaluated"))
@@ -161,10 +201,24 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
         grid = np.unique(np.concatenate([r.history["env_samples"] for r in rs]))
         for key, ls, kind in HISTORY_CURVES:
             name = f"{label(v)}, {kind}"
-            _band(ax_it, its, np.stack([step_values(r.history["iteration"], r.history[key], its) for r in rs]),
-                  c, name, len(rs), ls)
-            _band(ax_s, grid, np.stack([step_values(r.history["env_samples"], r.history[key], grid) for r in rs]),
-                  c, name, len(rs), ls)
+            _band(
+                ax_it,
+                its,
+                np.stack([step_values(r.history["iteration"], r.history[key], its) for r in rs]),
+                c,
+                name,
+                len(rs),
+                ls,
+            )
+            _band(
+                ax_s,
+                grid,
+                np.stack([step_values(r.history["env_samples"], r.history[key], grid) for r in rs]),
+                c,
+                name,
+                len(rs),
+                ls,
+            )
     ax_it.set_xlabel("iteration")
     ax_it.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax_s.set_xlabel("env frames after the specialists")

@@ -45,8 +45,11 @@ def grid_table(cells: list[Cell]) -> str:
         cells_row = [c.name if c.name == c.env_id else f"{c.name} ({c.env_id})"]
         for key, _ in TABLE_METRICS:
             for g in groups:
-                ms = (specialist_metrics(c.runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
-                      else [r.metrics["front"] for r in c.runs if r.method == g])
+                ms = (
+                    specialist_metrics(c.runs, g.removeprefix("specialists_"))
+                    if g.startswith("specialists_")
+                    else [r.metrics["front"] for r in c.runs if r.method == g]
+                )
                 cells_row.append(fmt_mean_sem([m[key] for m in ms]) if ms else "")
         rows.append(cells_row)
     return _md_table(header, rows)
@@ -81,8 +84,14 @@ def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
     for ax, c in zip(axes, cells):
         for v in methods_in(c.runs):
             for i, r in enumerate(sorted((r for r in c.runs if r.method == v), key=lambda r: r.seed)):
-                _front_line(ax, r.returns[r.on_front, :2], color=colour(v), lw=1.1, alpha=0.8,
-                            label=label(v) if i == 0 else None)
+                _front_line(
+                    ax,
+                    r.returns[r.on_front, :2],
+                    color=colour(v),
+                    lw=1.1,
+                    alpha=0.8,
+                    label=label(v) if i == 0 else None,
+                )
         ax.set_title(c.name, fontsize="medium")
         ax.set_xlabel("objective 0")
         ax.set_ylabel("objective 1")

@@ -43,7 +43,10 @@ def report_markdown(
         "",
         "## Verdicts",
         "",
-        *([f"- {v.sentence}" for v in said] or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]),
+        *(
+            [f"- {v.sentence}" for v in said]
+            or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]
+        ),
         "",
         "## Metrics of the re-evaluated final fronts",
         "",
@@ -56,11 +59,19 @@ def report_markdown(
         "",
         paper_table(runs, env_id),
         details_table(runs),
-        *(["## Sample efficiency: extraction vs distillation from the same specialists", "",
-           "Cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: every "
-           "phase-2 frame) until a method's population first reaches a fraction of the other's final "
-           "re-evaluated hypervolume, on the re-evaluated hypervolume history.", "", eff]
-          if (eff := sample_efficiency_table(runs)) else []),
+        *(
+            [
+                "## Sample efficiency: extraction vs distillation from the same specialists",
+                "",
+                "Cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: every "
+                "phase-2 frame) until a method's population first reaches a fraction of the other's final "
+                "re-evaluated hypervolume, on the re-evaluated hypervolume history.",
+                "",
+                eff,
+            ]
+            if (eff := sample_efficiency_table(runs))
+            else []
+        ),
         "## Figures",
         "",
     ]

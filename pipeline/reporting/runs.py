@@ -19,9 +19,28 @@ from pipeline.params.methods import METHODS
 
 METHOD_ORDER = tuple(METHODS)  # the report's usual order: the paper's MAPEX first
 RUN_DIR = re.compile(r"^seed(\d+)$")
-METRICS_KEYS = ("env_id", "method", "seed", "episodes", "front", "specialists", "hv_ratio_vs_specialists",
-                "extraction_hypervolume", "iterations", "env_samples_extraction", "reference_point")
-FRONT_KEYS = ("hypervolume", "hv_fraction", "sparsity", "sparsity_pgmorl", "expected_utility", "cardinality", "distinct_count")
+METRICS_KEYS = (
+    "env_id",
+    "method",
+    "seed",
+    "episodes",
+    "front",
+    "specialists",
+    "hv_ratio_vs_specialists",
+    "extraction_hypervolume",
+    "iterations",
+    "env_samples_extraction",
+    "reference_point",
+)
+FRONT_KEYS = (
+    "hypervolume",
+    "hv_fraction",
+    "sparsity",
+    "sparsity_pgmorl",
+    "expected_utility",
+    "cardinality",
+    "distinct_count",
+)
 HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolume")
 
 
@@ -65,7 +84,9 @@ def load_runs(scored: Path, evaluated: Path) -> list[Run]:
         match = RUN_DIR.match(run_dir.name)
         if match is None:
             continue
-        runs.append(load_run(run_dir, evaluated / run_dir.parent.name / run_dir.name, run_dir.parent.name, int(match.group(1))))
+        runs.append(
+            load_run(run_dir, evaluated / run_dir.parent.name / run_dir.name, run_dir.parent.name, int(match.group(1)))
+        )
     if not runs:
         raise ArtifactError(f"{scored}: no VARIANT/seedS/metrics.json found (run the score stage first)")
     return runs
@@ -79,8 +100,10 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
         if missing:
             raise ArtifactError(f"{score_dir / 'metrics.json'}: no {', '.join(f'{group}.{k}' for k in missing)} key")
     if (metrics["method"], metrics["seed"]) != (method, seed):
-        raise ArtifactError(f"{score_dir / 'metrics.json'}: is for method {metrics['method']!r} seed {metrics['seed']!r}, "
-                            f"but sits in {method}/seed{seed}")
+        raise ArtifactError(
+            f"{score_dir / 'metrics.json'}: is for method {metrics['method']!r} seed {metrics['seed']!r}, "
+            f"but sits in {method}/seed{seed}"
+        )
     chain = _read_json(score_dir / "provenance.json", ())
     members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
     n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
@@ -91,15 +114,24 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
         on_front = np.zeros(len(members["origin"]), bool)
         on_front[ids] = True
         return Run(
-            method=method, seed=seed, metrics=metrics,
+            method=method,
+            seed=seed,
+            metrics=metrics,
             returns=np.stack([np.asarray(members[f"obj{m}"], float) for m in range(n_obj)], axis=1),
-            origin=np.asarray(members["origin"]), iteration=np.asarray(members["iteration"], int), on_front=on_front,
-            history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS}, provenance=chain,
-            objective=np.array([int(x) if x != "" else -1 for x in members.get("objective", [""] * len(members["origin"]))]),
+            origin=np.asarray(members["origin"]),
+            iteration=np.asarray(members["iteration"], int),
+            on_front=on_front,
+            history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS},
+            provenance=chain,
+            objective=np.array(
+                [int(x) if x != "" else -1 for x in members.get("objective", [""] * len(members["origin"]))]
+            ),
         )
     except (ValueError, IndexError) as exc:
-        raise ArtifactError(f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
-                            f"do not fit together or hold unreadable numbers ({exc})") from None
+        raise ArtifactError(
+            f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
+            f"do not fit together or hold unreadable numbers ({exc})"
+        ) from None
 
 
 def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:
@@ -109,7 +141,9 @@ def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:
         raise ArtifactError(f"{scored}: runs are for env(s) {envs}, params env.id is {env_id!r}")
     refs = {tuple(r.metrics["reference_point"]) for r in runs}
     if len(refs) > 1:
-        raise ArtifactError(f"{scored}: runs were scored against different reference points {sorted(refs)}; rerun score")
+        raise ArtifactError(
+            f"{scored}: runs were scored against different reference points {sorted(refs)}; rerun score"
+        )
 
 
 def _read_json(path: Path, keys: tuple[str, ...]) -> dict:

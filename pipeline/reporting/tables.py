@@ -51,8 +51,12 @@ def specialist_groups(runs: list[Run]) -> list[str]:
     return [f"specialists_{k}" for k in ("pderl", "td3") if k in kinds]
 
 
-TABLE_METRICS = (("hypervolume", "Hypervolume (↑)"), ("sparsity", "Sparsity (↓)"),
-                 ("expected_utility", "Expected utility (↑)"), ("distinct_count", "Distinct points (↑)"))
+TABLE_METRICS = (
+    ("hypervolume", "Hypervolume (↑)"),
+    ("sparsity", "Sparsity (↓)"),
+    ("expected_utility", "Expected utility (↑)"),
+    ("distinct_count", "Distinct points (↑)"),
+)
 
 
 def paper_table(runs: list[Run], env_id: str) -> str:
@@ -63,8 +67,11 @@ def paper_table(runs: list[Run], env_id: str) -> str:
     cells = [env_id]
     for key, _ in TABLE_METRICS:
         for g in groups:
-            ms = (specialist_metrics(runs, g.removeprefix("specialists_")) if g.startswith("specialists_")
-                  else [r.metrics["front"] for r in runs if r.method == g])
+            ms = (
+                specialist_metrics(runs, g.removeprefix("specialists_"))
+                if g.startswith("specialists_")
+                else [r.metrics["front"] for r in runs if r.method == g]
+            )
             cells.append(fmt_mean_sem([m[key] for m in ms]))
     return _md_table(header, [cells])
 
@@ -76,31 +83,64 @@ def _count(runs: list[Run], origin: str) -> str:
 def details_table(runs: list[Run]) -> str:
     """Per method: starting policies and members it made, HV ratio vs its specialists, HV
     fraction, PGMORL sparsity, cardinality, training-time HV, iterations and env frames."""
-    header = ["Method", "seeds", "starting policies", "made by the method", "HV / HV(specialists)", "HV fraction of [ref, ideal] box",
-              "sparsity (PGMORL)", "cardinality", "extraction/training-time HV", "iterations", "env frames (after specialists)"]
+    header = [
+        "Method",
+        "seeds",
+        "starting policies",
+        "made by the method",
+        "HV / HV(specialists)",
+        "HV fraction of [ref, ideal] box",
+        "sparsity (PGMORL)",
+        "cardinality",
+        "extraction/training-time HV",
+        "iterations",
+        "env frames (after specialists)",
+    ]
     rows = []
     for v in methods_in(runs):
         rs = [r for r in runs if r.method == v]
         m = [r.metrics for r in rs]
         made = fmt_mean_sem([float((r.origin != "specialist").sum()) for r in rs])
-        rows.append([label(v), str(len(rs)), _count(rs, "specialist"), made,
-                     fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
-                     fmt_mean_sem([x["front"]["hv_fraction"] for x in m]),
-                     fmt_mean_sem([x["front"]["sparsity_pgmorl"] for x in m]),
-                     fmt_mean_sem([x["front"]["cardinality"] for x in m]),
-                     fmt_mean_sem([x["extraction_hypervolume"] for x in m]),
-                     fmt_mean_sem([x["iterations"] for x in m]),
-                     fmt_mean_sem([x["env_samples_extraction"] for x in m])])
+        rows.append(
+            [
+                label(v),
+                str(len(rs)),
+                _count(rs, "specialist"),
+                made,
+                fmt_mean_sem([x["hv_ratio_vs_specialists"] for x in m]),
+                fmt_mean_sem([x["front"]["hv_fraction"] for x in m]),
+                fmt_mean_sem([x["front"]["sparsity_pgmorl"] for x in m]),
+                fmt_mean_sem([x["front"]["cardinality"] for x in m]),
+                fmt_mean_sem([x["extraction_hypervolume"] for x in m]),
+                fmt_mean_sem([x["iterations"] for x in m]),
+                fmt_mean_sem([x["env_samples_extraction"] for x in m]),
+            ]
+        )
     for g in specialist_groups(runs):
         kind = g.removeprefix("specialists_")
         sm = specialist_metrics(runs, kind)
         # every method of a seed from this kind starts from the same policies
         # (the extraction runs first: they start from every policy of the sets, MOPDERL from the populations)
-        ordered = sorted(runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99, reverse=True)
+        ordered = sorted(
+            runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99, reverse=True
+        )
         one_per_seed = list({r.seed: r for r in ordered if specialist_kind(r.method) == kind}.values())
         # the specialists' HV fraction depends on which method's box it was measured in: not shown
-        rows.append([label(g), str(len(sm)), _count(one_per_seed, "specialist"), "0", "1", "",
-                     fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]), fmt_mean_sem([x["cardinality"] for x in sm]), "", "0", ""])
+        rows.append(
+            [
+                label(g),
+                str(len(sm)),
+                _count(one_per_seed, "specialist"),
+                "0",
+                "1",
+                "",
+                fmt_mean_sem([x["sparsity_pgmorl"] for x in sm]),
+                fmt_mean_sem([x["cardinality"] for x in sm]),
+                "",
+                "0",
+                "",
+            ]
+        )
     return _md_table(header, rows)
 
 
@@ -110,7 +150,9 @@ def _md_table(header: list[str], rows: list[list[str]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def frames_to_reach(runs: list[Run], a: str, b: str, fractions: tuple[float, ...] = (0.5, 0.9, 1.0)) -> dict[float, list[float | None]]:
+def frames_to_reach(
+    runs: list[Run], a: str, b: str, fractions: tuple[float, ...] = (0.5, 0.9, 1.0)
+) -> dict[float, list[float | None]]:
     """Per fraction f: for each seed with both methods, the cumulative env frames after which
     method a's population (re-evaluated hypervolume history) first reaches f x method b's final
     re-evaluated hypervolume; None where it never does."""
@@ -126,8 +168,15 @@ def frames_to_reach(runs: list[Run], a: str, b: str, fractions: tuple[float, ...
     return out
 
 
-def sample_efficiency_table(runs: list[Run], pairs: tuple[tuple[str, str], ...] = (("mapex_pderl", "mopderl"),
-                            ("mopderl", "mapex_pderl"), ("mapex_posthoc_pderl", "mopderl"), ("mopderl", "mapex_posthoc_pderl"))) -> str:
+def sample_efficiency_table(
+    runs: list[Run],
+    pairs: tuple[tuple[str, str], ...] = (
+        ("mapex_pderl", "mopderl"),
+        ("mopderl", "mapex_pderl"),
+        ("mapex_posthoc_pderl", "mopderl"),
+        ("mopderl", "mapex_posthoc_pderl"),
+    ),
+) -> str:
     """Env frames each method needs to reach 50%, 90% and 100% of the other's final re-evaluated
     hypervolume, from the same specialists (mean ± SEM over the seeds that reached it); '' when
     no pair was run."""
@@ -163,7 +212,12 @@ def provenance_cells(record: dict | None) -> tuple[str, ...]:
     commit = record.get("git_commit")
     if commit is not None:  # a dirty checkout's results may come from uncommitted code
         commit = commit[:10] + {True: " (dirty)", False: ""}.get(record.get("git_dirty"), " (dirty: not recorded)")
-    values = (commit, *(versions.get(lib) for lib in PROVENANCE_COLUMNS[1:6]), record.get("device"), record.get("torch_threads"))
+    values = (
+        commit,
+        *(versions.get(lib) for lib in PROVENANCE_COLUMNS[1:6]),
+        record.get("device"),
+        record.get("torch_threads"),
+    )
     return tuple("not recorded" if x is None else str(x) for x in values)
 
 

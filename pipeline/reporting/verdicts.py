@@ -56,8 +56,14 @@ def _percent(diff: float, base: float) -> str:
     return f"{diff / abs(base) * 100:+.1f}%" if base != 0 else "n/a"
 
 
-def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0, a: str = "mapex_td3",
-               b: str = "warmup_only_td3", what: str | None = None) -> Verdict:
+def hv_verdict(
+    runs: list[Run],
+    min_difference: float = 0.05,
+    noise_sems: float = 2.0,
+    a: str = "mapex_td3",
+    b: str = "warmup_only_td3",
+    what: str | None = None,
+) -> Verdict:
     """Did method `a` beat method `b` on re-evaluated hypervolume? (Default: MAPEX-TD3 vs its
     warm-up only ablation, i.e. did the advantage-weighted phase help.)
 
@@ -71,8 +77,9 @@ def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float 
     hv = {(r.method, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
     seeds = sorted(s for (v, s) in hv if v == a and (b, s) in hv)
     if not seeds:
-        return Verdict("unknown", f"Cannot say whether {what} beat {lb} on hypervolume: no seed has evaluated "
-                                  f"results for both.")
+        return Verdict(
+            "unknown", f"Cannot say whether {what} beat {lb} on hypervolume: no seed has evaluated results for both."
+        )
     x = np.array([hv[(a, s)] for s in seeds], dtype=float)
     y = np.array([hv[(b, s)] for s in seeds], dtype=float)
     d = x - y
@@ -83,26 +90,39 @@ def hv_verdict(runs: list[Run], min_difference: float = 0.05, noise_sems: float 
     if n > 1:
         (am, asem), (bm, bsem), (dm, dsem) = mean_sem(x), mean_sem(y), mean_sem(d)
         z = f"{abs(dm) / dsem:.1f} SEM from zero" if dsem > 0 else "every seed's difference the same"
-        numbers = (f"Mean ± SEM over seeds {', '.join(map(str, seeds))}: {la} {fmt_num(am)} ± {fmt_num(asem)}, "
-                   f"{lb} {fmt_num(bm)} ± {fmt_num(bsem)}. Paired by seed, {la} - {lb} = "
-                   f"{fmt_num(dm)} ± {fmt_num(dsem)} (SEM; {_percent(dm, bm)} of {lb}'s mean, {z}); {tally}.")
-        rule = (f"Rule: 'beat' or 'lost to' needs the mean paired difference beyond {noise_sems:g} SEM of the "
-                f"paired differences (report.noise_sems) and the same sign in more than half of the seeds; "
-                f"otherwise 'tied with': inside the seed noise.")
+        numbers = (
+            f"Mean ± SEM over seeds {', '.join(map(str, seeds))}: {la} {fmt_num(am)} ± {fmt_num(asem)}, "
+            f"{lb} {fmt_num(bm)} ± {fmt_num(bsem)}. Paired by seed, {la} - {lb} = "
+            f"{fmt_num(dm)} ± {fmt_num(dsem)} (SEM; {_percent(dm, bm)} of {lb}'s mean, {z}); {tally}."
+        )
+        rule = (
+            f"Rule: 'beat' or 'lost to' needs the mean paired difference beyond {noise_sems:g} SEM of the "
+            f"paired differences (report.noise_sems) and the same sign in more than half of the seeds; "
+            f"otherwise 'tied with': inside the seed noise."
+        )
     else:
-        numbers = (f"One seed only ({seeds[0]}), so no estimate of seed noise: {la} {fmt_num(float(x[0]))}, "
-                   f"{lb} {fmt_num(float(y[0]))}, difference {fmt_num(float(d[0]))} "
-                   f"({_percent(float(d[0]), float(y[0]))}); {tally}.")
-        rule = (f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of {lb}'s hypervolume "
-                f"(report.min_difference) counts as a tie.")
+        numbers = (
+            f"One seed only ({seeds[0]}), so no estimate of seed noise: {la} {fmt_num(float(x[0]))}, "
+            f"{lb} {fmt_num(float(y[0]))}, difference {fmt_num(float(d[0]))} "
+            f"({_percent(float(d[0]), float(y[0]))}); {tally}."
+        )
+        rule = (
+            f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of {lb}'s hypervolume "
+            f"(report.min_difference) counts as a tie."
+        )
     verb = {"beat": "beat", "lost": "lost to", "tied": "tied with"}[outcome]
-    text = (f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} iterations), {what} {verb} {lb} on "
-            f"re-evaluated hypervolume. {numbers} {rule}")
+    text = (
+        f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} iterations), {what} {verb} {lb} on "
+        f"re-evaluated hypervolume. {numbers} {rule}"
+    )
     return Verdict(outcome, text)
 
 
 def verdicts(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> list[Verdict]:
     """One verdict per pair of VERDICT_PAIRS whose two methods were both run (paired by seed)."""
     present = {r.method for r in runs}
-    return [hv_verdict(runs, min_difference, noise_sems, a, b, what) for a, b, what in VERDICT_PAIRS
-            if a in present and b in present]
+    return [
+        hv_verdict(runs, min_difference, noise_sems, a, b, what)
+        for a, b, what in VERDICT_PAIRS
+        if a in present and b in present
+    ]

@@ -62,9 +62,9 @@ import torch
 
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.specialists.td3_learner import TD3Learner
 from pipeline.specialists.td3_training import covered_objectives, stack_td3
 
@@ -147,8 +147,15 @@ class StateRing:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         rows = state["rows"].numpy()
-        if state["capacity"] != self.capacity or rows.ndim != 2 or rows.shape[1] != self.data.shape[1] or len(rows) > self.capacity:
-            raise ValueError(f"mini buffer state of shape {tuple(rows.shape)} (capacity {state['capacity']}) does not fit {self.data.shape}")
+        if (
+            state["capacity"] != self.capacity
+            or rows.ndim != 2
+            or rows.shape[1] != self.data.shape[1]
+            or len(rows) > self.capacity
+        ):
+            raise ValueError(
+                f"mini buffer state of shape {tuple(rows.shape)} (capacity {state['capacity']}) does not fit {self.data.shape}"
+            )
         self.data[: len(rows)] = rows
         self.size, self.ptr = len(rows), int(state["ptr"])
 
@@ -275,7 +282,11 @@ class EvolutionReport:
 
 
 def evolve(
-    population: list[Individual], critic: QFunction, cfg: TrainPderlParams, rng: np.random.Generator, generator: torch.Generator
+    population: list[Individual],
+    critic: QFunction,
+    cfg: TrainPderlParams,
+    rng: np.random.Generator,
+    generator: torch.Generator,
 ) -> EvolutionReport:
     """One PDERL evolution step of `population` (all evaluated), in place.
 
@@ -304,7 +315,9 @@ def evolve(
 
     copies = {free.pop(0): e for e in elites if e in selected}
     pairs = sorted(combinations(survivors, 2), key=lambda ab: -(fitness[ab[0]] + fitness[ab[1]]))
-    new: dict[int, Individual] = {slot: Individual(copy.deepcopy(population[e].actor), population[e].ring.copy()) for slot, e in copies.items()}
+    new: dict[int, Individual] = {
+        slot: Individual(copy.deepcopy(population[e].actor), population[e].ring.copy()) for slot, e in copies.items()
+    }
     children: dict[int, tuple[int, int]] = {}
     for j, slot in enumerate(free):
         if not pairs:
@@ -405,7 +418,9 @@ class PderlRun:
         device: torch.device | str = "cpu",
     ):
         if not 0 <= objective < spec.n_objectives:
-            raise ValueError(f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives")
+            raise ValueError(
+                f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives"
+            )
         self.spec, self.td3_cfg, self.cfg = spec, td3_cfg, cfg
         self.objective, self.seed = objective, seed
         self.device = torch.device(device)
@@ -422,8 +437,13 @@ class PderlRun:
         # The RL agent: the specialists' TD3 machinery with S = 1 (so on CUDA its buffer lives on
         # the GPU and its updates replay as CUDA graphs), holding the shared replay buffer.
         self.agent = TD3Learner(
-            spec, td3_cfg, stack_td3(td3_cfg, [rl_actor], [rl_critic], [objectives], [primary], self.device),
-            np.random.default_rng(self.seeds["rows"]), self.seeds["smoothing"], self.seeds["cuda_rows"], self.device,
+            spec,
+            td3_cfg,
+            stack_td3(td3_cfg, [rl_actor], [rl_critic], [objectives], [primary], self.device),
+            np.random.default_rng(self.seeds["rows"]),
+            self.seeds["smoothing"],
+            self.seeds["cuda_rows"],
+            self.device,
         )
         self.buffer = self.agent.buffer
         self.evo_rng = np.random.default_rng(self.seeds["evolution"])
@@ -462,7 +482,11 @@ class PderlRun:
         while True:
             a = actor(torch.as_tensor(obs, device=self.device).unsqueeze(0))[0].cpu().numpy()
             if noise:
-                a = a + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32) * scale
+                a = (
+                    a
+                    + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32)
+                    * scale
+                )
                 a = np.clip(a, low, high).astype(np.float32)
             next_obs, reward, terminated, truncated, _ = env.step(a)
             next_obs = np.asarray(next_obs, np.float32)
@@ -494,7 +518,9 @@ class PderlRun:
     def budget_spent(self) -> bool:
         return self.frames >= self.cfg.total_frames
 
-    def step_generation(self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None) -> GenerationRecord:
+    def step_generation(
+        self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None
+    ) -> GenerationRecord:
         """Run one generation (see the module docstring); returns its record."""
         start = self.frames
         for ind in self.population:
@@ -510,9 +536,15 @@ class PderlRun:
         if self.generation % self.cfg.rl_sync_period == 0:
             rl_slot = self.sync_rl(fitness, report.elites)
         rec = GenerationRecord(
-            generation=self.generation, frames=self.frames, updates=self.updates,
-            best=float(fitness.max()), mean=float(fitness.mean()), rl_fitness=float(rl.returns[self.objective]),
-            crossovers=sum(1 for a, b in report.children.values() if a != b), mutations=len(report.mutated), rl_slot=rl_slot,
+            generation=self.generation,
+            frames=self.frames,
+            updates=self.updates,
+            best=float(fitness.max()),
+            mean=float(fitness.mean()),
+            rl_fitness=float(rl.returns[self.objective]),
+            crossovers=sum(1 for a, b in report.children.values() if a != b),
+            mutations=len(report.mutated),
+            rl_slot=rl_slot,
         )
         self.history.append(rec)
         return rec
@@ -539,12 +571,20 @@ class PderlRun:
     def result(self, rl_fitness: float) -> PderlResult:
         actor, actor_target, critic, critic_target = self.agent.networks()
         return PderlResult(
-            seed=self.seed, objective=self.objective,
+            seed=self.seed,
+            objective=self.objective,
             actors=[copy.deepcopy(ind.actor).cpu() for ind in self.population],
-            fitness=[ind.fitness for ind in self.population], rl_fitness=rl_fitness,
-            actor=actor, actor_target=actor_target, critic=critic, critic_target=critic_target,
-            objectives=list(self.agent.objectives), buffer=self.buffer.chronological(0),
-            history=list(self.history), frames=self.frames, updates=self.updates,
+            fitness=[ind.fitness for ind in self.population],
+            rl_fitness=rl_fitness,
+            actor=actor,
+            actor_target=actor_target,
+            critic=critic,
+            critic_target=critic_target,
+            objectives=list(self.agent.objectives),
+            buffer=self.buffer.chronological(0),
+            history=list(self.history),
+            frames=self.frames,
+            updates=self.updates,
         )
 
     # -- checkpoints ----------------------------------------------------------------------
@@ -562,7 +602,8 @@ class PderlRun:
             "history": [asdict(r) for r in self.history],
             "td3": self.agent.state_dict(),
             "population": [
-                {"actor": _cpu(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "fitness": ind.fitness} for ind in self.population
+                {"actor": _cpu(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "fitness": ind.fitness}
+                for ind in self.population
             ],
             "rng": {
                 "evolution": copy.deepcopy(self.evo_rng.bit_generator.state),
@@ -579,7 +620,9 @@ class PderlRun:
         if state.get("format") != STATE_FORMAT or state.get("format_version") != STATE_VERSION:
             raise ValueError(f"not a {STATE_FORMAT} v{STATE_VERSION} state")
         if (state["seed"], state["objective"]) != (self.seed, self.objective):
-            raise ValueError(f"state of seed {state['seed']}, objective {state['objective']}; this run is seed {self.seed}, objective {self.objective}")
+            raise ValueError(
+                f"state of seed {state['seed']}, objective {state['objective']}; this run is seed {self.seed}, objective {self.objective}"
+            )
         if len(state["population"]) != len(self.population):
             raise ValueError(f"state holds {len(state['population'])} individuals, the run {len(self.population)}")
         try:

@@ -211,7 +211,9 @@ def clear_grads(opt: torch.optim.Optimizer) -> None:
             p.grad = None
 
 
-def stacked_targets(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float) -> torch.Tensor:
+def stacked_targets(
+    state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float
+) -> torch.Tensor:
     """TD3 targets of every covered objective of every specialist -> (S, n_cov, B).
 
     batch fields carry a leading S; noise (S, B, act) is standard normal, drawn by the caller
@@ -229,7 +231,9 @@ def stacked_targets(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma:
         return reward.transpose(1, 2) + gamma * (1.0 - batch.terminated).unsqueeze(1) * q_next
 
 
-def stacked_critic_step(state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float) -> torch.Tensor:
+def stacked_critic_step(
+    state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float
+) -> torch.Tensor:
     """One Adam step of every critic of every specialist; returns the summed loss (a tensor)."""
     y = stacked_targets(state, batch, noise, gamma, policy_noise, noise_clip)  # (S, n_cov, B)
     q = state.critic.grouped(batch.obs, batch.action)  # (S * 2 * n_cov, B)
@@ -287,14 +291,27 @@ class GraphedUpdate:
     must be built with capturable=True.
     """
 
-    def __init__(self, state: StackedTD3, gather, idx: torch.Tensor, noise: torch.Tensor, gamma: float, tau: float, policy_noise: float, noise_clip: float, warmup: int = 3):
+    def __init__(
+        self,
+        state: StackedTD3,
+        gather,
+        idx: torch.Tensor,
+        noise: torch.Tensor,
+        gamma: float,
+        tau: float,
+        policy_noise: float,
+        noise_clip: float,
+        warmup: int = 3,
+    ):
         self.state, self.gather, self.idx, self.noise = state, gather, idx, noise
         self.args = (gamma, policy_noise, noise_clip)
         self.tau = tau
         self.obs = torch.zeros(idx.shape[0], idx.shape[1], state.actor.weights[0].shape[1], device=idx.device)
         if state.actor_opt.state or state.critic_opt.state:
             raise RuntimeError("GraphedUpdate must be built before the first update (fresh optimizers)")
-        params = [p.data for m in (state.actor, state.actor_target, state.critic, state.critic_target) for p in m.parameters()]
+        params = [
+            p.data for m in (state.actor, state.actor_target, state.critic, state.critic_target) for p in m.parameters()
+        ]
         saved = [p.clone() for p in params]
         # Capture needs a few eager runs on a side stream first (allocator and library warm-up).
         # They are real updates, so the parameters are restored afterwards and the optimizer

@@ -37,22 +37,40 @@ class TD3Learner:
     with no host sync. On a CPU, rows are drawn with `rows_rng` (numpy).
     """
 
-    def __init__(self, spec: EnvSpec, cfg: TrainSpecialistParams, state: StackedTD3, rows_rng: np.random.Generator,
-                 noise_seed: int, cuda_rows_seed: int, device: torch.device | str):
+    def __init__(
+        self,
+        spec: EnvSpec,
+        cfg: TrainSpecialistParams,
+        state: StackedTD3,
+        rows_rng: np.random.Generator,
+        noise_seed: int,
+        cuda_rows_seed: int,
+        device: torch.device | str,
+    ):
         if state.n != 1:
             raise ValueError(f"a TD3Learner trains one specialist, got a stacked set of {state.n}")
         self.cfg, self.state, self.device = cfg, state, torch.device(device)
         self.rows_rng = rows_rng
         self.buffer = StackedReplay(1, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = _Updater(state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device)
+        self.update = _Updater(
+            state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device
+        )
         self.objectives: list[int] = state.reward_index[0].tolist()
         self.primary_member = int(state.primary_members[0])  # head 0 of its own objective
         self.updates = 0
 
     def add(self, obs, action, reward, next_obs, terminated: bool, truncated: bool, episode: int, step: int) -> None:
         """Append one transition to the replay buffer."""
-        self.buffer.add(obs[None], action[None], np.asarray(reward)[None], next_obs[None],
-                        np.array([terminated]), np.array([truncated]), np.array([episode]), np.array([step]))
+        self.buffer.add(
+            obs[None],
+            action[None],
+            np.asarray(reward)[None],
+            next_obs[None],
+            np.array([terminated]),
+            np.array([truncated]),
+            np.array([episode]),
+            np.array([step]),
+        )
 
     def train(self, n: int) -> None:
         """n TD3 updates (the actor and targets on every policy_freq-th, counted over the run)."""
@@ -74,8 +92,12 @@ class TD3Learner:
         st = self.state
         e = st.critic.n_members
         with torch.random.fork_rng(devices=[]):
-            return (st.actor.unstack(0), st.actor_target.unstack(0).requires_grad_(False), st.critic.subset(0, e).cpu(),
-                    st.critic_target.subset(0, e).cpu().requires_grad_(False))
+            return (
+                st.actor.unstack(0),
+                st.actor_target.unstack(0).requires_grad_(False),
+                st.critic.subset(0, e).cpu(),
+                st.critic_target.subset(0, e).cpu().requires_grad_(False),
+            )
 
     def state_dict(self) -> dict[str, Any]:
         """Networks, optimizers, buffer, RNG streams and the update count, as CPU tensors."""
@@ -84,8 +106,11 @@ class TD3Learner:
             "updates": self.updates,
             "nets": nets_state(self.state),
             "buffer": buffer_state(self.buffer),
-            "rng": {"rows": copy.deepcopy(self.rows_rng.bit_generator.state), "noise": u.noise_gens[0].get_state(),
-                    "cuda_rows": u.row_gens[0].get_state() if u.on_cuda else None},
+            "rng": {
+                "rows": copy.deepcopy(self.rows_rng.bit_generator.state),
+                "noise": u.noise_gens[0].get_state(),
+                "cuda_rows": u.row_gens[0].get_state() if u.on_cuda else None,
+            },
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

@@ -37,8 +37,8 @@ from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
-from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3 import GraphedUpdate, StackedTD3, TD3State, stacked_update
 
 
@@ -100,7 +100,9 @@ def run_seeds(seed: int, objective: int) -> dict[str, int]:
     return dict(zip(names, derive_seeds(seed, objective, n=len(names))))
 
 
-def init_stacked(spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device) -> StackedTD3:
+def init_stacked(
+    spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device
+) -> StackedTD3:
     """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
     would be alone (torch seeded with its own seed, actor first, then its critics)."""
     actors, critics, covered, primary = [], [], [], []
@@ -133,7 +135,9 @@ def stack_td3(
     critic_target = copy.deepcopy(critic) if critic_targets is None else CriticEnsemble.stack(critic_targets).to(device)
     sizes = {2 * len(c) for c in covered}
     if len(sizes) != 1 or [c.n_members for c in critics] != [2 * len(c) for c in covered]:
-        raise ValueError(f"stacked specialists need critic ensembles of one size, 2 members per covered objective: {list(covered)}")
+        raise ValueError(
+            f"stacked specialists need critic ensembles of one size, 2 members per covered objective: {list(covered)}"
+        )
     e = sizes.pop()
     # fused Adam: one kernel per parameter tensor (same update as the plain one). Captured CUDA
     # graphs need the optimizer's step counters on the device (capturable).
@@ -151,7 +155,9 @@ def stack_td3(
     )
 
 
-def exploration_actions(actor: StackedActor, obs: np.ndarray, noise_std: float, rngs: Sequence[np.random.Generator]) -> np.ndarray:
+def exploration_actions(
+    actor: StackedActor, obs: np.ndarray, noise_std: float, rngs: Sequence[np.random.Generator]
+) -> np.ndarray:
     """pi_s(s_s) plus Gaussian noise (std noise_std times the action half-range) per specialist,
     clipped to the bounds: obs (S, o) -> (S, a). Reading the actions is the step's one host sync."""
     device = actor.scale.device
@@ -167,7 +173,15 @@ def exploration_actions(actor: StackedActor, obs: np.ndarray, noise_std: float, 
 class _Updater:
     """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update."""
 
-    def __init__(self, state: StackedTD3, buffer: StackedReplay, cfg: TrainSpecialistParams, seeds: list[dict[str, int]], rngs, device):
+    def __init__(
+        self,
+        state: StackedTD3,
+        buffer: StackedReplay,
+        cfg: TrainSpecialistParams,
+        seeds: list[dict[str, int]],
+        rngs,
+        device,
+    ):
         self.state, self.buffer, self.cfg, self.rngs = state, buffer, cfg, rngs
         self.device = device
         s, b, act = state.n, cfg.batch_size, state.actor.scale.shape[-1]
@@ -195,7 +209,9 @@ class _Updater:
                 self.idx[s].random_(0, self.buffer.size, generator=g)
             idx = self.idx
         else:
-            idx = torch.from_numpy(np.stack([rng.integers(0, self.buffer.size, size=self.cfg.batch_size) for rng in self.rngs]))
+            idx = torch.from_numpy(
+                np.stack([rng.integers(0, self.buffer.size, size=self.cfg.batch_size) for rng in self.rngs])
+            )
         if self.graphs:
             self.graph()(update_actor)
         else:
@@ -231,11 +247,16 @@ def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) ->
 
 def nets_state(st: StackedTD3) -> dict[str, Any]:
     """The networks and optimizers of a stacked set, as CPU tensors."""
-    return _cpu({
-        "actor": st.actor.state_dict(), "actor_target": st.actor_target.state_dict(),
-        "critic": st.critic.state_dict(), "critic_target": st.critic_target.state_dict(),
-        "actor_opt": st.actor_opt.state_dict(), "critic_opt": st.critic_opt.state_dict(),
-    })
+    return _cpu(
+        {
+            "actor": st.actor.state_dict(),
+            "actor_target": st.actor_target.state_dict(),
+            "critic": st.critic.state_dict(),
+            "critic_target": st.critic_target.state_dict(),
+            "actor_opt": st.actor_opt.state_dict(),
+            "critic_opt": st.critic_opt.state_dict(),
+        }
+    )
 
 
 def load_nets_state(update: "_Updater", nets: dict[str, Any], n_updates: int) -> None:
@@ -279,7 +300,9 @@ def check_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
         raise ValueError(f"state's buffer capacity {saved['capacity']} != {b.capacity}")
     size = saved["size"]
     if tuple(saved["rows"].shape) != (b.n, size, b.rows.shape[2]) or not 0 <= saved["ptr"] < b.capacity:
-        raise ValueError(f"state's buffer rows {tuple(saved['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})")
+        raise ValueError(
+            f"state's buffer rows {tuple(saved['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})"
+        )
 
 
 def load_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
@@ -302,10 +325,19 @@ class SpecialistsRun:
     the same thread count and library versions.
     """
 
-    def __init__(self, envs: Sequence[gym.Env], spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device):
+    def __init__(
+        self,
+        envs: Sequence[gym.Env],
+        spec: EnvSpec,
+        cfg: TrainSpecialistParams,
+        jobs: Sequence[tuple[int, int]],
+        device: torch.device,
+    ):
         for seed, objective in jobs:
             if not 0 <= objective < spec.n_objectives:
-                raise ValueError(f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives")
+                raise ValueError(
+                    f"objective {objective} out of range: env {spec.env_id} has {spec.n_objectives} objectives"
+                )
         if len(envs) != len(jobs):
             raise ValueError(f"{len(jobs)} specialists need as many envs, got {len(envs)}")
         self.envs, self.spec, self.cfg = list(envs), spec, cfg
@@ -354,7 +386,9 @@ class SpecialistsRun:
         self.obs = next_obs.copy()
         records: list[EpisodeRecord | None] = [None] * len(envs)
         for s in np.flatnonzero(terminated | truncated):
-            records[s] = EpisodeRecord(int(self.episode[s]), t + 1, int(self.ep_step[s]), self.ep_return[s].copy(), bool(terminated[s]))
+            records[s] = EpisodeRecord(
+                int(self.episode[s]), t + 1, int(self.ep_step[s]), self.ep_return[s].copy(), bool(terminated[s])
+            )
             self.episodes[s].append(records[s])
             self.obs[s] = envs[s].reset()[0]
             self.episode[s] += 1
@@ -412,7 +446,9 @@ class SpecialistsRun:
                     "end_step": torch.tensor([r.end_step for r in eps], dtype=torch.int64),
                     "length": torch.tensor([r.length for r in eps], dtype=torch.int64),
                     "terminated": torch.tensor([r.terminated for r in eps], dtype=torch.bool),
-                    "returns": torch.from_numpy(np.stack([r.returns for r in eps]) if eps else np.zeros((0, self.spec.n_objectives))),
+                    "returns": torch.from_numpy(
+                        np.stack([r.returns for r in eps]) if eps else np.zeros((0, self.spec.n_objectives))
+                    ),
                 }
                 for eps in self.episodes
             ],
@@ -452,8 +488,12 @@ class SpecialistsRun:
                 [
                     EpisodeRecord(int(e), int(end), int(length), ret.copy(), bool(term))
                     for e, end, length, term, ret in zip(
-                        eps["episode"].tolist(), eps["end_step"].tolist(), eps["length"].tolist(),
-                        eps["terminated"].tolist(), eps["returns"].numpy(), strict=True,
+                        eps["episode"].tolist(),
+                        eps["end_step"].tolist(),
+                        eps["length"].tolist(),
+                        eps["terminated"].tolist(),
+                        eps["returns"].numpy(),
+                        strict=True,
                     )
                 ]
                 for eps in state["episodes"]
@@ -472,7 +512,9 @@ class SpecialistsRun:
         except (RuntimeError, KeyError, TypeError) as exc:
             raise ValueError(f"state does not fit this run ({type(exc).__name__}: {exc})") from None
         if len(self.episodes) != len(self.jobs):
-            raise ValueError(f"state holds the episodes of {len(self.episodes)} specialists, the run trains {len(self.jobs)}")
+            raise ValueError(
+                f"state holds the episodes of {len(self.episodes)} specialists, the run trains {len(self.jobs)}"
+            )
         c = state["counters"]
         self.t, self.n_updates = int(c["t"]), int(c["n_updates"])
 
