@@ -377,7 +377,7 @@ def test_load_population_reads_version_1(tmp_path):
     # an unknown version is refused naming the current one
     obj["format_version"] = 9
     torch.save(obj, path)
-    with pytest.raises(ArtifactError, match="format_version 9, expected 2"):
+    with pytest.raises(ArtifactError, match="format_version 9, expected 3"):
         load_population(path)
     # saved anew it is the current version
     save_population(tmp_path / "again.pt", members, meta)

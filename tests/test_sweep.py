@@ -58,9 +58,9 @@ def source(tmp_path_factory) -> Path:
     (root / "presets").mkdir()
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
     (root / "params.yaml").write_text(yaml.safe_dump(TINY, sort_keys=False))
-    # valid params, but dvc.yaml's train_pderl matrix needs pderl_seeds
-    (root / "no_pderl.yaml").write_text(
-        yaml.safe_dump({k: v for k, v in TINY.items() if k != "pderl_seeds"}, sort_keys=False)
+    # valid params (objectives has a default), but dvc.yaml's matrices need the key itself
+    (root / "no_objectives.yaml").write_text(
+        yaml.safe_dump({k: v for k, v in TINY.items() if k != "objectives"}, sort_keys=False)
     )
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n/sweeps/\n")
     git(root, "init", "-q")
@@ -224,10 +224,10 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
 
 
 def test_a_cell_dvc_cannot_read_is_refused_before_anything_runs(tmp_path, source):
-    grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "base": "no_pderl.yaml"})
+    grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "base": "no_objectives.yaml"})
     result = run_cli(grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work")
     assert result.exit_code == 2
-    assert "cell mo-hopper-2obj-v5: DVC cannot read the pipeline" in result.output and "pderl_seeds" in result.output
+    assert "cell mo-hopper-2obj-v5: DVC cannot read the pipeline" in result.output and "objectives" in result.output
 
 
 def test_core_install_does_not_need_ray():
