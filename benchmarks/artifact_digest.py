@@ -13,7 +13,11 @@ What is hashed:
 - JSON files: the parsed document less `provenance` keys, canonically dumped;
 - everything else (CSV, Markdown, PNG): the raw bytes.
 
-Usage: python benchmarks/artifact_digest.py DATA_DIR [--keys-only] > digests.txt
+Usage: python benchmarks/artifact_digest.py DATA_DIR [--alias OLD=NEW ...] [--skip KEY ...] > digests.txt
+
+--alias reads a key OLD as NEW (in torch files and JSON) and --skip leaves KEY out, to compare
+artifacts across a deliberate rename of a metadata key (e.g. `--alias variant=method --skip
+format_version`, the population format 2 -> 3 change): every other byte must still agree.
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import torch
 import zarr
 
 SKIP_KEYS = {"provenance"}
+ALIASES: dict[str, str] = {}
 
 
 def _walk(h, obj) -> None:
@@ -39,11 +44,10 @@ def _walk(h, obj) -> None:
         h.update(f"A{obj.dtype}{obj.shape}".encode())
         h.update(np.ascontiguousarray(obj).tobytes())
     elif isinstance(obj, dict):
-        for k in sorted(obj, key=str):
-            if k in SKIP_KEYS:
-                continue
+        named = {ALIASES.get(k, k): v for k, v in obj.items() if k not in SKIP_KEYS}
+        for k in sorted(named, key=str):
             h.update(f"K{k!r}".encode())
-            _walk(h, obj[k])
+            _walk(h, named[k])
     elif isinstance(obj, (list, tuple)):
         h.update(f"L{len(obj)}".encode())
         for v in obj:
@@ -71,7 +75,7 @@ def digest_zarr(path: Path) -> str:
 def digest_json(path: Path) -> str:
     def strip(obj):
         if isinstance(obj, dict):
-            return {k: strip(v) for k, v in obj.items() if k not in SKIP_KEYS}
+            return {ALIASES.get(k, k): strip(v) for k, v in obj.items() if k not in SKIP_KEYS}
         if isinstance(obj, list):
             return [strip(v) for v in obj]
         return obj
@@ -97,10 +101,18 @@ def digests(root: Path) -> dict[str, str]:
 
 
 def main(argv: list[str]) -> int:
-    if not argv or not Path(argv[0]).is_dir():
-        print("usage: python benchmarks/artifact_digest.py DATA_DIR", file=sys.stderr)
-        return 2
-    table = digests(Path(argv[0]))
+    import argparse
+
+    ap = argparse.ArgumentParser(description="Digest of a data/ directory, without provenance.")
+    ap.add_argument("data", type=Path)
+    ap.add_argument("--alias", action="append", default=[], metavar="OLD=NEW", help="read metadata key OLD as NEW")
+    ap.add_argument("--skip", action="append", default=[], metavar="KEY", help="leave metadata key KEY out")
+    args = ap.parse_args(argv)
+    if not args.data.is_dir():
+        ap.error(f"{args.data}: not a directory")
+    ALIASES.update(a.split("=", 1) for a in args.alias)
+    SKIP_KEYS.update(args.skip)
+    table = digests(args.data)
     for rel, d in table.items():
         print(f"{d}  {rel}")
     total = hashlib.sha256("".join(f"{d}{r}" for r, d in table.items()).encode()).hexdigest()

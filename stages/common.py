@@ -95,6 +95,14 @@ def read_params(path: Path, name: str, model: type[M]) -> tuple[dict[str, Any], 
     return raw, section(raw, "env", EnvParams, path), section(raw, name, model, path)
 
 
+def require_every_objective(objectives: list[int], n_objectives: int, env_id: str, params: Path, who: str) -> None:
+    """`objectives` of params.yaml must be every objective of the env: `who` needs one specialist each."""
+    if sorted(objectives) != list(range(n_objectives)):
+        raise ParamsError(
+            f"{params}: objectives = {objectives}: {who} needs one specialist per objective 0..{n_objectives - 1} of {env_id}"
+        )
+
+
 def progress(total: int, desc: str, unit: str = "step") -> tqdm:
     """A progress bar on stderr (rate in unit/s); quiet when stderr is not a terminal and CI is set."""
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, mininterval=0.5)

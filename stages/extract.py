@@ -7,17 +7,34 @@ from pathlib import Path
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
-from pipeline.core.envs import EnvError, env_spec, make_env
+from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.specialist import load_slot
+from pipeline.core.specialist import load_slots
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
+
+
+def variant_params(
+    cfg: ExtractParams, env_id: str, variant: str, kind: str, posthoc: Path | None, params: Path
+) -> ExtractParams:
+    """The `extract` section as variant VARIANT from KIND specialists runs it (resolved for the
+    env); a bad --variant, --kind or a missing --posthoc is a one-line error."""
+    if variant not in EXTRACT_VARIANTS:
+        raise ParamsError(f"--variant {variant!r}: expected one of {list(EXTRACT_VARIANTS)}")
+    if kind not in SPECIALIST_KINDS:
+        raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
+    if variant == "mapex_posthoc" and posthoc is None:
+        raise ParamsError("--variant mapex_posthoc reads post-hoc critics, but no --posthoc directory was given")
+    try:
+        return variant_config(cfg.resolved(env_id), variant)
+    except ValueError as exc:
+        raise ParamsError(f"{params}: {exc}") from None
 
 
 @reports_errors
@@ -66,15 +83,7 @@ def extract(
     is not an input here.
     """
     raw, env_p, cfg = read_params(params, "extract", ExtractParams)
-    run_p = section(raw, "", RunParams, params)
-    if variant not in EXTRACT_VARIANTS:
-        raise ParamsError(f"--variant {variant!r}: expected one of {list(EXTRACT_VARIANTS)}")
-    if kind not in SPECIALIST_KINDS:
-        raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
-    try:
-        cfg = variant_config(cfg.resolved(env_p.id), variant)
-    except ValueError as exc:
-        raise ParamsError(f"{params}: {exc}") from None
+    cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * cfg.children_per_iteration)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     if spec.n_objectives != 2:
@@ -82,40 +91,25 @@ def extract(
             f"env.id = {env_p.id!r} has {spec.n_objectives} objectives; MAPEX gap identification is "
             "defined for 2 (the paper leaves N >= 3 to future work)"
         )
-    if sorted(run_p.objectives) != list(range(spec.n_objectives)):
-        raise ParamsError(
-            f"{params}: objectives = {run_p.objectives}: extraction needs one specialist per objective "
-            f"0..{spec.n_objectives - 1}"
-        )
+    require_every_objective(
+        section(raw, "", RunParams, params).objectives, spec.n_objectives, env_p.id, params, "extraction"
+    )
     critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
-    if critics_mode == "posthoc" and posthoc is None:
-        raise ParamsError("--variant mapex_posthoc reads post-hoc critics, but no --posthoc directory was given")
-    meta = {
-        "env_id": spec.env_id,
-        "obs_dim": spec.obs_dim,
-        "act_dim": spec.act_dim,
-        "n_objectives": spec.n_objectives,
-        "action_low": list(spec.action_low),
-        "action_high": list(spec.action_high),
-    }
-    critics_root = posthoc if critics_mode == "posthoc" else specialists
-    slots = [
-        load_slot(
-            specialists / f"obj{k}",
-            k,
-            seed=seed,
-            spec_meta=meta,
-            policies=True,
-            critics=critics_root / f"obj{k}" / "critics.pt",
-            critics_mode=critics_mode,
-            kind=kind,
-        )
-        for k in range(spec.n_objectives)
-    ]
+    meta = spec_meta(spec)
+    slots = load_slots(
+        specialists,
+        spec.n_objectives,
+        seed=seed,
+        spec_meta=meta,
+        kind=kind,
+        critics_mode=critics_mode,
+        critics_root=posthoc if critics_mode == "posthoc" else specialists,
+    )
     device = select_device(cfg.device)
     # env.reference_point is not in the config: it does not change what extraction computes
+    env_cfg = env_p.model_dump(exclude={"objective_names", "reference_point"})
     config = {
-        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "env": env_cfg,
         "extract": cfg.model_dump(),
         "seed": seed,
         "variant": variant,
@@ -128,19 +122,7 @@ def extract(
         run_fingerprint("extract", config, device, [f for s in slots for f in s.files]),
         lambda line: typer.echo(line, err=True),
     )
-    run, resumed = resume(
-        ckpt,
-        lambda: ExtractionRun(
-            [p for s in slots for p in s.starts],
-            [s.buffer for s in slots],
-            [s.critic for s in slots],
-            cfg,
-            meta,
-            seed,
-            envs,
-            device,
-        ),
-    )
+    run, resumed = resume(ckpt, lambda: ExtractionRun.from_slots(slots, cfg, meta, seed, envs, device))
     if resumed:
         typer.echo(f"resuming from iteration {run.iteration} of {cfg.iterations} ({ckpt.path.parent})", err=True)
     else:

@@ -8,19 +8,19 @@ from pathlib import Path
 
 import typer
 
-from pipeline.baselines.mopderl import AgentInit, GenerationRecord, MopderlRun, StartingActor
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
-from pipeline.core.envs import env_spec, make_env
+from pipeline.baselines.mopderl import GenerationRecord, MopderlRun, starts_from_slots
+from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.specialist import load_slot
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.core.specialist import load_slots
+from pipeline.params import RunParams, section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
 # train_specialist keys phase 2 does not read: the budget is mopderl.total_frames, the buffers
@@ -102,54 +102,10 @@ def mopderl(
     env = make_env(env_p.id, env_p.max_episode_steps)
     try:
         spec = env_spec(env, env_p.id, env_p.max_episode_steps)
-        objectives = list(range(spec.n_objectives))
-        if sorted(run_p.objectives) != objectives:
-            raise ParamsError(
-                f"{params}: objectives = {run_p.objectives}: MOPDERL needs one specialist per objective 0..{spec.n_objectives - 1}"
-            )
-        spec_meta = {
-            "env_id": spec.env_id,
-            "obs_dim": spec.obs_dim,
-            "act_dim": spec.act_dim,
-            "n_objectives": spec.n_objectives,
-        }
-        bounds = {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
-        slots = [
-            load_slot(
-                specialists / f"obj{k}",
-                k,
-                seed=seed,
-                spec_meta=spec_meta,
-                policies=True,
-                critics=specialists / f"obj{k}" / "critics.pt",
-                kind="pderl",
-            )
-            for k in objectives
-        ]
-        population = [StartingActor(p.objective, p.name, p.actor) for s in slots for p in s.starts if p.name != "rl"]
-        if len(population) < 2:
-            raise ArtifactError(
-                f"{specialists}: {len(population)} population actor(s) in the policy sets; MOPDERL starts from "
-                "PDERL specialists' populations (policies.pt of stage train_pderl)"
-            )
-        for s in slots:
-            if s.actor_target is None:
-                raise ArtifactError(
-                    f"{specialists / f'obj{s.objective}' / 'policy.pt'}: no 'actor_target': not an RL agent's policy "
-                    "(stage train_pderl writes one)"
-                )
-        agents = [
-            AgentInit(
-                s.objective,
-                s.actor,
-                s.actor_target,
-                s.critic,
-                s.critic_target,
-                list(s.critics_meta["objectives"]),
-                s.buffer,
-            )
-            for s in slots
-        ]
+        require_every_objective(run_p.objectives, spec.n_objectives, env_p.id, params, "MOPDERL")
+        meta = spec_meta(spec)
+        slots = load_slots(specialists, spec.n_objectives, seed=seed, spec_meta=meta, kind="pderl")
+        population, agents = starts_from_slots(slots, specialists)
         files = [f for s in slots for f in s.files]
         del slots
         device = select_device(cfg.device)
@@ -194,14 +150,7 @@ def mopderl(
     finally:
         env.close()
 
-    meta = {
-        **spec_meta,
-        **bounds,
-        "seed": seed,
-        "method": "mopderl",
-        "params": config,
-        "provenance": provenance(device),
-    }
+    meta |= {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
     save_population(out / "population.pt", run.members, meta)
     write_text_atomic(out / "history.csv", history_csv(run.history))
     ckpt.clear()

@@ -17,7 +17,7 @@ from pipeline.baselines.morld import (
     require_morl_baselines,
 )
 from pipeline.core.artifacts import write_text_atomic
-from pipeline.core.envs import env_spec, make_env
+from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
@@ -114,12 +114,7 @@ def morld(
     )
     members, extra = export_members(run, cfg.eval_episodes)
     meta = {
-        "env_id": spec.env_id,
-        "obs_dim": spec.obs_dim,
-        "act_dim": spec.act_dim,
-        "n_objectives": spec.n_objectives,
-        "action_low": list(spec.action_low),
-        "action_high": list(spec.action_high),
+        **spec_meta(spec),
         "seed": seed,
         "method": "morld",
         "params": config,

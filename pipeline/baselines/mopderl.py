@@ -88,6 +88,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any, Callable, NamedTuple, Sequence
 
 import gymnasium as gym
@@ -103,12 +104,14 @@ from pipeline.baselines.nsga2 import (
     tournament_pair,
     tournament_winner,
 )
+from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
@@ -172,6 +175,37 @@ class AgentInit(NamedTuple):
     critic_target: CriticEnsemble
     objectives: list[int]  # objectives the critic ensemble covers, in member order
     buffer: dict[str, np.ndarray]
+
+
+def starts_from_slots(slots: Sequence[Slot], where: Path) -> tuple[list[StartingActor], list[AgentInit]]:
+    """MOPDERL's phase-2 start from one seed's PDERL specialists (their slots under `where`):
+    every population actor of every policy set (not the RL actors), and each slot's RL agent.
+    Raises ArtifactError naming the file when the slots are not PDERL specialists'."""
+    population = [StartingActor(p.objective, p.name, p.actor) for s in slots for p in s.starts if p.name != "rl"]
+    if len(population) < 2:
+        raise ArtifactError(
+            f"{where}: {len(population)} population actor(s) in the policy sets; MOPDERL starts from "
+            "PDERL specialists' populations (policies.pt of stage train_pderl)"
+        )
+    for s in slots:
+        if s.actor_target is None:
+            raise ArtifactError(
+                f"{where / f'obj{s.objective}' / 'policy.pt'}: no 'actor_target': not an RL agent's policy "
+                "(stage train_pderl writes one)"
+            )
+    agents = [
+        AgentInit(
+            s.objective,
+            s.actor,
+            s.actor_target,
+            s.critic,
+            s.critic_target,
+            list(s.critics_meta["objectives"]),
+            s.buffer,
+        )
+        for s in slots
+    ]
+    return population, agents
 
 
 @dataclass

@@ -33,6 +33,18 @@ class EnvSpec:
     max_episode_steps: int
 
 
+def spec_meta(spec: EnvSpec) -> dict:
+    """The env part of an artifact's metadata: env_id, dims and action bounds (JSON-able)."""
+    return {
+        "env_id": spec.env_id,
+        "obs_dim": spec.obs_dim,
+        "act_dim": spec.act_dim,
+        "n_objectives": spec.n_objectives,
+        "action_low": list(spec.action_low),
+        "action_high": list(spec.action_high),
+    }
+
+
 def make_env(env_id: str, max_episode_steps: int) -> gym.Env:
     """Build `env_id` with the episode cap `max_episode_steps`; raise EnvError if it doesn't fit."""
     import mo_gymnasium  # noqa: F401  (registers the mo-* ids)

@@ -214,3 +214,32 @@ def load_slot(
     if critics is not None:
         check_critics(critics, cmeta, buf_path, attrs, critics_mode, n_obj)
     return Slot(objective, data, attrs, buf_path, actor, target, meta, starts, online, crit_target, cmeta, files)
+
+
+def load_slots(
+    spec_root: Path,
+    n_objectives: int,
+    *,
+    seed: int,
+    spec_meta: dict,
+    critics_root: Path | None = None,
+    critics_mode: str = "joint",
+    kind: str | None = None,
+) -> list[Slot]:
+    """Every slot obj0 .. obj{n-1} of one seed's specialists under `spec_root`, each with its
+    policy set and the critics CRITICS_ROOT/obj{k}/critics.pt (default: the slot's own), all
+    cross-checked (load_slot)."""
+    critics_root = critics_root or spec_root
+    return [
+        load_slot(
+            spec_root / f"obj{k}",
+            k,
+            seed=seed,
+            spec_meta=spec_meta,
+            policies=True,
+            critics=critics_root / f"obj{k}" / "critics.pt",
+            critics_mode=critics_mode,
+            kind=kind,
+        )
+        for k in range(n_objectives)
+    ]

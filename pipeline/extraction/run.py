@@ -30,7 +30,7 @@ from pipeline.core.nets import CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume, pareto_mask
 from pipeline.core.population import Member, actor_state, member_actor
 from pipeline.core.seeding import derive_seeds
-from pipeline.core.specialist import StartingPolicy
+from pipeline.core.specialist import Slot, StartingPolicy
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies, evaluate_policy
 from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
 from pipeline.params.extract import ExtractParams
@@ -115,6 +115,21 @@ class ExtractionRun:
         self.members: list[Member] = []
         self.history: list[dict[str, int]] = []
         self.last: list[EvalResult] = []  # the last iteration's children's evaluations
+
+    @classmethod
+    def from_slots(
+        cls,
+        slots: Sequence[Slot],
+        cfg: ExtractParams,
+        meta: dict[str, Any],
+        seed: int,
+        envs: Sequence[gym.Env],
+        device: torch.device,
+    ) -> "ExtractionRun":
+        """A run over the specialists' slots (pipeline.core.specialist.load_slots): every policy
+        of every slot's set starts the population; slot k gives D_k and Q^(k)."""
+        starts = [p for s in slots for p in s.starts]
+        return cls(starts, [s.buffer for s in slots], [s.critic for s in slots], cfg, meta, seed, envs, device)
 
     @property
     def n_start(self) -> int:
