@@ -103,6 +103,15 @@ def require_every_objective(objectives: list[int], n_objectives: int, env_id: st
         )
 
 
+def check_min_return(min_return: list[float | None] | None, n_objectives: int, params: Path) -> None:
+    """report.weak_specialist_min_return, where set, has one entry per objective of the runs."""
+    if min_return is not None and len(min_return) != n_objectives:
+        raise ParamsError(
+            f"{params}: report.weak_specialist_min_return = {min_return}: needs one entry per objective "
+            f"({n_objectives}; null = unused)"
+        )
+
+
 def progress(total: int, desc: str, unit: str = "step") -> tqdm:
     """A progress bar on stderr (rate in unit/s); quiet when stderr is not a terminal and CI is set."""
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, mininterval=0.5)

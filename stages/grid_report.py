@@ -11,16 +11,19 @@ from pathlib import Path
 import typer
 
 from pipeline.core.artifacts import ArtifactError, atomic_path
+from pipeline.core.envs import objective_names
 from pipeline.params import EnvParams, RunParams, load_params, section
+from pipeline.params.report import ReportParams
 from pipeline.reporting.grid import Cell, grid_fronts_figure, grid_history_figure, grid_markdown
 from pipeline.reporting.runs import check_comparable, load_runs
-from stages.common import reports_errors
+from stages.common import check_min_return, reports_errors
 
 
 def load_cell(ws: Path) -> Cell:
-    """One cell workspace: its params (env, seeds, methods) and the runs scored there."""
+    """One cell workspace: its params (env, seeds, methods, report) and the runs scored there."""
     raw = load_params(ws / "params.yaml")
     env_p, run_p = section(raw, "env", EnvParams, ws / "params.yaml"), section(raw, "", RunParams, ws / "params.yaml")
+    report_p = section(raw, "report", ReportParams, ws / "params.yaml")
     runs = [
         r
         for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
@@ -31,7 +34,9 @@ def load_cell(ws: Path) -> Cell:
             f"{ws / 'data' / 'score'}: no scored run for seeds {run_p.seeds} and methods {run_p.methods}"
         )
     check_comparable(ws / "data" / "score", runs, env_p.id)
-    return Cell(ws.name, env_p.id, runs)
+    names = objective_names(env_p.id, runs[0].returns.shape[1], env_p.objective_names)
+    check_min_return(report_p.weak_specialist_min_return, len(names), ws / "params.yaml")
+    return Cell(ws.name, env_p.id, runs, names, report_p)
 
 
 @reports_errors
@@ -46,7 +51,8 @@ def grid_report(
     dpi: int = typer.Option(110, min=30, help="figure resolution"),
 ) -> None:
     """Write one report across a sweep's grid: Table 1 with a row per cell (env), fronts and
-    hypervolume-vs-frames per cell, and the provenance of every cell's runs.
+    hypervolume-vs-frames per cell, each cell's weak specialists (by its own `report` params)
+    and the provenance of every cell's runs.
 
     Reads every WORKDIR/<cell>/ holding a params.yaml and a data/score folder (cells without
     scores, e.g. a sweep run only up to some targets, are listed and skipped). Writes OUT/report.md,

@@ -14,7 +14,7 @@ from pipeline.params.report import ReportParams
 from pipeline.reporting.figures import front_figure, history_figure
 from pipeline.reporting.report import report_markdown
 from pipeline.reporting.runs import Run, check_comparable, load_runs, methods_in
-from stages.common import PARAMS_OPTION, read_params, reports_errors
+from stages.common import PARAMS_OPTION, check_min_return, read_params, reports_errors
 
 
 @reports_errors
@@ -32,6 +32,8 @@ def report(
     (from `evaluate`). Writes OUT/report.md with a verdict for each pair of comparable methods
     that was run (MAPEX vs its warm-up only ablation, vs MAPEX-TD3, vs MOPDERL and MORL/D:
     beyond the seed noise or tied; report.noise_sems, report.min_difference), a
+    warning for each specialist weak on its own objective (report.weak_specialist_fraction,
+    report.weak_specialist_min_return), each specialist's return on its own objective, a
     Table-1-shaped metrics table (mean ± SEM across seeds) and a details table (counts of
     starting policies and of the members each method made), the frames MAPEX and MOPDERL need
     to reach each other's hypervolume (when both ran), one front figure per seed
@@ -48,6 +50,7 @@ def report(
         raise ArtifactError(f"{scored}: no scored run for seeds {seeds} and methods {methods}")
     check_comparable(scored, runs, env_p.id)
     names = objective_names(env_p.id, runs[0].returns.shape[1], env_p.objective_names)
+    check_min_return(cfg.weak_specialist_min_return, len(names), params)
 
     figures: dict[str, object] = {}
     captions: dict[str, str] = {}
@@ -70,7 +73,17 @@ def report(
         "evaluation episodes per member": str(runs[0].metrics["episodes"]),
         "starting policies per specialist": starting_policies_line(runs),
     }
-    text = report_markdown(runs, env_p.id, names, captions, context, cfg.min_difference, cfg.noise_sems)
+    text = report_markdown(
+        runs,
+        env_p.id,
+        names,
+        captions,
+        context,
+        cfg.min_difference,
+        cfg.noise_sems,
+        cfg.weak_specialist_fraction,
+        cfg.weak_specialist_min_return,
+    )
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():
         raise ArtifactError(f"{out}: exists and is not a report folder; refusing to replace it")

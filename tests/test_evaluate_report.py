@@ -22,8 +22,11 @@ from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, load_population, member_actor, save_population
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.evaluation.metrics import hypervolume, mean_sem
+from pipeline.params import section
 from pipeline.params.methods import specialist_kind
+from pipeline.params.report import ReportParams
 from pipeline.reporting.runs import Run
+from pipeline.reporting.specialists import own_returns_table, weak_sentence, weak_specialists
 from pipeline.reporting.tables import (
     fmt_num,
     frames_to_reach,
@@ -392,7 +395,7 @@ def test_report_files(report_dir):
 
 def test_report_table_rows(report_dir):
     text = (report_dir / "report.md").read_text()
-    tables = [line for line in text.splitlines() if line.startswith("|")]
+    tables = [line for line in text.split("## Metrics", 1)[1].splitlines() if line.startswith("|")]
     header = tables[0].split("|")[1:-1]
     assert header[0].strip() == "Environment" and len(header) == 1 + 4 * 3
     assert any("Hypervolume" in h and "specialists only" in h for h in header)
@@ -742,6 +745,12 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
         shutil.copytree(runs / "score", ws / "data" / "score")
         shutil.copytree(runs / "evaluate", ws / "data" / "evaluate")
         params = yaml.safe_load((runs / "params.yaml").read_text()) | {"seeds": seeds}
+        # weak specialists by each cell's own report params: none in a, seed 1's speed specialist in b
+        params["report"] |= (
+            {"weak_specialist_fraction": None}
+            if cell == "cheetah.a"
+            else {"weak_specialist_fraction": None, "weak_specialist_min_return": [1e6, None]}
+        )
         (ws / "params.yaml").write_text(yaml.safe_dump(params))
     (work / "unscored").mkdir()
     (work / "unscored" / "params.yaml").write_text((runs / "params.yaml").read_text())
@@ -763,7 +772,167 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
     assert table[0].split("|")[2].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"  # Hypervolume MAPEX-TD3, both seeds
     assert table[1].split("|")[2].strip() == fmt_num(hv[1])  # cell b: seed 1 only
     assert "| cheetah.b | MAPEX-TD3 | 1 |" in text  # the seeds behind each cell
+    weak = text.split("## Weak specialists", 1)[1].split("\n## ", 1)[0]
+    (line,) = [line for line in weak.splitlines() if line.startswith("- ")]
+    assert line.startswith("- cheetah.b: Warning: the TD3 x velocity specialist (objective 0) of seed 1 returned")
     assert sum(line.startswith("| cheetah.a | extract |") for line in text.splitlines()) >= 1
     assert all((tmp_path / "grid_report" / f).stat().st_size > 5000 for f in ("fronts.png", "hypervolume.png"))
     code, out = invoke("grid-report", tmp_path / "nothing_here", "--out", tmp_path / "x")
     assert code == 2 and "nothing_here: not a directory" in out
+
+
+# ---------------------------------------------------------------- weak specialists
+
+NAMES = ["x velocity", "energy efficiency"]
+
+
+def _spec_run(method: str, seed: int, starts: list[tuple[int, list[float]]], children=()) -> Run:
+    """A run whose starting policies are `starts` ((objective of its specialist, returns) each),
+    then `children` (returns each)."""
+    returns = np.array([r for _, r in starts] + [list(c) for c in children], float).reshape(-1, 2)
+    origin = np.array(["specialist"] * len(starts) + ["child"] * len(children))
+    objective = np.array([k for k, _ in starts] + [-1] * len(children))
+    n = len(origin)
+    metrics = {"front": {"hypervolume": 1.0}, "iterations": 1}
+    return Run(method, seed, metrics, returns, origin, np.zeros(n, int), np.zeros(n, bool), {}, None, objective)
+
+
+def _td3(speeds: list[float], energies: list[float], methods=("mapex_td3", "warmup_only_td3")) -> list[Run]:
+    """TD3 runs of seeds 0.. whose speed specialist returned speeds[s] on speed (-3000 on energy)
+    and energy specialist energies[s] on energy (0 on speed); a child better at both that must not count."""
+    return [
+        _spec_run(m, s, [(0, [v, -3000.0 + s]), (1, [0.0, e])], children=[[5000.0, 0.0]])
+        for m in methods
+        for s, (v, e) in enumerate(zip(speeds, energies))
+    ]
+
+
+def test_own_returns_table_reads_one_run_per_seed_and_kind():
+    runs = _td3([1754.0, 10.0], [-4.0, -6.0])
+    # PDERL seed 0: MAPEX starts from the whole policy sets (3 policies each, best speed 900,
+    # best energy -2); MOPDERL's populations hold fewer: the extraction run's numbers are the ones
+    sets = [(0, [300.0, -2500.0]), (0, [900.0, -2900.0]), (0, [600.0, -2000.0])]
+    sets += [(1, [5.0, -9.0]), (1, [1.0, -2.0]), (1, [2.0, -3.0])]
+    runs += [_spec_run("mopderl", 0, sets[:1] + sets[3:4]), _spec_run("mapex_pderl", 0, sets)]
+    runs += [_spec_run("morld", 0, [], children=[[1.0, 1.0]])]  # no specialists: no row
+    table = own_returns_table(runs, NAMES)
+    assert table.splitlines() == [
+        "| specialists | seed | x velocity (objective 0) | energy efficiency (objective 1) |",
+        "|---|---|---|---|",
+        "| PDERL | 0 | 900 (best of 3) | -2 (best of 3) |",
+        "| TD3 | 0 | 1754 | -4 |",
+        "| TD3 | 1 | 10 | -6 |",
+    ]
+    assert own_returns_table([_spec_run("morld", 0, [], children=[[1.0, 1.0]])], NAMES) == ""
+
+
+def test_weak_specialist_by_fraction_of_the_best_seed():
+    runs = _td3([1754.0, 10.0, 877.0], [-4.0, -5.0, -6.0])  # 877 = exactly 50% of 1754: not below
+    weak = weak_specialists(runs, fraction=0.5)
+    assert [(w.own.kind, w.own.seed, w.own.objective) for w in weak] == [("td3", 1, 0)]
+    assert weak_sentence(weak[0], NAMES) == (
+        "Warning: the TD3 x velocity specialist (objective 0) of seed 1 returned 10 on its own objective, "
+        "below 50% of the best TD3 seed's (1754, seed 0): fronts from it are not evidence about the method."
+    )
+    assert [w.own.seed for w in weak_specialists(runs, fraction=0.4)] == [1]
+    assert [w.own.seed for w in weak_specialists(runs, fraction=0.6)] == [1, 2]
+    assert weak_specialists(runs, fraction=None) == []
+    assert weak_specialists(_td3([1754.0, 1000.0], [-4.0, -5.0]), fraction=0.5) == []  # nothing weak
+    assert weak_specialists(_td3([10.0], [-4.0]), fraction=0.5) == []  # one seed: it is its own best
+    table = own_returns_table(runs, NAMES, weak)
+    assert "| TD3 | 1 | 10 (weak) | -5 |" in table and "| TD3 | 2 | 877 | -6 |" in table
+    # a policy set is judged by its best policy, and the sentence says so
+    sets = {s: [(0, [v, -3000.0]), (0, [v / 2, -3000.0]), (1, [0.0, -4.0])] for s, v in ((0, 1000.0), (1, 100.0))}
+    pderl = [_spec_run("mapex_pderl", s, p) for s, p in sets.items()]
+    (w,) = weak_specialists(pderl, fraction=0.5)
+    assert weak_sentence(w, NAMES).startswith(
+        "Warning: the PDERL x velocity specialist (objective 0) of seed 1, its best of 2 policies, returned 100 on"
+    )
+
+
+def test_weak_specialist_by_absolute_return():
+    runs = _td3([1754.0, 60.0], [-4.0, -5.0])
+    assert weak_specialists(runs, fraction=None, min_return=[None, None]) == []
+    assert weak_specialists(runs, fraction=None, min_return=[50.0, None]) == []
+    (w,) = weak_specialists(runs, fraction=None, min_return=[100.0, None])
+    assert (w.own.seed, w.own.objective) == (1, 0)
+    assert "returned 60 on its own objective, below report.weak_specialist_min_return (100):" in weak_sentence(w, NAMES)
+    # energy efficiency below -4.5: seed 1; both rules failing are both said
+    weak = weak_specialists(runs, fraction=0.5, min_return=[100.0, -4.5])
+    assert [(w.own.seed, w.own.objective) for w in weak] == [(1, 0), (1, 1)]
+    assert "below 50% of the best TD3 seed's (1754, seed 0) and below report.weak_specialist_min_return (100)" in (
+        weak_sentence(weak[0], NAMES)
+    )
+    assert weak_specialists(_td3([10.0], [-4.0]), fraction=0.5, min_return=[100.0, None])[0].own.seed == 0
+
+
+def test_weak_specialist_on_an_objective_whose_best_is_negative():
+    # energy: best seed -4; a fraction of -4 (-2) would flag every seed. The worst starting policy
+    # on energy is seed 0's speed specialist (-3000), so the threshold is -3000 + 0.5 * 2996 = -1502
+    runs = _td3([1000.0, 1000.0, 1000.0], [-4.0, -1000.0, -2004.0])
+    weak = weak_specialists(runs, fraction=0.5)
+    assert [(w.own.seed, w.own.objective) for w in weak] == [(2, 1)]
+    assert weak_sentence(weak[0], NAMES) == (
+        "Warning: the TD3 energy efficiency specialist (objective 1) of seed 2 returned -2004 on its own "
+        "objective, below -1502, 50% of the way up from the worst starting policy's return (-3000) to the best "
+        "TD3 seed's (-4, seed 0): fronts from it are not evidence about the method."
+    )
+    # every seed the same: nothing below the best, whatever its sign
+    assert weak_specialists(_td3([1.0, 1.0], [-4.0, -4.0]), fraction=1.0) == []
+    # a best of exactly 0 takes the range rule too (0.5 * 0 = 0 would flag seeds 1 and 2): the worst
+    # on speed is seed 2's -10, so the threshold is -10 + 0.5 * 10 = -5
+    weak = weak_specialists(_td3([0.0, -4.0, -10.0], [-4.0, -4.0, -4.0]), fraction=0.5)
+    assert [(w.own.seed, w.own.objective) for w in weak] == [(2, 0)]
+
+
+def test_report_states_specialists_own_returns_and_warns(runs, report_dir, tmp_path):
+    text = (report_dir / "report.md").read_text()
+    section = text.split("## Specialists on their own objectives", 1)[1].split("## Metrics", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| TD3 |")]
+    for s, row in zip(SEEDS, rows):  # every method of a seed starts from the same ones: read from one
+        members = read_csv(runs / "evaluate" / "warmup_only_td3" / f"seed{s}" / "evaluated.csv")
+        own = [fmt_num(float(next(m for m in members if m["objective"] == str(k))[f"obj{k}"])) for k in range(2)]
+        assert [c.strip().removesuffix(" (weak)") for c in row.split("|")[1:-1]] == ["TD3", str(s), *own]
+    params = yaml.safe_load((runs / "params.yaml").read_text())
+    params["report"] |= {"weak_specialist_fraction": None, "weak_specialist_min_return": [1e6, None]}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    code, out = invoke(*report_args(runs, tmp_path / "rep", params=tmp_path / "params.yaml"))
+    assert code == 0, out
+    text = (tmp_path / "rep" / "report.md").read_text()
+    verdicts_section = text.split("## Verdicts", 1)[1].split("\n## ", 1)[0]
+    warnings = [line for line in verdicts_section.splitlines() if line.startswith("- Warning:")]
+    assert [w.split(" specialist")[0] for w in warnings] == ["- Warning: the TD3 x velocity"] * 2
+    assert all("below report.weak_specialist_min_return (1.00e6)" in w for w in warnings)
+    assert text.count(" (weak) |") == 2
+
+
+@pytest.mark.parametrize(
+    "key, value, expected",
+    [
+        ("weak_specialist_fraction", 0, "report.weak_specialist_fraction = 0: Input should be greater than 0"),
+        ("weak_specialist_fraction", 1.5, "report.weak_specialist_fraction = 1.5: Input should be less than or"),
+        ("weak_specialist_min_return", 100, "report.weak_specialist_min_return = 100: Input should be a valid list"),
+        ("weak_specialist_min_return", ["x"], "report.weak_specialist_min_return.0 = 'x': Input should be a valid"),
+        ("weak_specialist_min_return", [], "report.weak_specialist_min_return = []: List should have at least 1"),
+        ("weak_specialist_min_return", [1.0, None, 2.0], "report.weak_specialist_min_return = [1.0, None, 2.0]: "),
+    ],
+)
+def test_report_rejects_bad_weak_specialist_params(runs, tmp_path, key, value, expected):
+    params = yaml.safe_load((runs / "params.yaml").read_text())
+    params["report"][key] = value
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    code, out = invoke(*report_args(runs, tmp_path / "rep", params=tmp_path / "params.yaml"))
+    assert code == 2 and expected in out, out
+    assert not (tmp_path / "rep").exists()
+
+
+def test_weak_specialist_params_defaults_and_accepted_values():
+    p = ReportParams()
+    assert (p.weak_specialist_fraction, p.weak_specialist_min_return) == (0.5, None)
+    p = section(
+        {"report": {"weak_specialist_fraction": None, "weak_specialist_min_return": [100, None]}},
+        "report",
+        ReportParams,
+    )
+    assert (p.weak_specialist_fraction, p.weak_specialist_min_return) == (None, [100.0, None])
+    assert section({"report": {"weak_specialist_fraction": 1}}, "report", ReportParams).weak_specialist_fraction == 1

@@ -1,8 +1,9 @@
-"""Section `report`: how the report stage draws its figures and decides its verdict."""
+"""Section `report`: how the report stage draws its figures, decides its verdict and flags weak
+specialists (pipeline/reporting/specialists.py has the rule)."""
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import Field, field_validator
 
@@ -26,6 +27,19 @@ class ReportParams(Strict):
         gt=0,
         le=10,
         description="with >= 2 seeds, how many SEMs the mean paired hypervolume difference must exceed to count",
+    )
+    weak_specialist_fraction: float | None = Field(
+        0.5,
+        gt=0,
+        le=1,
+        description="warn when a specialist's own-objective return is below this fraction of its kind's best seed's "
+        "(of the way up from the worst starting policy where that best is <= 0); null = off",
+    )
+    weak_specialist_min_return: list[Annotated[float, Field(allow_inf_nan=False)] | None] | None = Field(
+        None,
+        min_length=1,
+        description="warn when a specialist's own-objective return is below this value, one per objective "
+        "(null = unused)",
     )
 
     @field_validator("formats")

@@ -1,17 +1,20 @@
 """The grid report (`mapex grid-report`): one report across the cells of a sweep, each a
 workspace with its env and scored runs: Table 1 with a row per cell, the seeds behind each
-cell, the provenance of every cell's runs, and fronts and hypervolume-vs-frames per cell."""
+cell, the weak-specialist warnings of each cell (by its own report params), the provenance of
+every cell's runs, and fronts and hypervolume-vs-frames per cell."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from pipeline.params.methods import colour, label
+from pipeline.params.report import ReportParams
 from pipeline.reporting.figures import _band, _front_line, _panels, _shared_legend, step_values
 from pipeline.reporting.runs import Run, methods_in
+from pipeline.reporting.specialists import weak_sentence, weak_specialists
 from pipeline.reporting.tables import (
     PROVENANCE_COLUMNS,
     PROVENANCE_STAGES,
@@ -32,6 +35,8 @@ class Cell:
     name: str  # the sweep's cell name (env, or env.override_set)
     env_id: str
     runs: list[Run]
+    names: list[str] | None = None  # objective names; None: "objective m"
+    report: ReportParams = field(default_factory=ReportParams)  # the cell's `report` section (weak specialists)
 
 
 def grid_table(cells: list[Cell]) -> str:
@@ -63,6 +68,16 @@ def grid_seeds_table(cells: list[Cell]) -> str:
             seeds = sorted(r.seed for r in c.runs if r.method == v)
             rows.append([c.name, label(v), ", ".join(map(str, seeds))])
     return _md_table(["cell", "method", "seeds"], rows)
+
+
+def grid_weak_lines(cells: list[Cell]) -> list[str]:
+    """'- cell: Warning: ...' per weak specialist of each cell, by the cell's own report params."""
+    lines = []
+    for c in cells:
+        names = c.names or [f"objective {m}" for m in range(c.runs[0].returns.shape[1])]
+        weak = weak_specialists(c.runs, c.report.weak_specialist_fraction, c.report.weak_specialist_min_return)
+        lines += [f"- {c.name}: {weak_sentence(w, names)}" for w in weak]
+    return lines
 
 
 def grid_provenance_table(cells: list[Cell]) -> str:
@@ -139,6 +154,14 @@ def grid_markdown(cells: list[Cell], figures: dict[str, str]) -> str:
         "## Seeds behind each cell",
         "",
         grid_seeds_table(cells),
+        "## Weak specialists",
+        "",
+        "Specialists below the thresholds of their cell's `report` section on their own objective "
+        "(report.weak_specialist_fraction, report.weak_specialist_min_return; each cell's own report "
+        "has the table of every specialist's return).",
+        "",
+        *(grid_weak_lines(cells) or ["- None."]),
+        "",
         "## Figures",
         "",
     ]

@@ -1,5 +1,5 @@
 """The experiment report: report.md from evaluated runs, assembled from the verdicts, tables
-and figure captions of the modules beside it (runs, figures, tables, verdicts). No file paths here.
+and figure captions of the modules beside it (runs, figures, tables, verdicts, specialists). No file paths here.
 
 A `Run` is one (method, seed): the evaluate stage's re-evaluated returns plus the score
 stage's metrics, front, hypervolume history and provenance. A method is an extraction variant
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from pipeline.params.methods import label
 from pipeline.reporting.runs import Run, methods_in
+from pipeline.reporting.specialists import own_returns_table, weak_sentence, weak_specialists
 from pipeline.reporting.tables import details_table, paper_table, provenance_table, sample_efficiency_table
 from pipeline.reporting.verdicts import verdicts
 
@@ -26,12 +27,16 @@ def report_markdown(
     context: dict[str, str],
     min_difference: float = 0.05,
     noise_sems: float = 2.0,
+    weak_fraction: float | None = 0.5,
+    weak_min_return: list[float | None] | None = None,
 ) -> str:
-    """The whole report.md: verdict, tables, figures (name -> caption, files beside report.md),
-    provenance, definitions."""
+    """The whole report.md: weak-specialist warnings and verdicts, tables, figures (name ->
+    caption, files beside report.md), provenance, definitions."""
     seeds = sorted({r.seed for r in runs})
     ref = runs[0].metrics.get("reference_point")
     said = verdicts(runs, min_difference, noise_sems)
+    weak = weak_specialists(runs, weak_fraction, weak_min_return)
+    own = own_returns_table(runs, names, weak)
     lines = [
         f"# MAPEX report: {env_id}",
         "",
@@ -43,11 +48,28 @@ def report_markdown(
         "",
         "## Verdicts",
         "",
+        *(f"- {weak_sentence(w, names)}" for w in weak),
         *(
             [f"- {v.sentence}" for v in said]
             or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]
         ),
         "",
+        *(
+            [
+                "## Specialists on their own objectives",
+                "",
+                "Each specialist's re-evaluated mean return on the objective it was trained for, per seed and "
+                "kind of specialists (every method of that seed and kind starts from the same ones); for a PDERL "
+                "policy set, its best policy on that objective ('best of N policies'). '(weak)': below "
+                "report.weak_specialist_fraction of its kind's best seed (where that best is <= 0: that fraction "
+                "of the way up from the worst return of any starting policy) or below "
+                "report.weak_specialist_min_return; a front extracted from it is not evidence about the method.",
+                "",
+                own,
+            ]
+            if own
+            else []
+        ),
         "## Metrics of the re-evaluated final fronts",
         "",
         f"Mean ± SEM across seeds{' (one seed: no SEM)' if len(seeds) < 2 else ''}. The layout of the paper's "

@@ -12,6 +12,8 @@ from pipeline.evaluation.metrics import mean_sem
 from pipeline.params.methods import label, specialist_kind
 from pipeline.reporting.runs import METHOD_ORDER, Run, methods_in
 
+SPECIALIST_ORDER = ("pderl", "td3")  # the report's order of the kinds of specialists
+
 
 def fmt_num(x: float | None) -> str:
     if x is None or (isinstance(x, float) and math.isnan(x)):
@@ -45,10 +47,22 @@ def specialist_metrics(runs: list[Run], kind: str | None = None) -> list[dict]:
     return [by_seed[s] for s in sorted(by_seed)]
 
 
+def specialist_runs(runs: list[Run]) -> dict[tuple[str, int], Run]:
+    """(kind, seed) -> the run whose starting policies stand for that seed's specialists of that
+    kind (every method of a seed and kind starts from the same ones), kinds in specialist_groups'
+    order, then seeds: the first method of METHOD_ORDER, so an extraction variant (it starts from
+    every policy of each set) before MOPDERL (it starts from its populations)."""
+    chosen: dict[tuple[str, int], Run] = {}
+    for r in sorted(runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99):
+        if (kind := specialist_kind(r.method)) is not None:
+            chosen.setdefault((kind, r.seed), r)
+    return {key: chosen[key] for key in sorted(chosen, key=lambda ks: (SPECIALIST_ORDER.index(ks[0]), ks[1]))}
+
+
 def specialist_groups(runs: list[Run]) -> list[str]:
     """'specialists_pderl', 'specialists_td3': one per kind of specialists the runs start from."""
     kinds = {specialist_kind(r.method) for r in runs} - {None}
-    return [f"specialists_{k}" for k in ("pderl", "td3") if k in kinds]
+    return [f"specialists_{k}" for k in SPECIALIST_ORDER if k in kinds]
 
 
 TABLE_METRICS = (
@@ -119,12 +133,7 @@ def details_table(runs: list[Run]) -> str:
     for g in specialist_groups(runs):
         kind = g.removeprefix("specialists_")
         sm = specialist_metrics(runs, kind)
-        # every method of a seed from this kind starts from the same policies
-        # (the extraction runs first: they start from every policy of the sets, MOPDERL from the populations)
-        ordered = sorted(
-            runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99, reverse=True
-        )
-        one_per_seed = list({r.seed: r for r in ordered if specialist_kind(r.method) == kind}.values())
+        one_per_seed = [r for (k, _), r in specialist_runs(runs).items() if k == kind]
         # the specialists' HV fraction depends on which method's box it was measured in: not shown
         rows.append(
             [
