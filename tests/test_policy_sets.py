@@ -304,7 +304,7 @@ def test_a_broken_set_is_refused_not_replaced_by_policy_pt(specs, tmp_path, mape
 # ---------------------------------------------------------------- load_population (issue 11)
 
 
-def _population(path: Path, drop_meta: str | None = None, drop_member: str | None = None, version: int = 2) -> Path:
+def _population(path: Path, drop_meta: str | None = None, drop_member: str | None = None, version: int = 3) -> Path:
     """A two-member population written as torch.save would (meta or member key dropped on request)."""
     from pipeline.core.nets import Actor
     from pipeline.core.population import Member, actor_state
@@ -381,7 +381,17 @@ def test_load_population_reads_version_1(tmp_path):
         load_population(path)
     # saved anew it is the current version
     save_population(tmp_path / "again.pt", members, meta)
-    assert torch.load(tmp_path / "again.pt", weights_only=True)["format_version"] == 2
+    assert torch.load(tmp_path / "again.pt", weights_only=True)["format_version"] == 3
+
+
+def test_load_population_reads_version_2_variant_as_method(tmp_path):
+    """Version 2 called the method `variant` in its meta; it loads with the key `method`."""
+    path = _population(tmp_path / "population.pt", version=2)
+    obj = torch.load(path, weights_only=True)
+    obj["meta"]["variant"] = obj["meta"].pop("method")
+    torch.save(obj, path)
+    members, meta = load_population(path, ["method"])
+    assert meta["method"] == "mapex" and "variant" not in meta and len(members) == 2
 
 
 def test_stages_report_a_member_key_missing_in_one_line(tmp_path, cli, tiny_params):
