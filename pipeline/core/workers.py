@@ -136,8 +136,8 @@ def run_side_by_side(
         elif kind == "done":
             done.add(index)
         else:
-            message, detail, known, kind = payload
-            raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known, kind)
+            message, detail, known, exc_type = payload
+            raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known, exc_type)
 
     try:
         for p in procs:

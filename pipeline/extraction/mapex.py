@@ -672,8 +672,7 @@ def stacked_awr(
     origin, Q(s, a) and loss terms, so row b of child j is weighted by the omega of that same
     row. No host sync inside the loop on CUDA (no .item(), boolean indexing or numpy) but the
     finiteness check every CHECK_EVERY steps. Child j's weights are kept as they are after its
-    step T_j. Returns per-child statistics
-    of the weights (mean, fraction clipped at omega_max).
+    step T_j. Returns per-child statistics of the weights (mean, fraction clipped at omega_max).
     """
     k, m = len(data.lengths), critics[0].n_members // 2
     q_sa = pad_stack(

@@ -43,7 +43,7 @@ resumed ends bitwise as an uninterrupted one on a CPU (same thread count and lib
 
 The RL agent is a `TD3Learner`: the specialists' stacked TD3 path with one specialist, so on
 CUDA its replay buffer lives on the GPU and a generation's updates replay as captured CUDA
-graphs with no host sync (train_specialist.cuda_graphs). Earlier versions used the plain
+graphs with no host sync but the finiteness check every 100 updates (train_specialist.cuda_graphs). Earlier versions used the plain
 `td3_update` with a numpy buffer. On a CPU the two gave bitwise-identical runs: a small run
 hashed before and after, and the PDERL-vs-TD3 comparison of docs/results.md, re-run, reproduced
 every figure. The tests check agreement up to float rounding only.

@@ -36,7 +36,7 @@ class TD3Learner:
     the training device and `_Updater`), so it gets the same device path: on CUDA the buffer
     lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
     cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
-    with no host sync. On a CPU, rows are drawn with `rows_rng` (numpy).
+    with no host sync but the finiteness check every CHECK_EVERY updates. On a CPU, rows are drawn with `rows_rng` (numpy).
     """
 
     def __init__(
