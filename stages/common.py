@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvError
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 
@@ -27,6 +28,10 @@ PARAMS_OPTION = typer.Option(
 
 # The pipeline's input errors: one readable line and exit code 2, in a stage or in its workers.
 INPUT_ERRORS = (ParamsError, ArtifactError, EnvError)
+# Training that diverged (a NaN or infinity in a loss or weight, pipeline.core.finite): one line
+# naming the stage, seed, objective, step and what went bad, and this exit code, distinct from
+# bad input's 2 and a crash's 1. No artifact is written; the last good checkpoint stays.
+DIVERGED_EXIT = 3
 
 
 class Relay:
@@ -52,8 +57,9 @@ def run_parts(
     """Run fn(*parts[i], threads, send=...) for every part: here when there is one, else each in
     its own worker process at once (pipeline.core.workers), with this process's torch thread
     count. Progress goes to `bar` (Relay). A worker's failure is reported as the stage would
-    its own: an input error as one line and exit code 2, anything else with the worker's
-    traceback and exit code 1; `where(i)` names part i in that line."""
+    its own: an input error as one line and exit code 2, a TrainingDiverged as its own line
+    (it names the stage, seed and objective) and exit code 3, anything else with the worker's
+    traceback and exit code 1; `where(i)` names part i in the input error's line."""
     relay = Relay(bar, prefix)
     threads = torch.get_num_threads()
     if len(parts) == 1:
@@ -64,9 +70,15 @@ def run_parts(
         bar.write(warning, file=sys.stderr)
     try:
         run_side_by_side(
-            fn, [(*args, threads) for args in parts], lambda i, message: relay.message(*message, part=i), INPUT_ERRORS
+            fn,
+            [(*args, threads) for args in parts],
+            lambda i, message: relay.message(*message, part=i),
+            (*INPUT_ERRORS, TrainingDiverged),
         )
     except WorkerError as exc:
+        if exc.kind is not None and issubclass(exc.kind, TrainingDiverged):
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=DIVERGED_EXIT) from None
         if exc.detail:
             typer.echo(exc.detail.rstrip(), err=True)
         typer.echo(f"error: {where(exc.part)}: {exc}", err=True)
@@ -74,7 +86,9 @@ def run_parts(
 
 
 def reports_errors(fn: F) -> F:
-    """Turn the pipeline's input errors into one readable line on stderr and exit code 2."""
+    """Turn the pipeline's input errors into one readable line on stderr and exit code 2, and
+    training that diverged into its one line (named after the stage, unless it names one)
+    and exit code DIVERGED_EXIT (3)."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -83,6 +97,11 @@ def reports_errors(fn: F) -> F:
         except INPUT_ERRORS as exc:
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=2) from None
+        except TrainingDiverged as exc:
+            if exc.stage is None:
+                exc.within(fn.__name__)
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(code=DIVERGED_EXIT) from None
 
     return wrapper  # type: ignore[return-value]
 

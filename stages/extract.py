@@ -8,6 +8,7 @@ import typer
 
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
@@ -81,6 +82,11 @@ def extract(
     cumulative env samples) and OUT/history.csv (population, front size and env samples per
     iteration). Hypervolumes are computed downstream from population.pt, so env.reference_point
     is not an input here.
+
+    A child whose training diverges (a NaN or infinity in its warm-up or advantage-weighted
+    loss or its weights, e.g. from a critic that holds one) stops the stage with one line
+    naming the seed, iteration, step and loss, and exit code 3; nothing is written and the
+    checkpoint of the last whole iteration stays (docs/manual.md, "When training diverges").
     """
     raw, env_p, cfg = read_params(params, "extract", ExtractParams)
     cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
@@ -131,7 +137,10 @@ def extract(
     with progress(cfg.iterations * run.k, f"extract {method} seed {seed}", unit="child") as bar:
         bar.update(run.iteration * run.k)
         while not run.done:
-            run.step()
+            try:
+                run.step()
+            except TrainingDiverged as exc:
+                raise exc.within(f"extract {method}", ckpt.path, ckpt.good) from None
             ckpt.save(run.state_dict())
             bar.set_postfix_str(
                 f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "

@@ -12,6 +12,7 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.checkpoint import save_critics
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.provenance import provenance
 from pipeline.core.seeding import derive_seeds, select_device, torch_generator
 from pipeline.core.specialist import load_slot
@@ -56,6 +57,10 @@ def fit_critics(
     Writes to OUT: critics.pt (same format as the jointly trained critics, source "posthoc",
     with the checksums of the buffer they were fitted on) and fit.csv (every fidelity check:
     step, loss, mean normalised error). Their fidelity report is stage critic_fidelity's.
+
+    A fit that diverges (a NaN or infinity in the loss or a critic weight, checked every 100
+    steps and at the end) stops with one line naming the seed, objective and step, and exit
+    code 3, and writes nothing (docs/manual.md, "When training diverges").
     """
     _, _, cfg = read_params(params, "fit_critics", FitCriticsParams)
     try:
@@ -91,17 +96,20 @@ def fit_critics(
         return err
 
     with bar:
-        fitted = fit_posthoc_critics(
-            spec.buffer,
-            target,
-            objectives,
-            cfg,
-            np.random.default_rng(s_np),
-            torch_generator(s_torch, device),
-            device,
-            on_step,
-            error,
-        )
+        try:
+            fitted = fit_posthoc_critics(
+                spec.buffer,
+                target,
+                objectives,
+                cfg,
+                np.random.default_rng(s_np),
+                torch_generator(s_torch, device),
+                device,
+                on_step,
+                error,
+            )
+        except TrainingDiverged as exc:
+            raise exc.about(seed, objective).within("fit_critics") from None
         bar.total = fitted.steps  # stopped early: the bar ends full
         bar.refresh()
     online = fitted.online.cpu()

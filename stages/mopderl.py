@@ -11,6 +11,7 @@ import typer
 from pipeline.baselines.mopderl import GenerationRecord, MopderlRun, starts_from_slots
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, spec_meta
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
@@ -94,6 +95,12 @@ def mopderl(
     new_individuals, archive_size, front_size (rank-0 individuals of the population) and
     archive_hv_norm: the hypervolume of the archive's training-time fitness, scaled to [0, 1]
     by the archive's own range (reference 0), as extract's progress line shows.
+
+    Training that diverges (a NaN or infinity in an RL agent's losses, networks or buffer,
+    checked every 100 updates and after every generation, or in a new individual's weights)
+    stops the stage with one line naming the seed, objective, step and what went bad, and
+    exit code 3; nothing is written and the last good checkpoint stays (docs/manual.md,
+    "When training diverges").
     """
     raw, env_p, cfg = read_params(params, "mopderl", MopderlParams)
     run_p = section(raw, "", RunParams, params)
@@ -137,7 +144,10 @@ def mopderl(
                 run.initialize(env, on_episode)
                 ckpt.save(run.state_dict())
             while not run.budget_spent:
-                rec = run.step_generation(env, on_episode)
+                try:
+                    rec = run.step_generation(env, on_episode)
+                except TrainingDiverged as exc:
+                    raise exc.within("mopderl", ckpt.path, ckpt.good) from None
                 if rec.generation % cfg.checkpoint_every == 0:
                     ckpt.save(run.state_dict())
                 best = run.archive_returns().max(axis=0)

@@ -18,6 +18,7 @@ from pipeline.baselines.morld import (
 )
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, spec_meta
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
@@ -58,6 +59,11 @@ def morld(
     included) every morld.checkpoint_every exchanges; a rerun with the same params, code,
     device and thread count resumes from it and ends with the same artifacts. It is deleted
     once the artifacts are written.
+
+    Training that diverges (a NaN or infinity in an agent's networks, entropy temperature or
+    replay buffer, checked after every exchange; MOSAC's losses are not exposed) stops the
+    stage with one line naming the seed, exchange and what went bad, and exit code 3; nothing
+    is written and the last good checkpoint stays (docs/manual.md, "When training diverges").
     """
     _, env_p, cfg = read_params(params, "morld", MorldParams)
     try:
@@ -106,13 +112,17 @@ def morld(
         if rec.exchange % cfg.checkpoint_every == 0 or run.done:
             ckpt.save(run.state_dict())
 
-    with bar:
-        run.train(on_exchange)
-    run.env.on_step = None
-    typer.echo(
-        f"morld seed {seed}: {run.frames} frames, {run.exchange} exchanges; evaluating the exported actors", err=True
-    )
-    members, extra = export_members(run, cfg.eval_episodes)
+    try:
+        with bar:
+            run.train(on_exchange)
+        run.env.on_step = None
+        typer.echo(
+            f"morld seed {seed}: {run.frames} frames, {run.exchange} exchanges; evaluating the exported actors",
+            err=True,
+        )
+        members, extra = export_members(run, cfg.eval_episodes)
+    except TrainingDiverged as exc:
+        raise exc.within("morld", ckpt.path, ckpt.good) from None
     meta = {
         **spec_meta(spec),
         "seed": seed,

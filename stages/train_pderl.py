@@ -12,6 +12,7 @@ import typer
 
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
@@ -67,6 +68,12 @@ def train_pderl(
     thread count resumes from it and ends with the same artifacts. It is deleted once the
     artifacts are written. train_pderl.processes > 1 runs the objectives side by side in that
     many worker processes (the same artifacts: each run is the same in any process).
+
+    Training that diverges (a NaN or infinity in the RL agent's losses, networks or buffer, or
+    in a population actor after crossover or mutation; checked every 100 updates and after
+    every generation) stops the stage with one line naming the seed, objective, update or
+    generation and what went bad, and exit code 3; that objective writes nothing and its last
+    good checkpoint stays (docs/manual.md, "When training diverges").
     """
     raw = load_params(params)
     env_p = section(raw, "env", EnvParams, params)
@@ -178,6 +185,8 @@ def train_one(
     try:
         result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
         send("returns", f"obj {k} ({name}) final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
+    except TrainingDiverged as exc:
+        raise exc.within("train_pderl", ckpt.path, ckpt.good) from None
     finally:
         env.close()
     save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg, device)

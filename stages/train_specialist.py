@@ -13,6 +13,7 @@ import typer
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import save_specialist, specialist_meta
@@ -58,6 +59,11 @@ def train_specialist(
     code, device and thread count resumes from it and writes the same artifacts, bit for bit
     on a CPU, as an uninterrupted run. Anything else starts over. It is deleted once the
     artifacts are written (it is not a DVC out).
+
+    Training that diverges (a NaN or infinity in a loss, Q-value, weight or buffer, checked
+    every 100 updates and before every checkpoint) stops the stage with one line naming the
+    seed, objective, step and what went bad, and exit code 3; the diverged specialists write
+    nothing and their last good checkpoint stays (docs/manual.md, "When training diverges").
     """
     raw, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
     objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
@@ -191,6 +197,9 @@ def train_group(
 
     try:
         return continue_training(run, on_step, (lambda run: ckpt.save(run.state_dict())) if problem is None else None)
+    except TrainingDiverged as exc:
+        checkpoints = problem is None and (cfg.checkpoint_every > 0 or ckpt.good)
+        raise exc.within("train_specialist", ckpt.path if checkpoints else None, ckpt.good) from None
     finally:
         for env in run.envs:
             env.close()

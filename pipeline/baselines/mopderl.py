@@ -107,6 +107,7 @@ from pipeline.baselines.nsga2 import (
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
+from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume
 from pipeline.core.population import Member, actor_state
@@ -413,7 +414,25 @@ class MopderlRun:
     def train_agents(self) -> None:
         """Bring each agent to floor(rl_updates_per_frame x frames it received) updates."""
         for ag in self.agents:
-            ag.learner.train(max(0, math.floor(self.cfg.rl_updates_per_frame * ag.added) - ag.updates))
+            try:
+                ag.learner.train(max(0, math.floor(self.cfg.rl_updates_per_frame * ag.added) - ag.updates))
+            except TrainingDiverged as exc:
+                raise exc.about(self.seed, ag.objective, f"generation {self.generation}")
+
+    def check_agents(self) -> None:
+        """Raise TrainingDiverged (pipeline.core.finite) if an RL agent's latest losses,
+        networks, optimizer moments or replay buffer are not finite."""
+        for ag in self.agents:
+            try:
+                ag.learner.check_finite(full=True)
+            except TrainingDiverged as exc:
+                raise exc.about(self.seed, ag.objective, f"generation {self.generation}")
+
+    def check_offspring(self, new: Sequence[Individual]) -> None:
+        """Raise TrainingDiverged if a weight of a new individual (a crossover child or a
+        mutated clone) is not finite, before it is evaluated or archived."""
+        named = [(f"a weight of new individual {ind.uid}", p) for ind in new for p in ind.actor.parameters()]
+        check_finite(named, self.generation, "generation", seed=self.seed)
 
     # -- members and archive --------------------------------------------------------------
 
@@ -545,6 +564,7 @@ class MopderlRun:
             ring = self._ring()
             ring.extend(b.latest(0, c.mini_buffer_size))
             new.append(self._mutated_clone(ag.learner.actor(), ring, b.take(0, rows), ag.objective, []))
+        self.check_offspring(new)
         return new
 
     def step_generation(
@@ -577,6 +597,7 @@ class MopderlRun:
             normalised_hypervolume(self.archive_returns()),
         )
         self.history.append(rec)
+        self.check_agents()  # so before every checkpoint and the members' export
         return rec
 
     # -- checkpoints ----------------------------------------------------------------------

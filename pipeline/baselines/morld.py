@@ -59,6 +59,7 @@ import torch
 from torch import nn
 
 from pipeline.core.envs import EnvSpec, make_env
+from pipeline.core.finite import check_finite, weights
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds
@@ -72,6 +73,7 @@ EVAL_STREAM = 0  # eval_seeds stream of the export evaluation; the evaluate stag
 STATE_VERSION = 1
 _STREAMS = ("torch", "numpy", "train_env", "train_actions", "eval_env")
 _NETS = ("actor", "qf1", "qf2", "qf1_target", "qf2_target")
+_NET_NAMES = dict(zip(_NETS, ("actor", "critic 1", "critic 2", "target critic 1", "target critic 2")))
 
 
 class BaselinesMissing(ImportError):
@@ -414,7 +416,27 @@ class MorldRun:
             evals = self._evaluate()
             self._private("share")(policy)
             self._private("adapt_weights")(evals)
-        return self._record(int(policy.id))
+        rec = self._record(int(policy.id))
+        self.check_finite()
+        return rec
+
+    def check_finite(self) -> None:
+        """Raise TrainingDiverged (pipeline.core.finite, unit "exchange") if a weight of an
+        agent's networks (actor, twin critics and their targets), its entropy temperature or
+        a replay buffer value is not finite. MOSAC's losses stay inside morl-baselines (it
+        logs them to wandb only), so the weights they train are what is checked, after every
+        exchange: before its checkpoint and the export, at most one exchange late."""
+        named = []
+        for i, p in enumerate(self.algo.population):
+            w = p.wrapped
+            for net in _NETS:
+                named += weights(f"a weight of agent {i}'s {_NET_NAMES[net]}", getattr(w, net))
+            if w.autotune:
+                named.append((f"agent {i}'s entropy temperature", w.log_alpha))
+        for b in self._buffers()[0]:
+            for k in ("obs", "actions", "rewards", "next_obs"):
+                named.append(("a replay buffer value", torch.from_numpy(np.asarray(getattr(b, k)[: b.size]))))
+        check_finite(named, self.exchange, "exchange", seed=self.seed)
 
     def train(self, on_exchange: Callable[["MorldRun", ExchangeRecord], None] | None = None) -> None:
         """Step until the frame budget is spent (whole exchanges; resumes where the run is)."""
@@ -661,6 +683,12 @@ def export_members(run: MorldRun, episodes: int) -> tuple[list[Member], dict[str
     archive scores by policy name, kept for reference only.
     """
     exported = run.exported_actors()
+    check_finite(
+        [(f"a weight of exported actor {e.name}", p) for e in exported for p in e.actor.parameters()],
+        run.exchange,
+        "exchange",
+        seed=run.seed,
+    )
     results = evaluate_exported([e.actor for e in exported], run.spec, run.seed, episodes)
     members = [
         Member(

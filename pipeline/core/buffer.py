@@ -132,7 +132,9 @@ def save_buffer(path: str | Path, data: dict[str, np.ndarray], attrs: dict[str, 
 def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read a replay buffer fully into RAM; returns (arrays, attributes).
 
-    Raises ArtifactError naming the path if it is missing, not a mapex buffer, or truncated.
+    Raises ArtifactError naming the path if it is missing, not a mapex buffer, or truncated,
+    or if obs, action, reward or next_obs hold a NaN or infinity (naming the array and the
+    first such row): training on it would only spread it.
     """
     path = Path(path)
     if not (path / "zarr.json").is_file():
@@ -172,7 +174,22 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
     for name, dim in expect.items():
         if data[name].ndim != 2 or data[name].shape[1] != dim:
             raise ArtifactError(f"{path}: array {name!r} has shape {data[name].shape}, expected (T, {dim})")
+        bad = first_nonfinite_row(data[name])
+        if bad is not None:
+            value = data[name][bad][~np.isfinite(data[name][bad])][0]
+            what = "NaN" if np.isnan(value) else f"{value:+}"  # NaN, +inf or -inf
+            raise ArtifactError(f"{path}: array {name!r} holds {what} in row {bad} (its values must be finite)")
     return data, attrs
+
+
+def first_nonfinite_row(arr: np.ndarray, chunk: int = CHUNK_ROWS) -> int | None:
+    """The index of the first row of `arr` (T, d) holding a NaN or infinity, else None
+    (checked `chunk` rows at a time, so the check needs little memory beside the array)."""
+    for start in range(0, len(arr), chunk):
+        ok = np.isfinite(arr[start : start + chunk]).all(axis=1)
+        if not ok.all():
+            return start + int(np.argmin(ok))
+    return None
 
 
 class StackedReplay:

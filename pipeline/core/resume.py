@@ -69,6 +69,7 @@ class Checkpoint:
     def __init__(self, path: str | Path, fp: str, say: Callable[[str], None]) -> None:
         self.path, self.fp, self.say = Path(path), fp, say
         self.written = 0  # log entries on disk that the checkpoint of this fingerprint counts
+        self.good = False  # the file holds a state of this run: resumed from, or saved here
 
     def _item(self, i: int) -> Path:
         return self.path.with_name(f"{self.path.stem}.item_{i:05d}.pt")
@@ -108,6 +109,7 @@ class Checkpoint:
                 self.say(f"{self.path}: ignored, starting over (an entry it counts cannot be read: {exc})")
                 return None
         self.written = n
+        self.good = True
         return state
 
     def save(self, state: dict[str, Any]) -> None:
@@ -135,12 +137,14 @@ class Checkpoint:
         with atomic_path(self.path) as tmp:
             torch.save(obj, tmp)
         self.written = obj["n_items"]
+        self.good = True
 
     def clear(self) -> None:
         """Remove the checkpoint, its log entries, what a kill left half-written and its directory if that is now empty."""
         for path in (self.path, self.path.with_name(self.path.name + TMP_SUFFIX), *self._items()):
             path.unlink(missing_ok=True)
         self.written = 0
+        self.good = False
         try:
             self.path.parent.rmdir()  # a progress directory of its own goes too; one holding outputs stays
         except OSError:
@@ -167,7 +171,7 @@ def resume(ckpt: Checkpoint, fresh: Callable[[], R]) -> tuple[R, bool]:
         ckpt.say(f"{ckpt.path}: cannot be resumed ({exc}); starting over")
         if hasattr(run, "close"):
             run.close()
-        ckpt.written = 0
+        ckpt.written, ckpt.good = 0, False
         return fresh(), False
     return run, True
 

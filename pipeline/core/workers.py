@@ -52,12 +52,15 @@ def oversubscribed(processes: int, threads: int) -> str | None:
 
 class WorkerError(RuntimeError):
     """A worker process failed: `part` is its index; `detail` its traceback, or "" when the
-    failure was one of the caller's `expected` exception types (its message says it all) or
-    the process died without a word (the message gives its exit code)."""
+    failure was one of the caller's `expected` exception types (its message says it all;
+    `kind` is then its type) or the process died without a word (the message gives its exit
+    code)."""
 
-    def __init__(self, part: int, message: str, detail: str = "", expected: bool = False) -> None:
+    def __init__(
+        self, part: int, message: str, detail: str = "", expected: bool = False, kind: type | None = None
+    ) -> None:
         super().__init__(message)
-        self.part, self.detail, self.expected = part, detail, expected
+        self.part, self.detail, self.expected, self.kind = part, detail, expected, kind
 
 
 class ParentGone(SystemExit):
@@ -96,7 +99,9 @@ def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int
     except BaseException as exc:  # noqa: BLE001 - every failure must reach the parent
         known = isinstance(exc, expected)
         detail = "" if known else traceback.format_exc()
-        channel.put((index, "error", (str(exc) if known else f"{type(exc).__name__}: {exc}", detail, known)))
+        message = str(exc) if known else f"{type(exc).__name__}: {exc}"
+        # an expected type is one of the caller's (importable, so it pickles by name)
+        channel.put((index, "error", (message, detail, known, type(exc) if known else None)))
         raise SystemExit(1) from None
     channel.put((index, "done", None))
 
@@ -131,8 +136,8 @@ def run_side_by_side(
         elif kind == "done":
             done.add(index)
         else:
-            message, detail, known = payload
-            raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known)
+            message, detail, known, exc_type = payload
+            raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known, exc_type)
 
     try:
         for p in procs:

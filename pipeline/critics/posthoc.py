@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from pipeline.core.buffer import Batch, batch_at
+from pipeline.core.finite import check_finite, due, weights
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.specialists.td3 import critic_loss, polyak_update, smoothed_target_action, td3_targets
@@ -115,6 +116,10 @@ def fit_posthoc_critics(
     cfg.min_improvement, or after cfg.steps steps. The paper gives no rule; the precursor's fixed
     5,000 steps left critics predicting a tenth of the return (issue 11), so this fits until the
     critics stop getting closer to the returns they estimate. Without checks: exactly cfg.steps.
+
+    Raises TrainingDiverged (pipeline.core.finite) if the loss or a critic weight is not
+    finite, checked every CHECK_EVERY steps and at the end (also when the kept weights are
+    from before the divergence: a fit that diverged is not trusted).
     """
     n = len(data["obs"])
     if n == 0:
@@ -137,6 +142,8 @@ def fit_posthoc_critics(
             polyak_update(critic, critic_target, cfg.tau)
         if on_step is not None:
             on_step(step, loss)
+        if due(step):
+            check_finite([("critic loss", loss), *weights("a critic weight", critic)], step)
         if checking and (step % cfg.check_every == 0 or step == cfg.steps):
             critic.eval()
             err = float(error(critic))
@@ -150,6 +157,7 @@ def fit_posthoc_critics(
                 best_state = (copy.deepcopy(critic.state_dict()), copy.deepcopy(critic_target.state_dict()))
             if stale >= cfg.patience:
                 break
+    check_finite([("critic loss", loss), *weights("a critic weight", critic, critic_target)], step)
     if best_state is not None:
         critic.load_state_dict(best_state[0])
         critic_target.load_state_dict(best_state[1])

@@ -41,6 +41,10 @@ Two implementations of a child's training, checked against each other by the tes
   rounding of the batched matmuls. On CUDA they are drawn on the device from a per-child
   torch generator (no host sync in the step loop), so CPU and CUDA draw different (each
   reproducible) minibatches.
+
+Both check their losses and the child's weights for NaN and infinity (pipeline.core.finite)
+every CHECK_EVERY steps and at the end of the warm-up and of the advantage-weighted
+regression, raising TrainingDiverged (stacked: naming the child, "child j of K").
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ from typing import Callable, NamedTuple, Sequence
 import numpy as np
 import torch
 
+from pipeline.core.finite import TrainingDiverged, check_finite, due, first_nonfinite, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.core.pareto import pareto_mask, population_scale
 from pipeline.core.seeding import torch_generator
@@ -199,9 +204,11 @@ def warm_up(
     """Regress `actor` onto `target` actions at hybrid states (paper eq. L_init), `steps` steps."""
     opt = torch.optim.Adam(actor.parameters(), lr=lr)
     n = len(obs)
-    for _ in range(steps):
+    for t in range(1, steps + 1):
         idx = torch.from_numpy(rng.integers(0, n, size=min(batch_size, n))).to(obs.device)
-        regression_step(actor, opt, obs[idx], target[idx])
+        loss = regression_step(actor, opt, obs[idx], target[idx])
+        if due(t) or t == steps:
+            check_finite([("the warm-up loss", loss), *weights("a child weight", actor)], t)
 
 
 # ---------------------------------------------------------------- step 2-3: mixed advantage
@@ -324,7 +331,7 @@ def advantage_weighted_regression(
     # Accumulated as tensors so a GPU run does not synchronise at every step.
     omega_sum = torch.zeros((), device=hybrid.obs.device)
     clipped = torch.zeros((), device=hybrid.obs.device)
-    count = 0
+    count = t = 0
     for _ in range(cfg.epochs):
         perm = torch.from_numpy(rng.permutation(n)).to(hybrid.obs.device)
         for start in range(0, n, cfg.batch_size):
@@ -338,12 +345,16 @@ def advantage_weighted_regression(
                 omega = awr_weight(
                     mixed_advantage(q_sa_all[idx], q_pi, weight, cfg.norm, scale), cfg.beta, cfg.omega_max
                 )
-            regression_step(actor, opt, obs, act, omega, cfg.max_grad_norm, pred=pred)
+            loss = regression_step(actor, opt, obs, act, omega, cfg.max_grad_norm, pred=pred)
             omega_sum += omega.sum()
             clipped += (omega >= cfg.omega_max * (1 - 1e-6)).sum()
             count += len(idx)
+            t += 1
+            if due(t):
+                check_finite([("the advantage-weighted loss", loss), *weights("a child weight", actor)], t)
             if on_step is not None:
                 on_step()
+    check_finite([("the advantage-weighted loss", loss), *weights("a child weight", actor)], t)
     return {"omega_mean": float(omega_sum) / count, "omega_clipped": float(clipped) / count}
 
 
@@ -585,6 +596,17 @@ def stacked_regression_step(
     return loss.detach()
 
 
+def check_children(what: str, loss: torch.Tensor, actor: StackedActor, step: int) -> None:
+    """Raise TrainingDiverged naming the first child ("child j of K") whose loss (K,) or
+    weights are not finite (`what`: the loss's name)."""
+    bad = first_nonfinite([(what, loss), *weights("a child weight", actor)])
+    if bad is None:
+        return
+    k = len(loss)
+    j = next((j for j in range(k) if first_nonfinite([("", loss[j]), *[("", p[j]) for p in actor.parameters()]])), None)
+    raise TrainingDiverged(*bad, step, during=f"child {j + 1} of {k}" if j is not None else None)
+
+
 def _adam(actor: StackedActor, lr: float) -> torch.optim.Optimizer:
     # Fused on CUDA: one kernel per parameter tensor instead of a dozen elementwise launches.
     if actor.scale.is_cuda:
@@ -600,7 +622,9 @@ def stacked_warm_up(
     opt = _adam(actor, lr)
     for t in range(len(rows)):
         idx = rows[t].long()
-        stacked_regression_step(actor, opt, gather_rows(obs, idx), gather_rows(target, idx), mask[t])
+        loss = stacked_regression_step(actor, opt, gather_rows(obs, idx), gather_rows(target, idx), mask[t])
+        if due(t + 1) or t + 1 == len(rows):
+            check_children("the warm-up loss", loss, actor, t + 1)
 
 
 @torch.no_grad()
@@ -646,9 +670,9 @@ def stacked_awr(
     (T, K, B) from `stack_schedules` of each child's `epoch_schedule`; ends (K,): the steps
     T_j of child j's own schedule. One index tensor per step gathers the rows' obs, action,
     origin, Q(s, a) and loss terms, so row b of child j is weighted by the omega of that same
-    row. No host sync inside the loop on CUDA (no .item(), boolean indexing or numpy).
-    Child j's weights are kept as they are after its step T_j. Returns per-child statistics
-    of the weights (mean, fraction clipped at omega_max).
+    row. No host sync inside the loop on CUDA (no .item(), boolean indexing or numpy) but the
+    finiteness check every CHECK_EVERY steps. Child j's weights are kept as they are after its
+    step T_j. Returns per-child statistics of the weights (mean, fraction clipped at omega_max).
     """
     k, m = len(data.lengths), critics[0].n_members // 2
     q_sa = pad_stack(
@@ -680,7 +704,9 @@ def stacked_awr(
             ).view(k, -1, m)
             mixed = mixed_advantage(gather_rows(q_sa, idx), q_pi, weight, cfg.norm, scale, real)
             omega = awr_weight(mixed, cfg.beta, cfg.omega_max)
-        stacked_regression_step(actor, opt, obs, act, real, omega, cfg.max_grad_norm, pred=pred)
+        loss = stacked_regression_step(actor, opt, obs, act, real, omega, cfg.max_grad_norm, pred=pred)
+        if due(t + 1):
+            check_children("the advantage-weighted loss", loss, actor, t + 1)
         omega_sum += (omega * real).sum(dim=1)
         clipped += ((omega >= cfg.omega_max * (1 - 1e-6)) * real).sum(dim=1)
         if t + 1 < len(rows):
@@ -692,6 +718,8 @@ def stacked_awr(
         for j, snapshot in final.items():
             for p, v in zip(params, snapshot):
                 p[j].copy_(v)
+    if len(rows):
+        check_children("the advantage-weighted loss", loss, actor, len(rows))
     total = [cfg.epochs * n for n in data.lengths]
     sums, clips = omega_sum.tolist(), clipped.tolist()
     return [{"omega_mean": sums[j] / total[j], "omega_clipped": clips[j] / total[j]} for j in range(k)]
@@ -767,7 +795,13 @@ def make_children(
     if stacked is None:
         stacked = len(seeds) > 1 or device.type == "cuda"
     if not stacked:
-        return [make_child(returns, actors, buffers, critics, cfg, s, device, on_step) for s in seeds]
+        out = []
+        for j, s in enumerate(seeds):
+            try:
+                out.append(make_child(returns, actors, buffers, critics, cfg, s, device, on_step))
+            except TrainingDiverged as exc:
+                raise exc.about(during=f"child {j + 1} of {len(seeds)}") if len(seeds) > 1 else exc
+        return out
     device_rows = device.type == "cuda" if device_rows is None else device_rows
     rngs = [np.random.default_rng(s.numpy) for s in seeds]
     gens = [torch_generator(s.rows, device) if device_rows else None for s in seeds]

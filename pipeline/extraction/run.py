@@ -26,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.finite import TrainingDiverged
 from pipeline.core.nets import CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume, pareto_mask
 from pipeline.core.population import Member, actor_state, member_actor
@@ -186,11 +187,17 @@ class ExtractionRun:
 
     def step(self, on_step: Callable[[], None] | None = None) -> None:
         """One iteration: parents and target weights from the whole population, k children
-        trained and evaluated, each joining the population."""
+        trained and evaluated, each joining the population. Raises TrainingDiverged (naming
+        the seed and iteration) if a child's training diverges: nothing joins then."""
         it = self.iteration + 1
         returns = np.array([m.returns for m in self.members])
         seeds = child_seeds(self.seed, len(self.members) - self.n_start + 1, self.k)
-        children = make_children(returns, self.actors, self.buffers, self.critics, self.child_cfg, seeds, self.device)
+        try:
+            children = make_children(
+                returns, self.actors, self.buffers, self.critics, self.child_cfg, seeds, self.device
+            )
+        except TrainingDiverged as exc:
+            raise exc.about(seed=self.seed, during=f"iteration {it}")
         ids = range(len(self.members), len(self.members) + self.k)
         self.last = evaluate_policies([a for a, _ in children], self.envs, [self._seeds(i) for i in ids])
         for (child, rec), res in zip(children, self.last):

@@ -43,7 +43,7 @@ resumed ends bitwise as an uninterrupted one on a CPU (same thread count and lib
 
 The RL agent is a `TD3Learner`: the specialists' stacked TD3 path with one specialist, so on
 CUDA its replay buffer lives on the GPU and a generation's updates replay as captured CUDA
-graphs with no host sync (train_specialist.cuda_graphs). Earlier versions used the plain
+graphs with no host sync but the finiteness check every 100 updates (train_specialist.cuda_graphs). Earlier versions used the plain
 `td3_update` with a numpy buffer. On a CPU the two gave bitwise-identical runs: a small run
 hashed before and after, and the PDERL-vs-TD3 comparison of docs/results.md, re-run, reproduced
 every figure. The tests check agreement up to float rounding only.
@@ -61,6 +61,7 @@ import numpy as np
 import torch
 
 from pipeline.core.envs import EnvSpec
+from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
@@ -530,7 +531,10 @@ class PderlRun:
         rl = self.run_episode(env, self.agent.actor(), noise=True, ring=None)
         if on_episode is not None:
             on_episode(rl)
-        self.agent.train(max(0, self.frames - max(start, self.td3_cfg.learning_starts)))
+        try:
+            self.agent.train(max(0, self.frames - max(start, self.td3_cfg.learning_starts)))
+        except TrainingDiverged as exc:
+            raise exc.about(self.seed, self.objective, f"generation {self.generation + 1}")
         self.generation += 1
         rl_slot = None
         if self.generation % self.cfg.rl_sync_period == 0:
@@ -547,7 +551,24 @@ class PderlRun:
             rl_slot=rl_slot,
         )
         self.history.append(rec)
+        self.check_finite()
         return rec
+
+    def check_finite(self) -> None:
+        """Raise TrainingDiverged (pipeline.core.finite) if the RL agent's latest losses,
+        networks, optimizer moments or replay buffer, or a weight of a population actor (the
+        crossover and mutation outputs among them) is not finite. Run after every generation,
+        so before every checkpoint, and before the result."""
+        try:
+            self.agent.check_finite(full=True)
+        except TrainingDiverged as exc:
+            raise exc.about(self.seed, self.objective, f"generation {self.generation}")
+        named = [
+            (f"a weight of population actor {i}", p)
+            for i, ind in enumerate(self.population)
+            for p in ind.actor.parameters()
+        ]
+        check_finite(named, self.generation, "generation", seed=self.seed, objective=self.objective)
 
     def sync_rl(self, fitness: np.ndarray, elites: list[int]) -> int:
         """Copy the RL actor over the worst non-elite slot of `fitness`; refill its mini buffer
@@ -674,10 +695,12 @@ def continue_run(
     on_episode: Callable[[EpisodeResult], None] | None = None,
 ) -> PderlResult:
     """Run generations of `run` (fresh or restored) until its frame budget is spent, then the
-    final evaluation; the callbacks are those of `train_pderl`."""
+    final evaluation; the callbacks are those of `train_pderl`. Raises TrainingDiverged when
+    a generation ends with a loss or weight that is not finite (`PderlRun.check_finite`)."""
     while not run.budget_spent:
         rec = run.step_generation(env, on_episode)
         if on_generation is not None:
             on_generation(run, rec)
     rl_fitness = run.finish(env, on_episode)
+    run.check_finite()
     return run.result(rl_fitness)

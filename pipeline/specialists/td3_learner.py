@@ -13,6 +13,7 @@ import torch
 
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
+from pipeline.core.finite import check_finite, due
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3 import StackedTD3
@@ -20,6 +21,7 @@ from pipeline.specialists.td3_training import (
     _Updater,
     buffer_state,
     check_buffer_state,
+    finite_named,
     load_buffer_state,
     load_nets_state,
     nets_state,
@@ -34,7 +36,7 @@ class TD3Learner:
     the training device and `_Updater`), so it gets the same device path: on CUDA the buffer
     lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
     cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
-    with no host sync. On a CPU, rows are drawn with `rows_rng` (numpy).
+    with no host sync but the finiteness check every CHECK_EVERY updates. On a CPU, rows are drawn with `rows_rng` (numpy).
     """
 
     def __init__(
@@ -73,10 +75,20 @@ class TD3Learner:
         )
 
     def train(self, n: int) -> None:
-        """n TD3 updates (the actor and targets on every policy_freq-th, counted over the run)."""
+        """n TD3 updates (the actor and targets on every policy_freq-th, counted over the run).
+        Raises TrainingDiverged (unit "update") if a check every CHECK_EVERY updates finds a
+        loss or weight that is not finite (pipeline.core.finite)."""
         for _ in range(n):
             self.updates += 1
             self.update(update_actor=self.updates % self.cfg.policy_freq == 0)
+            if due(self.updates):
+                self.check_finite()
+
+    def check_finite(self, full: bool = False) -> None:
+        """Raise TrainingDiverged if the latest losses or a weight is not finite; with `full`
+        also the targets, the optimizer moments and the replay buffer (td3_training.finite_named).
+        The run that owns the learner adds its seed and objective."""
+        check_finite(finite_named(self.update, full), self.updates, unit="update")
 
     def actor(self) -> Actor:
         """A copy of the current actor, on the training device (to act with or copy from)."""

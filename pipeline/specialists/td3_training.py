@@ -12,8 +12,9 @@ Devices: on a CPU the buffers are CPU tensors and minibatch rows are drawn with 
 specialist's numpy generator (the same stream as its exploration noise). On CUDA the buffers
 live on the GPU, rows are drawn on the GPU from a per-specialist torch generator, and the
 update runs as captured CUDA graphs (`train_specialist.cuda_graphs`); the only per-step host
-sync is reading the actions to step the envs. The two devices therefore draw different
-(each reproducible) minibatches.
+sync is reading the actions to step the envs (and, every CHECK_EVERY updates, the check that
+the losses and weights are finite: pipeline.core.finite). The two devices therefore draw
+different (each reproducible) minibatches.
 
 Checkpoints: `SpecialistsRun.state_dict` holds every piece of a run's state (networks,
 optimizers, replay buffers, RNG streams, counters, the episode history and each env's
@@ -36,6 +37,7 @@ import torch
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.envstate import env_state, restore_env_state
+from pipeline.core.finite import TrainingDiverged, due, first_nonfinite, optimizer_state, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_specialist import TrainSpecialistParams
@@ -194,6 +196,8 @@ class _Updater:
         self.graphs = self.on_cuda and cfg.cuda_graphs
         self.graphed: GraphedUpdate | None = None
         self.args = dict(gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip)
+        # the latest critic and actor losses (eager updates only: a captured graph keeps its own)
+        self.metrics: dict[str, torch.Tensor] = {}
 
     def graph(self) -> GraphedUpdate:
         """The captured update (CUDA graphs), captured on first use: it needs fresh optimizers."""
@@ -215,7 +219,9 @@ class _Updater:
         if self.graphs:
             self.graph()(update_actor)
         else:
-            stacked_update(self.state, self.buffer.gather(idx), self.noise, update_actor, **self.args)
+            self.metrics.update(
+                stacked_update(self.state, self.buffer.gather(idx), self.noise, update_actor, **self.args)
+            )
 
 
 STATE_FORMAT = "mapex.specialists_state"
@@ -315,6 +321,43 @@ def load_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
     b.ptr, b.size = int(saved["ptr"]), size
 
 
+def finite_named(update: _Updater, full: bool) -> list[tuple[str, torch.Tensor]]:
+    """What `check_finite` looks at in stacked networks under training: the latest losses
+    (eager updates; Q-values enter both, so a non-finite Q-value shows there) and the online
+    weights; with `full` (before a checkpoint or the results) also the target networks, the
+    optimizers' moments and the replay buffer rows."""
+    st, b = update.state, update.buffer
+    named = [(name.replace("_", " "), v) for name, v in update.metrics.items()]  # "critic loss", "actor loss"
+    named += weights("a critic weight", st.critic) + weights("an actor weight", st.actor)
+    if full:
+        named += weights("a target critic weight", st.critic_target)
+        named += weights("a target actor weight", st.actor_target)
+        named += optimizer_state("a critic optimizer moment", st.critic_opt)
+        named += optimizer_state("an actor optimizer moment", st.actor_opt)
+        named.append(("a replay buffer value", b.rows[:, : b.size]))
+    return named
+
+
+def diverged_specialist(update: _Updater) -> int | None:
+    """The first specialist s of a stacked set whose networks, optimizer moments or replay
+    buffer hold a non-finite value, else None (only called once a check has failed)."""
+    st, b = update.state, update.buffer
+    e = st.critic.n_members // st.n
+
+    def moments(opt) -> list[torch.Tensor]:
+        return [v for state in opt.state.values() for v in state.values() if torch.is_tensor(v) and v.dim() > 0]
+
+    for s in range(st.n):
+        parts = [p[s * e : (s + 1) * e] for m in (st.critic, st.critic_target) for p in m.parameters()]
+        parts += [v[s * e : (s + 1) * e] for v in moments(st.critic_opt)]
+        parts += [p[s] for m in (st.actor, st.actor_target) for p in m.parameters()]
+        parts += [v[s] for v in moments(st.actor_opt)]
+        parts.append(b.rows[s, : b.size])
+        if first_nonfinite([("", t) for t in parts]) is not None:
+            return s
+    return None
+
+
 class SpecialistsRun:
     """S specialists jobs = [(seed, objective), ...] in training, in lockstep, specialist s on
     envs[s]: every piece of their state and one env step at a time (`step`).
@@ -398,7 +441,26 @@ class SpecialistsRun:
             self.n_updates += 1
             self.update(update_actor=self.n_updates % cfg.policy_freq == 0)
         self.t = t + 1
+        if t >= cfg.learning_starts and due(self.n_updates):
+            self.check_finite()
         return records
+
+    def check_finite(self, full: bool = False) -> None:
+        """Raise TrainingDiverged, naming the specialist (seed, objective) it found it in, if
+        the latest losses or any weight is not finite (`finite_named`: with `full`, before a
+        checkpoint or the results, also targets, optimizer moments and buffers). The step
+        is the env step of the check."""
+        bad = first_nonfinite(finite_named(self.update, full))
+        if bad is None:
+            return
+        s = diverged_specialist(self.update)
+        if s is not None:
+            seed, objective = self.jobs[s]
+        else:  # not to be told apart: name them all
+            seeds = {seed for seed, _ in self.jobs}
+            seed = seeds.pop() if len(seeds) == 1 else None
+            objective = [k for _, k in self.jobs] if len(self.jobs) > 1 else self.jobs[0][1]
+        raise TrainingDiverged(*bad, self.t, seed=seed, objective=objective)
 
     def results(self) -> list[SpecialistResult]:
         state, n = self.state, len(self.jobs)
@@ -528,14 +590,20 @@ def continue_training(
 
     `on_step(t, records)` after every step; `on_checkpoint(run)` after every
     cfg.checkpoint_every-th step but the last (none when it is 0): save `run.state_dict()`
-    there. An exception raised in a callback stops the run."""
+    there. An exception raised in a callback stops the run.
+
+    Raises TrainingDiverged (pipeline.core.finite) when a loss, weight or buffer value is not
+    finite: checked every CHECK_EVERY updates, before every checkpoint and before the results,
+    so no checkpoint and no result holds a diverged state."""
     every = run.cfg.checkpoint_every
     while not run.done:
         records = run.step()
         if on_step is not None:
             on_step(run.t, records)
         if on_checkpoint is not None and every and run.t % every == 0 and not run.done:
+            run.check_finite(full=True)
             on_checkpoint(run)
+    run.check_finite(full=True)
     return run.results()
 
 
