@@ -12,9 +12,11 @@ import typer
 from pydantic import BaseModel
 from tqdm import tqdm
 
-from pipeline.core.artifacts import ArtifactError
+from pipeline.core.artifacts import ArtifactError, disk_full_error
 from pipeline.core.envs import EnvError
 from pipeline.core.finite import TrainingDiverged
+from pipeline.core.signals import EXIT_CODE as STOPPED_EXIT_CODE
+from pipeline.core.signals import Stopped
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 
@@ -86,9 +88,11 @@ def run_parts(
 
 
 def reports_errors(fn: F) -> F:
-    """Turn the pipeline's input errors into one readable line on stderr and exit code 2, and
-    training that diverged into its one line (named after the stage, unless it names one)
-    and exit code DIVERGED_EXIT (3)."""
+    """Turn the pipeline's input errors (and a full disk: ArtifactError's DiskFull, or an
+    OSError of one raised outside the atomic writers) into one readable line on stderr and
+    exit code 2; training that diverged into its one line (named after the stage, unless it
+    names one) and exit code DIVERGED_EXIT (3); a run stopped by SIGTERM at a safe point
+    (pipeline.core.signals) into its line(s) and exit code 143."""
 
     @functools.wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -102,6 +106,15 @@ def reports_errors(fn: F) -> F:
                 exc.within(fn.__name__)
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(code=DIVERGED_EXIT) from None
+        except Stopped as exc:
+            typer.echo(str(exc), err=True)
+            raise typer.Exit(code=STOPPED_EXIT_CODE) from None
+        except Exception as exc:
+            full = disk_full_error(exc)
+            if full is None:
+                raise
+            typer.echo(f"error: the disk is full or a quota or file-size limit was reached: {full}", err=True)
+            raise typer.Exit(code=2) from None
 
     return wrapper  # type: ignore[return-value]
 

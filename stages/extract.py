@@ -13,6 +13,7 @@ from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import load_slots
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
@@ -75,7 +76,8 @@ def extract(
     chosen from the whole population. The policies, buffer and critics of each objective must
     agree on objective, seed and env. Progress is checkpointed after each iteration: killed and
     rerun with the same params and inputs, the stage resumes and ends with the same artifacts as
-    an uninterrupted run; changed params, inputs or code start over.
+    an uninterrupted run; changed params, inputs or code start over. On SIGTERM the stage
+    stops after the current iteration, its checkpoint written, with exit code 143.
 
     Writes OUT/population.pt (every policy with its origin: the specialist and policy name of a
     starting policy, or a child's parents, target weight and iteration; its returns and
@@ -129,29 +131,31 @@ def extract(
         lambda line: typer.echo(line, err=True),
     )
     run, resumed = resume(ckpt, lambda: ExtractionRun.from_slots(slots, cfg, meta, seed, envs, device))
+    who = f"extract {method} seed {seed}"
     if resumed:
         typer.echo(f"resuming from iteration {run.iteration} of {cfg.iterations} ({ckpt.path.parent})", err=True)
-    else:
-        run.start()
-        ckpt.save(run.state_dict())
-    with progress(cfg.iterations * run.k, f"extract {method} seed {seed}", unit="child") as bar:
+    with sigterm_deferred(), progress(cfg.iterations * run.k, who, unit="child") as bar:
+        if not resumed:
+            run.start()
+            ckpt.safe_point(run, who, "the start (the specialists' policies evaluated)", due=True)
         bar.update(run.iteration * run.k)
         while not run.done:
             try:
                 run.step()
             except TrainingDiverged as exc:
                 raise exc.within(f"extract {method}", ckpt.path, ckpt.good) from None
-            ckpt.save(run.state_dict())
+            ckpt.safe_point(run, who, f"iteration {run.iteration}", due=True)
             bar.set_postfix_str(
                 f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "
                 f"child {fmt_vec(run.last[-1].mean)}",
                 refresh=False,
             )
             bar.update(run.k)
-    save_population(
-        out / "population.pt",
-        run.members,
-        {**meta, "seed": seed, "method": method, "params": config, "provenance": provenance(device)},
-    )
-    write_text_atomic(out / "history.csv", history_csv(run.history))
-    ckpt.clear()
+        # still deferred: a SIGTERM after the last iteration lets the outputs be written
+        save_population(
+            out / "population.pt",
+            run.members,
+            {**meta, "seed": seed, "method": method, "params": config, "provenance": provenance(device)},
+        )
+        write_text_atomic(out / "history.csv", history_csv(run.history))
+        ckpt.clear()

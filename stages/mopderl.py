@@ -16,6 +16,7 @@ from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import load_slots
 from pipeline.params import RunParams, section
 from pipeline.params.mopderl import MopderlParams
@@ -85,6 +86,7 @@ def mopderl(
     Progress is checkpointed every mopderl.checkpoint_every generations under
     RESUME_DIR/mopderl/seedS; killed and rerun with the same params, inputs, code, device and
     thread count, the stage resumes and ends with the same artifacts. Anything else starts over.
+    On SIGTERM it stops after the current generation, its checkpoint written, with exit code 143.
 
     Writes OUT/population.pt: the starting actors (origin 'specialist', their objective and
     policy name), then every phase-2 individual that ever entered the archive (origin
@@ -134,22 +136,23 @@ def mopderl(
             )
 
         bar = progress(cfg.total_frames, f"MOPDERL seed {seed}", unit="frame")
+        who = f"mopderl seed {seed}"
 
         def on_episode(ep: EpisodeResult) -> None:
             bar.update(ep.length)
 
-        with bar:
+        with sigterm_deferred(), bar:
             bar.update(run.frames)
             if not resumed:
                 run.initialize(env, on_episode)
-                ckpt.save(run.state_dict())
+                ckpt.safe_point(run, who, "generation 0 (the starting actors evaluated)", due=True)
             while not run.budget_spent:
                 try:
                     rec = run.step_generation(env, on_episode)
                 except TrainingDiverged as exc:
                     raise exc.within("mopderl", ckpt.path, ckpt.good) from None
-                if rec.generation % cfg.checkpoint_every == 0:
-                    ckpt.save(run.state_dict())
+                due = rec.generation % cfg.checkpoint_every == 0
+                ckpt.safe_point(run, who, f"generation {rec.generation}", due)
                 best = run.archive_returns().max(axis=0)
                 bar.set_postfix_str(
                     f"gen {rec.generation} archive {rec.archive_size} HV(norm) {rec.archive_hv_norm:.6g} "
@@ -157,10 +160,10 @@ def mopderl(
                     refresh=False,
                 )
             bar.total = run.frames
+            # still deferred: a SIGTERM after the last generation lets the outputs be written
+            meta |= {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
+            save_population(out / "population.pt", run.members, meta)
+            write_text_atomic(out / "history.csv", history_csv(run.history))
+            ckpt.clear()
     finally:
         env.close()
-
-    meta |= {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
-    save_population(out / "population.pt", run.members, meta)
-    write_text_atomic(out / "history.csv", history_csv(run.history))
-    ckpt.clear()

@@ -23,6 +23,7 @@ from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.signals import sigterm_deferred
 from pipeline.params.morld import MorldParams
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -58,7 +59,8 @@ def morld(
     trained, archive size). Progress is checkpointed to OUT/morld_state.pt (replay buffer
     included) every morld.checkpoint_every exchanges; a rerun with the same params, code,
     device and thread count resumes from it and ends with the same artifacts. It is deleted
-    once the artifacts are written.
+    once the artifacts are written. On SIGTERM the stage stops after the current exchange, its
+    checkpoint written, with exit code 143.
 
     Training that diverges (a NaN or infinity in an agent's networks, entropy temperature or
     replay buffer, checked after every exchange; MOSAC's losses are not exposed) stops the
@@ -109,11 +111,13 @@ def morld(
             f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}", refresh=False
         )
         # the last exchange too: a run killed while its actors are evaluated need not train again
-        if rec.exchange % cfg.checkpoint_every == 0 or run.done:
-            ckpt.save(run.state_dict())
+        due = rec.exchange % cfg.checkpoint_every == 0 or run.done
+        ckpt.safe_point(run, f"morld seed {seed}", f"exchange {rec.exchange}", due)
 
+    # SIGTERM: checkpoint after the current exchange and stop; during the export below it ends
+    # the process at once (the last exchange is checkpointed: a rerun only exports again)
     try:
-        with bar:
+        with sigterm_deferred(), bar:
             run.train(on_exchange)
         run.env.on_step = None
         typer.echo(

@@ -16,6 +16,7 @@ from pipeline.core.finite import TrainingDiverged
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
@@ -66,7 +67,8 @@ def train_pderl(
     evaluation). Progress is checkpointed to .<OUT name>.resume/pderl_state_obj{K}.pt beside OUT every
     train_pderl.checkpoint_every generations; a rerun with the same params, code, device and
     thread count resumes from it and ends with the same artifacts. It is deleted once the
-    artifacts are written. train_pderl.processes > 1 runs the objectives side by side in that
+    artifacts are written; on SIGTERM it is written after the current generation and the
+    stage exits with code 143. train_pderl.processes > 1 runs the objectives side by side in that
     many worker processes (the same artifacts: each run is the same in any process).
 
     Training that diverges (a NaN or infinity in the RL agent's losses, networks or buffer, or
@@ -130,8 +132,9 @@ def train_part(
     train_pderl.processes with `threads` torch threads); progress goes to `send` (stages.
     train_specialist.Relay)."""
     torch.set_num_threads(threads)
-    for k in objectives:
-        train_one(out, k, names[k], seed, spec, env_p, td3, cfg, device, send)
+    with sigterm_deferred():  # SIGTERM: checkpoint after the current generation and stop
+        for k in objectives:
+            train_one(out, k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
 def run_config(
@@ -179,8 +182,8 @@ def train_one(
             "returns",
             f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}",
         )
-        if rec.generation % cfg.checkpoint_every == 0:
-            ckpt.save(run.state_dict())
+        due = rec.generation % cfg.checkpoint_every == 0
+        ckpt.safe_point(run, f"train_pderl seed {seed}, obj {k} ({name})", f"generation {rec.generation}", due)
 
     try:
         result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)

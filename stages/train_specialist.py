@@ -16,6 +16,7 @@ from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.finite import TrainingDiverged
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
@@ -58,7 +59,8 @@ def train_specialist(
     .<OUT name>.resume/specialist_state_obj{K}[-obj{L}...].pt beside OUT, atomically; a rerun with the same params,
     code, device and thread count resumes from it and writes the same artifacts, bit for bit
     on a CPU, as an uninterrupted run. Anything else starts over. It is deleted once the
-    artifacts are written (it is not a DVC out).
+    artifacts are written (it is not a DVC out). On SIGTERM the stage (each worker process)
+    writes the checkpoint after the step it is in and exits with code 143; a rerun resumes.
 
     Training that diverges (a NaN or infinity in a loss, Q-value, weight or buffer, checked
     every 100 updates and before every checkpoint) stops the stage with one line naming the
@@ -115,12 +117,13 @@ def train_part(
     """Train and save the specialists (seed, k) of `groups`, one group after another (one part
     of `plan`: in this process, or a worker's whole job with `threads` torch threads)."""
     torch.set_num_threads(threads)
-    for group in groups:
-        what = ", ".join(f"obj {k} ({names[k]})" for k in group)
-        results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
-        for result in results:
-            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
-        Checkpoint(checkpoint_path(out, group), "", print).clear()  # and one a kill cut short
+    with sigterm_deferred():  # SIGTERM: checkpoint after the current step and stop
+        for group in groups:
+            what = ", ".join(f"obj {k} ({names[k]})" for k in group)
+            results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
+            for result in results:
+                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+            Checkpoint(checkpoint_path(out, group), "", print).clear()  # and one a kill cut short
 
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
@@ -194,6 +197,10 @@ def train_group(
             pending[0] = 0
         if ended:
             send("returns", "; ".join(ended))
+        if problem is None:
+            ckpt.safe_point(run, f"train_specialist seed {seed}, {what}", f"step {t}")
+        elif stop_requested():
+            raise Stopped(f"train_specialist seed {seed}, {what}: SIGTERM at step {t}: no checkpoint ({problem})")
 
     try:
         return continue_training(run, on_step, (lambda run: ckpt.save(run.state_dict())) if problem is None else None)

@@ -1,14 +1,21 @@
-"""Atomic artifact writes: a failure or a kill at any point leaves the old or the new one whole."""
+"""Atomic artifact writes: a failure, a kill or a full disk at any point leaves the old or the new one whole."""
 
 from __future__ import annotations
 
+import errno
+import json
 import os
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 import pipeline.core.artifacts as art
-from pipeline.core.artifacts import atomic_path, recover, write_text_atomic
+from pipeline.core.artifacts import atomic_path, disk_full_error, recover, write_text_atomic
+from pipeline.core.buffer import load_buffer
 
 
 def write_dir(path: Path, tag: str) -> None:
@@ -96,3 +103,87 @@ def test_everything_written_is_fsynced_before_the_rename(tmp_path, monkeypatch):
         write_dir(tmp, "x")
     partial = str(tmp_path / ("d" + art.TMP_SUFFIX))
     assert {partial + "/a.txt", partial + "/sub/b.txt"} <= set(synced)
+
+
+# --- a full disk --------------------------------------------------------------------------
+#
+# A child process writes each kind of artifact once, then lowers its file-size limit
+# (RLIMIT_FSIZE, with SIGXFSZ ignored so write() fails with EFBIG, as it fails with ENOSPC on a
+# full disk or EDQUOT over a quota) and writes each again, bigger than the limit.
+
+DISK_FULL_CHILD = """
+import json, resource, signal, sys
+import numpy as np, torch
+from pipeline.core.artifacts import DiskFull, torch_save_atomic, write_text_atomic
+from pipeline.core.buffer import save_buffer
+from pipeline.core.resume import Checkpoint
+
+def rows(n, fill):
+    return {"obs": np.full((n, 3), fill, np.float32), "action": np.full((n, 2), fill, np.float32),
+            "reward": np.full((n, 2), fill, np.float32), "next_obs": np.full((n, 3), fill, np.float32),
+            "terminated": np.zeros(n, bool), "truncated": np.zeros(n, bool),
+            "episode": np.zeros(n, np.int64), "episode_step": np.zeros(n, np.int32)}
+
+d = sys.argv[1]
+attrs = {"obs_dim": 3, "act_dim": 2, "n_objectives": 2}
+torch_save_atomic({"x": torch.arange(10)}, f"{d}/a.pt")
+write_text_atomic(f"{d}/a.txt", "old")
+save_buffer(f"{d}/b.zarr", rows(5, 1.0), attrs)
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (65536, 65536))
+noise = np.random.default_rng(0).random((40_000, 3)).astype(np.float32)  # incompressible
+writes = {
+    "a.pt": lambda: torch_save_atomic({"x": torch.zeros(40_000)}, f"{d}/a.pt"),
+    "a.txt": lambda: write_text_atomic(f"{d}/a.txt", "x" * 100_000),
+    "b.zarr": lambda: save_buffer(f"{d}/b.zarr", {**rows(40_000, 2.0), "obs": noise}, attrs),
+    "new.pt": lambda: Checkpoint(f"{d}/new.pt", "fp", print).save({"x": torch.zeros(40_000)}),
+}
+said = {}
+for name, write in writes.items():
+    try:
+        write()
+        said[name] = None
+    except DiskFull as exc:
+        said[name] = str(exc)
+print(json.dumps(said))
+"""
+
+
+def test_a_full_disk_is_one_line_and_leaves_the_old_artifact_and_no_partial(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run(
+        [sys.executable, "-c", DISK_FULL_CHILD, str(tmp_path)],
+        env={**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    said = json.loads(r.stdout.splitlines()[-1])
+    for name in ("a.pt", "a.txt", "b.zarr", "new.pt"):
+        line = said[name]
+        assert line is not None, f"{name}: written past the file-size limit"
+        assert line.startswith(f"{tmp_path / name}: cannot be written: the disk is full or a quota")
+        assert "\n" not in line and "File too large" in line
+    assert said["a.pt"].endswith("the previous a.pt is left intact; free some space and rerun")
+    assert said["new.pt"].endswith("nothing was left behind; free some space and rerun")
+    # the old artifacts whole, no temporary left
+    assert torch.equal(torch.load(tmp_path / "a.pt", weights_only=True)["x"], torch.arange(10))
+    assert (tmp_path / "a.txt").read_text() == "old"
+    data, _ = load_buffer(tmp_path / "b.zarr")
+    assert len(data["obs"]) == 5 and np.all(data["obs"] == 1.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.pt", "a.txt", "b.zarr"]
+
+
+def test_disk_full_is_found_behind_a_wrapping_error():
+    full = OSError(errno.ENOSPC, "No space left on device")
+    try:
+        try:
+            raise full
+        except OSError:
+            raise RuntimeError("PytorchStreamWriter failed writing file data/0")  # as torch does
+    except RuntimeError as exc:
+        assert disk_full_error(exc) is full
+    assert disk_full_error(OSError(errno.EDQUOT, "Disk quota exceeded")) is not None
+    assert disk_full_error(OSError(errno.EACCES, "Permission denied")) is None
+    assert disk_full_error(RuntimeError("other")) is None

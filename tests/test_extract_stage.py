@@ -151,11 +151,14 @@ def _population_equal(a: Path, b: Path) -> None:
             assert torch.equal(x.actor[k], y.actor[k]), k
 
 
-@pytest.mark.parametrize("k", [1, 2])
-def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k):
+@pytest.mark.parametrize(
+    ("k", "sig"), [(1, signal.SIGKILL), (2, signal.SIGKILL), (1, signal.SIGTERM)], ids=["kill", "kill-k2", "term"]
+)
+def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k, sig):
     """k = 2 also stands for a sweep's retry on another node: no --resume-dir, progress on shared
     storage ($MAPEX_RESUME_ROOT, as `mapex sweep --resume-root` sets it), and the rerun in
-    another working directory."""
+    another working directory. SIGTERM (a scheduler's warning): the stage stops once the
+    iteration it is in is checkpointed, says so in one line and exits with 143."""
     params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200, children_per_iteration=k)
     # uninterrupted reference run
     r = mapex(*extract_cmd(specialists, tmp_path / "ref", params, tmp_path / "resume_ref"), cwd=tmp_path)
@@ -174,7 +177,7 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
         *extract_cmd(specialists, tmp_path / "out", params, None if k == 2 else resume),
     ]
     proc = subprocess.Popen(
-        cmd, cwd=node_a, env={**os.environ, "PYTHONPATH": str(ROOT), **shared}, stderr=subprocess.DEVNULL
+        cmd, cwd=node_a, env={**os.environ, "PYTHONPATH": str(ROOT), **shared}, stderr=subprocess.PIPE, text=True
     )
     deadline = time.time() + 120
 
@@ -187,12 +190,18 @@ def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k)
     # kill as soon as the first iteration is checkpointed (the specialists are saved before it)
     while children_saved() < 1 and proc.poll() is None and time.time() < deadline:
         time.sleep(0.01)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.send_signal(sig)
+    _, stderr = proc.communicate(timeout=120)
     assert state_file.exists(), "the run ended before it could be killed mid-way"
     saved = torch.load(state_file, weights_only=True)
     assert saved["format"] == RESUME_FORMAT
     done = saved["n_items"] - 2
+    if sig == signal.SIGTERM:
+        assert proc.returncode == 143, stderr[-3000:]
+        line = (
+            f"extract mapex_td3 seed 0: SIGTERM: checkpoint written at iteration {done} ({state_file}); rerun to resume"
+        )
+        assert line in stderr.splitlines() and "Traceback" not in stderr
     # each finished policy is its own file, written once
     assert len(list(state_file.parent.glob("state.item_*.pt"))) >= saved["n_items"]
     assert 1 <= done < 8 * k and done % k == 0  # whole iterations only

@@ -11,7 +11,9 @@ from __future__ import annotations
 import copy
 import csv
 import io
+import os
 import shutil
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -433,6 +435,29 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     assert res.exit_code == 0, res.output
     assert "resuming from generation 1" in res.output
     resumed, rmeta, rhist = read_outputs(tmp_path / "killed" / "out")
+    same_members(members, resumed)
+    assert rhist == hist and rmeta["params"] == meta["params"]
+
+    # SIGTERM during generation 2, no periodic checkpoint due: the stage checkpoints once that
+    # generation ends, says so in one line and exits with 143; the rerun resumes to the same artifacts.
+    def sigterm_in_second(self, env, on_episode=None):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # deferred by the stage until its next safe point
+        return real(self, env, on_episode)
+
+    calls["n"] = 0
+    rare = {"mopderl": MOPDERL | {"checkpoint_every": 1000}}  # not in the fingerprint
+    monkeypatch.setattr(MopderlRun, "step_generation", sigterm_in_second)
+    res = stage(tmp_path / "term", rare)
+    assert res.exit_code == 143, res.output
+    state = tmp_path / "term" / "resume" / "mopderl" / "seed0" / "state.pt"
+    line = f"mopderl seed 0: SIGTERM: checkpoint written at generation 2 ({state}); rerun to resume"
+    assert line in res.output.splitlines() and not (tmp_path / "term" / "out").exists()
+    monkeypatch.setattr(MopderlRun, "step_generation", real)
+    res = stage(tmp_path / "term", rare)
+    assert res.exit_code == 0 and "resuming from generation 2" in res.output, res.output
+    resumed, rmeta, rhist = read_outputs(tmp_path / "term" / "out")
     same_members(members, resumed)
     assert rhist == hist and rmeta["params"] == meta["params"]
 

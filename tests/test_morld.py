@@ -11,6 +11,8 @@ error, and the core modules import without it.
 from __future__ import annotations
 
 import csv
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -258,6 +260,44 @@ def test_killed_run_resumes_to_the_same_population(tmp_path: Path, params_file: 
     assert got_meta["morld_estimates"] == want_meta["morld_estimates"]
     assert (out / "history.csv").read_text() == (finished / "history.csv").read_text()
     assert not (out / CHECKPOINT).exists()
+
+
+def test_sigterm_checkpoints_the_exchange_and_the_rerun_resumes(
+    tmp_path: Path, write_params, finished: Path, monkeypatch
+):
+    """SIGTERM during exchange 2, no periodic checkpoint due: the stage checkpoints once that
+    exchange ends, says so in one line and exits with 143; the rerun resumes to the same population."""
+    params = write_params(
+        tmp_path, {"env": {"id": ENV, "max_episode_steps": CAP}, "morld": MORLD | {"checkpoint_every": 1000}}
+    )
+    out = tmp_path / "seed0"
+    real_step = MorldRun.step
+    calls = {"n": 0}
+
+    def sigterm_in_second(self):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # deferred by the stage until its next safe point
+        return real_step(self)
+
+    monkeypatch.setattr(MorldRun, "step", sigterm_in_second)
+    result = _invoke(params, out)
+    assert result.exit_code == 143, (result.output, result.exception)
+    line = f"morld seed 0: SIGTERM: checkpoint written at exchange 2 ({out / CHECKPOINT}); rerun to resume"
+    assert line in result.output.splitlines() and calls["n"] == 2
+    assert not (out / "population.pt").exists()
+    monkeypatch.setattr(MorldRun, "step", real_step)
+    result = _invoke(params, out)
+    assert result.exit_code == 0, (result.output, result.exception)
+    assert "resuming after exchange 2" in result.output
+    got, _ = load_population(out / "population.pt")
+    want, _ = load_population(finished / "population.pt")
+    assert [(m.policy_name, m.returns, m.env_samples) for m in got] == [
+        (m.policy_name, m.returns, m.env_samples) for m in want
+    ]
+    for a, b in zip(got, want):
+        assert all(torch.equal(a.actor[k], b.actor[k]) for k in b.actor)
+    assert (out / "history.csv").read_text() == (finished / "history.csv").read_text()
 
 
 # -- without the library ----------------------------------------------------------------------

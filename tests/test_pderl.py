@@ -10,6 +10,8 @@ from __future__ import annotations
 import copy
 import io
 import math
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -439,7 +441,31 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     assert not ckpt.exists() and not ckpt.parent.exists()
     same_bits(full, artifacts(out))
 
+    # SIGTERM during generation 2, no periodic checkpoint due: the stage checkpoints once that
+    # generation ends, says so in one line and exits with 143; the rerun resumes to the same bits.
+    def sigterm_in_second(self, env, on_episode=None):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGTERM)  # deferred by the stage until its next safe point
+        return real(self, env, on_episode)
+
+    calls["n"] = 0
+    rare = {"train_pderl": PDERL | {"checkpoint_every": 1000}}  # not in the fingerprint
+    monkeypatch.setattr(PderlRun, "step_generation", sigterm_in_second)
+    res = stage(tmp_path / "term", rare)
+    assert res.exit_code == 143, res.output
+    ckpt = tmp_path / "term" / ".out.resume" / f"{CHECKPOINT_PREFIX}obj1.pt"
+    (line,) = [x for x in res.output.splitlines() if "SIGTERM" in x]
+    assert line.startswith("train_pderl seed 0, obj 1 (")
+    assert line.endswith(f"): SIGTERM: checkpoint written at generation 2 ({ckpt}); rerun to resume")
+    assert calls["n"] == 2 and not (tmp_path / "term" / "out" / "obj1").exists()
+    monkeypatch.setattr(PderlRun, "step_generation", real)
+    res = stage(tmp_path / "term", rare)
+    assert res.exit_code == 0 and "resuming from generation 2" in res.output, res.output
+    same_bits(full, artifacts(tmp_path / "term" / "out" / "obj1"))
+
     # A checkpoint of other params is not trusted: the run starts over.
+    calls["n"] = 0
     monkeypatch.setattr(PderlRun, "step_generation", dies_third)
     calls["n"] = 0
     stage(tmp_path / "stale")

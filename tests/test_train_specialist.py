@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -743,6 +744,139 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
         assert f"resuming from step {t} of {c}" in again.stderr
     assert_same_artifacts(tmp_path / "ref", out)
     assert sorted(p.name for p in out.iterdir()) == ["obj0", "obj1"]
+
+
+def stage_command(out: Path, params: Path) -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "stages.cli",
+        "train-specialist",
+        "--seed",
+        "0",
+        "--out",
+        str(out),
+        "--params",
+        str(params),
+    ]
+
+
+SIGTERM_LINE = re.compile(
+    r"train_specialist seed 0, (?P<what>obj .+): SIGTERM: checkpoint written at step (?P<t>\d+) "
+    r"\((?P<path>.+)\); rerun to resume"
+)
+
+
+def sigterm_lines(stderr: str) -> list[re.Match]:
+    return [m for m in map(SIGTERM_LINE.fullmatch, stderr.splitlines()) if m]
+
+
+def test_sigterm_checkpoints_at_once_and_the_rerun_resumes(tmp_path, write_params):
+    """SIGTERM (a scheduler's warning before it kills) once the first periodic checkpoint is
+    on disk: the stage checkpoints after the step it is in, not at the next periodic one,
+    says where in one line and exits with 143; the rerun resumes from that step and ends with
+    the bytes of a run never stopped."""
+    ts = {**RESUME["train_specialist"], "total_steps": 600}
+    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    ref = subprocess.run(
+        stage_command(tmp_path / "ref", params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    out, ckpt = tmp_path / "run", tmp_path / ".run.resume" / "specialist_state_obj0-obj1.pt"
+    proc = subprocess.Popen(stage_command(out, params), cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while not ckpt.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr[-3000:]
+    assert "Traceback" not in stderr
+    (line,) = sigterm_lines(stderr)
+    t = int(line["t"])
+    assert line["path"] == str(ckpt) and line["what"].startswith("obj 0 (") and ", obj 1 (" in line["what"]
+    assert torch.load(ckpt, weights_only=True)["state"]["counters"]["t"] == t
+    assert 70 <= t < 600
+    assert not (out / "obj0").exists() and not (out / "obj1").exists()
+    again = subprocess.run(
+        stage_command(out, params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert f"resuming from step {t} of {ckpt}" in again.stderr
+    assert_same_artifacts(tmp_path / "ref", out)
+    assert not ckpt.parent.exists()
+
+
+def test_sigterm_is_passed_on_to_the_workers_and_each_checkpoints(tmp_path, write_params):
+    """processes: 2, SIGTERM to the stage process alone once both workers have checkpointed:
+    it passes it on, each worker checkpoints after its current step and says so, the stage
+    exits with 143 once both have, and the rerun resumes both to the bytes of a run never stopped."""
+    ts = {**RESUME["train_specialist"], "total_steps": 700, "checkpoint_every": 150, "processes": 2}
+    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    ref = subprocess.run(
+        stage_command(tmp_path / "ref", params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert ref.returncode == 0, ref.stderr[-3000:]
+    out = tmp_path / "run"
+    ckpts = [tmp_path / ".run.resume" / f"specialist_state_obj{k}.pt" for k in (0, 1)]
+    proc = subprocess.Popen(stage_command(out, params), cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 300
+    while not all(c.exists() for c in ckpts) and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.005)
+    workers = children(proc.pid)
+    proc.send_signal(signal.SIGTERM)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 143, stderr[-3000:]
+    assert "Traceback" not in stderr
+    lines = sigterm_lines(stderr)
+    assert [m["what"].split(" (")[0] for m in lines] == ["obj 0", "obj 1"], stderr[-3000:]
+    assert [m["path"] for m in lines] == [str(c) for c in ckpts]
+    steps = [int(m["t"]) for m in lines]
+    assert [torch.load(c, weights_only=True)["state"]["counters"]["t"] for c in ckpts] == steps
+    assert all(150 <= t < 700 for t in steps), stderr[-3000:]
+    deadline = time.time() + 20  # multiprocessing's resource tracker ends once its pipe closes
+    while time.time() < deadline and any(alive(w) for w in workers):
+        time.sleep(0.05)
+    assert not any(alive(w) for w in workers), "a worker outlived the stopped stage"
+    again = subprocess.run(
+        stage_command(out, params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert again.returncode == 0, again.stderr[-3000:]
+    for c, t in zip(ckpts, steps):
+        assert f"resuming from step {t} of {c}" in again.stderr
+    assert_same_artifacts(tmp_path / "ref", out)
+
+
+def test_a_full_disk_stops_the_stage_with_one_line_and_keeps_the_old_artifacts(cheetah, tmp_path, write_params):
+    """The stage rerun over its outputs with a file-size limit below an artifact's size (as a
+    full disk or quota fails a write): exit 2, one line naming the file, the earlier
+    artifacts byte for byte as they were, no temporary left."""
+    import resource
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(cheetah.out.parent, out)
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    params = write_params(tmp_path)
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # so write() fails with EFBIG instead
+        resource.setrlimit(resource.RLIMIT_FSIZE, (8192, 8192))
+
+    cmd = [*stage_command(out, params), "--objective", "1"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    r = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, preexec_fn=limited)
+    assert r.returncode == 2, r.stderr[-3000:]
+    assert "Traceback" not in r.stderr
+    (line,) = error_lines(r.stderr)
+    assert re.fullmatch(
+        rf"error: {re.escape(str(out))}/obj1/(buffer\.zarr|policy\.pt|critics\.pt): cannot be written: the disk "
+        r"is full or a quota or file-size limit was reached \(File too large\); the previous \S+ is left intact; "
+        r"free some space and rerun",
+        line,
+    ), line
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
 
 
 def children(pid: int) -> list[int]:

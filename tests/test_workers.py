@@ -1,5 +1,6 @@
 """pipeline.core.workers: parts in side-by-side processes, their messages relayed in order, the
-first failure stopping the rest, and workers that stop once their stage process is gone."""
+first failure stopping the rest, SIGTERM passed on to the workers, and workers that stop once
+their stage process is gone."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
 from pipeline.core.workers import WorkerError, run_side_by_side
 
 # The part functions below run in spawned processes, which import them from this module.
@@ -73,6 +75,18 @@ def chatty_or_dying_part(kind: str, *, send) -> None:
         os._exit(3)
 
 
+def stoppable_or_quick_part(kind: str, name: str, *, send) -> None:
+    """'quick': returns at once; else steps until SIGTERM asks it to stop, then stops at its
+    next safe point as a stage's run does."""
+    if kind == "quick":
+        return
+    with sigterm_deferred():
+        send("started")  # only now would a SIGTERM be deferred
+        while not stop_requested():
+            time.sleep(0.02)
+        raise Stopped(f"{name}: SIGTERM: checkpoint written at step 7")
+
+
 class BadInput(ValueError):
     pass
 
@@ -119,6 +133,24 @@ def test_an_expected_error_comes_without_a_traceback():
         run_side_by_side(bad_input_part, [()], expected=(BadInput,))
     assert info.value.expected and info.value.detail == ""
     assert str(info.value) == "params.yaml: train_specialist.processes must be >= 1, got 0"
+
+
+def test_sigterm_is_passed_on_and_each_part_stops_at_its_safe_point():
+    """SIGTERM to the process running run_side_by_side (here this one, while it waits): each
+    running worker gets it and stops at its next safe point; a part that had finished counts
+    as done; then Stopped, one line per stopped part. This process's handler is restored."""
+    before = signal.getsignal(signal.SIGTERM)
+    started: set[int] = set()
+
+    def on_message(i: int, message: tuple) -> None:
+        started.add(i)
+        if started == {0, 2}:
+            os.kill(os.getpid(), signal.SIGTERM)  # deferred: run_side_by_side is waiting
+
+    with pytest.raises(Stopped) as info:
+        run_side_by_side(stoppable_or_quick_part, [("run", "a"), ("quick", "b"), ("run", "c")], on_message)
+    assert str(info.value) == "a: SIGTERM: checkpoint written at step 7\nc: SIGTERM: checkpoint written at step 7"
+    assert signal.getsignal(signal.SIGTERM) is before
 
 
 @pytest.mark.parametrize("part", ["forever_part", "silent_part"], ids=["talking", "silent"])

@@ -8,6 +8,10 @@ kill at any point leaves either the old directory or the new one, whole, at the 
 Where the exchange is unavailable (another OS, a file system without it) the old directory
 is first renamed aside to DEST.old and the next write, or `recover`, puts it back if the
 process died between the two renames.
+
+A write that fails because the disk is full or a quota or file-size limit is reached
+(ENOSPC, EDQUOT, EFBIG, also when a library wraps the OSError, as torch's zip writer does)
+raises `DiskFull`: one line naming the file, the temporary removed, the old artifact intact.
 """
 
 from __future__ import annotations
@@ -29,6 +33,26 @@ TMP_SUFFIX = ".partial"
 
 class ArtifactError(ValueError):
     """An input artifact is missing, truncated, of the wrong format, or does not match."""
+
+
+class DiskFull(ArtifactError):
+    """An artifact could not be written: the disk, a quota or the file-size limit is full."""
+
+
+# errnos that mean "no room to write": ENOSPC (disk full), EDQUOT (quota), EFBIG (file-size limit)
+DISK_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+
+
+def disk_full_error(exc: BaseException) -> OSError | None:
+    """The OSError of a full disk, quota or file-size limit behind `exc` (itself, or what it was
+    raised from or while handling, as torch's RuntimeError wraps a file object's OSError), else None."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+            return exc
+        exc = exc.__cause__ or exc.__context__
+    return None
 
 
 def _remove(path: Path) -> None:
@@ -121,8 +145,9 @@ def replace_path(tmp: Path, dest: Path) -> None:
 def atomic_path(dest: str | Path) -> Iterator[Path]:
     """Yield a temporary path to write `dest` at (a file or a directory); replace `dest` on success.
 
-    On an exception the temporary is removed and `dest` is left as it was. The temporary is
-    fsynced before it replaces `dest`, and the replacement is atomic (see the module doc).
+    On an exception the temporary is removed and `dest` is left as it was; a full disk, quota or
+    file-size limit raises `DiskFull` naming `dest`. The temporary is fsynced before it
+    replaces `dest`, and the replacement is atomic (see the module doc).
     """
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
@@ -131,10 +156,18 @@ def atomic_path(dest: str | Path) -> Iterator[Path]:
     _remove(tmp)
     try:
         yield tmp
-    except BaseException:
+        replace_path(tmp, dest)
+    except BaseException as exc:
         _remove(tmp)
-        raise
-    replace_path(tmp, dest)
+        full = disk_full_error(exc)
+        if full is None:
+            raise
+        recover(dest)  # a fallback swap that failed between its renames: the old directory back
+        kept = f"the previous {dest.name} is left intact" if dest.exists() else "nothing was left behind"
+        raise DiskFull(
+            f"{dest}: cannot be written: the disk is full or a quota or file-size limit was reached "
+            f"({full.strerror or full}); {kept}; free some space and rerun"
+        ) from None
 
 
 def write_bytes_atomic(dest: str | Path, data: bytes) -> None:

@@ -16,6 +16,9 @@ Its entries are written once each, to files of their own beside the checkpoint
 checkpoint stays constant (rewriting every policy at every iteration would grow
 quadratically: hundreds of GB over a paper-scale run) and a checkpoint never names a missing
 entry.
+
+A SIGTERM inside pipeline.core.signals.sigterm_deferred makes the run's next
+`Checkpoint.safe_point` write the checkpoint at once and raise `Stopped`.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from typing import Any, Callable, Sequence, TypeVar
 
 from pipeline.core.artifacts import TMP_SUFFIX, ArtifactError, atomic_path, torch_load_checked, torch_save_atomic
 from pipeline.core.codedeps import closure_files
+from pipeline.core.signals import Stopped, stop_requested
 
 # Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
 # to one directory per stage item, so a retry on another node resumes where a dead one stopped.
@@ -134,10 +138,21 @@ class Checkpoint:
             "state": rest,
             "n_items": 0 if log is None else len(log),
         }
-        with atomic_path(self.path) as tmp:
-            torch.save(obj, tmp)
+        with atomic_path(self.path) as tmp, open(tmp, "wb") as f:
+            torch.save(obj, f)  # through a Python file, so a full disk surfaces as its OSError (DiskFull)
         self.written = obj["n_items"]
         self.good = True
+
+    def safe_point(self, run, who: str, where: str, due: bool = False) -> None:
+        """A point between two steps of `run` where its state is whole: save `run.state_dict()`
+        if `due` (a periodic checkpoint) or if SIGTERM asked the run to stop (inside
+        pipeline.core.signals.sigterm_deferred); then, on SIGTERM, raise Stopped saying
+        `who` stopped at `where` and that a rerun resumes."""
+        stop = stop_requested()
+        if due or stop:
+            self.save(run.state_dict())
+        if stop:
+            raise Stopped(f"{who}: SIGTERM: checkpoint written at {where} ({self.path}); rerun to resume")
 
     def clear(self) -> None:
         """Remove the checkpoint, its log entries, what a kill left half-written and its directory if that is now empty."""

@@ -13,6 +13,11 @@ raises `WorkerError` here. A worker whose parent has gone (the stage was killed)
 the kernel at once on Linux (PR_SET_PDEATHSIG), elsewhere it stops at its next `send`; the
 work of a part must therefore be safe to kill, which is what the stages' atomic writes and
 resumable checkpoints are for.
+
+A SIGTERM to the stage is passed on to every worker still running (pipeline.core.signals): a
+part that stops at a safe point on it (raises `Stopped` after writing its checkpoint) counts
+as stopped, not failed, and once every part has finished or stopped `run_side_by_side`
+raises `Stopped` with one line per stopped part.
 """
 
 from __future__ import annotations
@@ -20,10 +25,13 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import queue
+import signal
 import sys
 import time
 import traceback
 from typing import Any, Callable, Sequence
+
+from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
 
 
 def split_evenly(items: Sequence[Any], n: int) -> list[list[Any]]:
@@ -96,6 +104,9 @@ def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int
         fn(*args, send=send)
     except ParentGone:
         raise
+    except Stopped as exc:  # on SIGTERM, at a safe point, its checkpoint written
+        channel.put((index, "stopped", str(exc)))
+        return
     except BaseException as exc:  # noqa: BLE001 - every failure must reach the parent
         known = isinstance(exc, expected)
         detail = "" if known else traceback.format_exc()
@@ -117,8 +128,10 @@ def run_side_by_side(
 
     fn must be importable (a module-level function) and its arguments picklable. What a part
     passes to `send(*message)` reaches `on_message(i, message)` here, in order per part.
-    Raises WorkerError for the first part that fails (the others are terminated first); for an
-    exception of a type in `expected` (bad input, say) without the worker's traceback.
+    Raises WorkerError for the first part that fails (the others are killed first); for an
+    exception of a type in `expected` (bad input, say) without the worker's traceback. A
+    SIGTERM here is sent on to each running worker; Stopped (its lines those of the parts
+    that stopped) once all have ended.
     """
     ctx = mp.get_context("spawn")  # not fork: the parent may hold OpenMP or CUDA state
     channel = ctx.Queue()
@@ -127,6 +140,8 @@ def run_side_by_side(
         for i, args in enumerate(parts)
     ]
     done: set[int] = set()
+    stopped: dict[int, str] = {}
+    forwarded = False
 
     def handle(item) -> None:
         index, kind, payload = item
@@ -135,40 +150,56 @@ def run_side_by_side(
                 on_message(index, payload)
         elif kind == "done":
             done.add(index)
+        elif kind == "stopped":
+            stopped[index] = payload
+            done.add(index)
         else:
             message, detail, known, exc_type = payload
             raise WorkerError(index, f"part {index}: {message}" if not known else message, detail, known, exc_type)
 
     try:
-        for p in procs:
-            p.start()
-        checked = time.monotonic()
-        while len(done) < len(procs):
-            try:
-                handle(channel.get(timeout=poll_s))
-            except queue.Empty:
-                pass
-            if time.monotonic() - checked < poll_s:
-                continue
-            # liveness on a clock, not only when the queue is quiet: busy siblings must not
-            # hide a worker that died (killed for memory, say)
+        with sigterm_deferred():
+            for p in procs:
+                p.start()
             checked = time.monotonic()
-            dead = [i for i, p in enumerate(procs) if i not in done and not p.is_alive()]
-            if dead:
-                # a process that exited normally flushed its last messages first: read them
-                until = time.monotonic() + 2.0
-                while time.monotonic() < until and any(i not in done for i in dead):
-                    try:
-                        handle(channel.get(timeout=0.1))
-                    except queue.Empty:
-                        pass
-                for i in dead:
-                    if i not in done:
+            while len(done) < len(procs):
+                if stop_requested() and not forwarded:
+                    forwarded = True
+                    for i, p in enumerate(procs):
+                        if i not in done and p.is_alive():
+                            p.terminate()  # SIGTERM: the part checkpoints at its next safe point
+                try:
+                    handle(channel.get(timeout=poll_s))
+                except queue.Empty:
+                    pass
+                if time.monotonic() - checked < poll_s:
+                    continue
+                # liveness on a clock, not only when the queue is quiet: busy siblings must not
+                # hide a worker that died (killed for memory, say)
+                checked = time.monotonic()
+                dead = [i for i, p in enumerate(procs) if i not in done and not p.is_alive()]
+                if dead:
+                    # a process that exited normally flushed its last messages first: read them
+                    until = time.monotonic() + 2.0
+                    while time.monotonic() < until and any(i not in done for i in dead):
+                        try:
+                            handle(channel.get(timeout=0.1))
+                        except queue.Empty:
+                            pass
+                    for i in dead:
+                        if i in done:
+                            continue
+                        if forwarded and procs[i].exitcode == -signal.SIGTERM:  # before it could defer it
+                            stopped[i] = f"part {i}: SIGTERM before its first safe point; nothing saved"
+                            done.add(i)
+                            continue
                         raise WorkerError(i, f"part {i}: its process exited with code {procs[i].exitcode}")
+        if stopped:
+            raise Stopped("\n".join(stopped[i] for i in sorted(stopped)))
     finally:
         for p in procs:
             if p.is_alive():
-                p.terminate()
+                p.kill()  # a sibling failed: stop the others now, not at their next safe point
         for p in procs:
             p.join()
         channel.close()
