@@ -75,11 +75,16 @@ def chatty_or_dying_part(kind: str, *, send) -> None:
         os._exit(3)
 
 
-def stoppable_or_quick_part(kind: str, name: str, *, send) -> None:
-    """'quick': returns at once; else steps until SIGTERM asks it to stop, then stops at its
-    next safe point as a stage's run does."""
+def stoppable_or_quick_part(kind: str, name: str, marker: str, *, send) -> None:
+    """'quick': returns at once (leaving `marker`); else, once the quick part has finished,
+    steps until SIGTERM asks it to stop, then stops at its next safe point as a stage's run does."""
     if kind == "quick":
+        Path(marker).write_text("done")
         return
+    deadline = time.monotonic() + 60
+    while not Path(marker).exists() and time.monotonic() < deadline:  # spawned workers start in any order
+        time.sleep(0.02)
+    time.sleep(1.0)  # and let the quick worker report and exit before the SIGTERM
     with sigterm_deferred():
         send("started")  # only now would a SIGTERM be deferred
         while not stop_requested():
@@ -135,7 +140,7 @@ def test_an_expected_error_comes_without_a_traceback():
     assert str(info.value) == "params.yaml: train_specialist.processes must be >= 1, got 0"
 
 
-def test_sigterm_is_passed_on_and_each_part_stops_at_its_safe_point():
+def test_sigterm_is_passed_on_and_each_part_stops_at_its_safe_point(tmp_path):
     """SIGTERM to the process running run_side_by_side (here this one, while it waits): each
     running worker gets it and stops at its next safe point; a part that had finished counts
     as done; then Stopped, one line per stopped part. This process's handler is restored."""
@@ -148,7 +153,10 @@ def test_sigterm_is_passed_on_and_each_part_stops_at_its_safe_point():
             os.kill(os.getpid(), signal.SIGTERM)  # deferred: run_side_by_side is waiting
 
     with pytest.raises(Stopped) as info:
-        run_side_by_side(stoppable_or_quick_part, [("run", "a"), ("quick", "b"), ("run", "c")], on_message)
+        marker = str(tmp_path / "quick_done")
+        run_side_by_side(
+            stoppable_or_quick_part, [("run", "a", marker), ("quick", "b", marker), ("run", "c", marker)], on_message
+        )
     assert str(info.value) == "a: SIGTERM: checkpoint written at step 7\nc: SIGTERM: checkpoint written at step 7"
     assert signal.getsignal(signal.SIGTERM) is before
 
