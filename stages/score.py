@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.artifacts import ArtifactError, read_json, write_text_atomic
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import Member, load_population
 from pipeline.core.provenance import provenance
@@ -118,22 +118,6 @@ def reference_point(ref: list[float] | None, n_objectives: int, params: Path) ->
             f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives"
         )
     return np.asarray(ref, dtype=float)
-
-
-def read_json(path: Path, keys: tuple[str, ...]) -> dict:
-    """A JSON object holding every key in `keys`; ArtifactError naming the file and key otherwise."""
-    if not path.is_file():
-        raise ArtifactError(f"{path}: file not found")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
-    missing = [k for k in keys if k not in data]
-    if missing:
-        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
-    return data
 
 
 def read_evaluated(path: Path, members: list[Member], n_obj: int) -> np.ndarray:

@@ -20,6 +20,7 @@ import ctypes
 import ctypes.util
 import errno
 import io
+import json
 import os
 import shutil
 from contextlib import contextmanager
@@ -203,3 +204,21 @@ def torch_load_checked(path: str | Path, fmt: str, version: int) -> dict[str, An
     if obj.get("format_version") != version:
         raise ArtifactError(f"{path}: format_version {obj.get('format_version')!r}, expected {version}")
     return obj
+
+
+def read_json(path: str | Path, keys: tuple[str, ...] = ()) -> dict[str, Any]:
+    """A JSON object holding every key in `keys`; ArtifactError naming the file (and the key)
+    if it is missing, unreadable, not an object or lacks a key."""
+    path = Path(path)
+    if not path.is_file():
+        raise ArtifactError(f"{path}: file not found")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
+    return data

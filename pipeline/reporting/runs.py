@@ -7,14 +7,13 @@ names the file on a bad input."""
 from __future__ import annotations
 
 import csv
-import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.artifacts import ArtifactError
+from pipeline.core.artifacts import ArtifactError, read_json
 from pipeline.params.methods import METHODS
 
 METHOD_ORDER = tuple(METHODS)  # the report's usual order: the paper's MAPEX first
@@ -94,7 +93,7 @@ def load_runs(scored: Path, evaluated: Path) -> list[Run]:
 
 def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
     """One run from its score folder and evaluate folder; ArtifactError naming the file on a bad input."""
-    metrics = _read_json(score_dir / "metrics.json", METRICS_KEYS)
+    metrics = read_json(score_dir / "metrics.json", METRICS_KEYS)
     for group in ("front", "specialists"):
         missing = [k for k in FRONT_KEYS if k not in (metrics[group] if isinstance(metrics[group], dict) else {})]
         if missing:
@@ -104,7 +103,7 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
             f"{score_dir / 'metrics.json'}: is for method {metrics['method']!r} seed {metrics['seed']!r}, "
             f"but sits in {method}/seed{seed}"
         )
-    chain = _read_json(score_dir / "provenance.json", ())
+    chain = read_json(score_dir / "provenance.json", ())
     members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
     n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
     front = _read_csv(score_dir / "front.csv", ["id"], allow_empty=True)
@@ -144,21 +143,6 @@ def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:
         raise ArtifactError(
             f"{scored}: runs were scored against different reference points {sorted(refs)}; rerun score"
         )
-
-
-def _read_json(path: Path, keys: tuple[str, ...]) -> dict:
-    if not path.is_file():
-        raise ArtifactError(f"{path}: file not found")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ArtifactError(f"{path}: cannot be read as JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise ArtifactError(f"{path}: expected a JSON object, got {type(data).__name__}")
-    missing = [k for k in keys if k not in data]
-    if missing:
-        raise ArtifactError(f"{path}: no {', '.join(map(repr, missing))} key")
-    return data
 
 
 def _read_csv(path: Path, required: list[str], allow_empty: bool = False) -> dict[str, list[str]]:
