@@ -48,7 +48,7 @@ def extract(
         "(with critics fitted post hoc, --posthoc) or 'warmup_only' (ablation: epochs = 0)",
     ),
     kind: str = typer.Option(
-        "td3", help="the kind of specialists: 'td3' or 'pderl'; the run is method VARIANT_KIND (mapex_td3, ...)"
+        "td3", help="the kind of specialists: 'td3', 'pderl' or 'imported'; the run is method VARIANT_KIND (mapex_td3, ...)"
     ),
     specialists: Path = typer.Option(
         ...,

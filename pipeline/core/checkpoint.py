@@ -2,8 +2,10 @@
 
 policy.pt  (format "mapex.policy", version 1)
     meta:          env_id, obs_dim, act_dim, n_objectives, action_low, action_high,
-                   hidden_sizes, objective (the specialist's objective, or None for a child), seed, params
-    actor:         state dict of `nets.Actor`
+                   hidden_sizes, objective (the specialist's objective, or None for a child), seed, params;
+                   an imported policy also architecture ("mlp" or "torchscript") and source
+                   (docs/import_export.md)
+    actor:         state dict of `nets.Actor` (of `nets.ScriptedActor` where architecture is "torchscript")
     actor_target:  state dict of the TD3 target actor (absent for extracted children)
 
 critics.pt (format "mapex.critics", version 1)
@@ -26,7 +28,7 @@ from typing import Any
 import torch
 
 from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.nets import Actor, CriticEnsemble, ScriptedActor
 
 POLICY_FORMAT = "mapex.policy"
 CRITICS_FORMAT = "mapex.critics"
@@ -51,7 +53,12 @@ def save_policy(path: str | Path, actor: Actor, meta: dict[str, Any], actor_targ
     torch_save_atomic(obj, path)
 
 
-def actor_from_meta(meta: dict[str, Any]) -> Actor:
+def actor_from_meta(meta: dict[str, Any]) -> Actor | ScriptedActor:
+    """An empty actor of the architecture `meta` records, to load a state dict into: the MLP
+    `Actor` of meta's hidden_sizes, or a `ScriptedActor` where meta["architecture"] is
+    "torchscript" (a policy imported as TorchScript, docs/import_export.md)."""
+    if meta.get("architecture") == "torchscript":
+        return ScriptedActor()
     return Actor(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
 
 
@@ -65,7 +72,7 @@ def load_policy(path: str | Path, target: bool = False):
         actor = actor_from_meta(meta)
         try:
             actor.load_state_dict(obj[key])
-        except (RuntimeError, KeyError) as exc:
+        except (RuntimeError, KeyError, ValueError) as exc:
             raise ArtifactError(f"{path}: {key} weights do not match its metadata ({exc})") from None
         nets.append(actor.eval())
     if not target:

@@ -40,6 +40,48 @@ class Actor(nn.Module):
         return self.centre + self.scale * torch.tanh(self.net(obs))
 
 
+class ScriptedActor(nn.Module):
+    """A deterministic policy brought in as TorchScript (`torch.jit.save` of a module mapping a
+    batch of observations (B, obs_dim) to actions (B, act_dim) inside the env's bounds).
+
+    Its state dict is the TorchScript file itself, as one uint8 tensor under "torchscript", so
+    the artifacts that hold `Actor` state dicts (policy.pt, policies.pt, population.pt) hold it
+    too and still load with weights_only=True. The bytes are kept exactly as given: saving
+    twice writes the same artifact. Build one from bytes with `ScriptedActor.from_bytes`, or
+    empty (`ScriptedActor()`) and fill it with `load_state_dict`.
+    """
+
+    KEY = "torchscript"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.module: torch.jit.ScriptModule | None = None
+        self._bytes = b""
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> "ScriptedActor":
+        out = cls()
+        out.load_state_dict({cls.KEY: torch.frombuffer(bytearray(data), dtype=torch.uint8)})
+        return out
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.module is None:
+            raise RuntimeError("ScriptedActor holds no module yet (load_state_dict first)")
+        return self.module(obs)
+
+    def state_dict(self, *args, **kwargs) -> dict[str, torch.Tensor]:  # noqa: D102 (see the class)
+        return {self.KEY: torch.frombuffer(bytearray(self._bytes), dtype=torch.uint8)}
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):  # noqa: D102
+        import io
+
+        if set(state_dict) != {self.KEY}:
+            raise RuntimeError(f"a ScriptedActor state dict holds exactly {self.KEY!r}, got {sorted(state_dict)}")
+        data = state_dict[self.KEY].cpu().numpy().tobytes()
+        self.module, self._bytes = torch.jit.load(io.BytesIO(data), map_location="cpu"), data  # on the CPU, like every artifact
+        return torch.nn.modules.module._IncompatibleKeys([], [])
+
+
 class CriticEnsemble(nn.Module):
     """`n_members` independent Q-networks Q_e(s, a), e = 0..n_members-1, as stacked weights.
 

@@ -22,7 +22,9 @@ population.pt (format "mapex.population", version 3), loadable with torch.load(w
         eval_episodes  number of evaluation episodes
         env_samples    cumulative env samples spent on evaluation once this policy was evaluated
         hidden_sizes   the actor's hidden widths
-        actor          state dict of pipeline.core.nets.Actor
+        actor          state dict of pipeline.core.nets.Actor (of nets.ScriptedActor, {"torchscript":
+                       the file's bytes}, for a starting policy imported as TorchScript; its
+                       hidden_sizes are then [])
 
 Older versions still load: version 2 named the method `variant` in its meta (read as
 `method`); version 1 (before policy sets) also lacks `policy_name`, its starting policies
@@ -42,7 +44,7 @@ from typing import Any, Sequence
 import torch
 
 from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.core.nets import Actor
+from pipeline.core.nets import Actor, ScriptedActor
 
 FORMAT = "mapex.population"
 FORMAT_VERSION = 3
@@ -68,8 +70,11 @@ class Member:
 MEMBER_KEYS = tuple(f.name for f in fields(Member))
 
 
-def member_actor(member: Member, meta: dict[str, Any]) -> Actor:
-    """Rebuild a member's actor (eval mode, CPU)."""
+def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
+    """Rebuild a member's actor (eval mode, CPU): an `Actor`, or a `ScriptedActor` for a
+    starting policy imported as TorchScript (its state dict holds the TorchScript file)."""
+    if ScriptedActor.KEY in member.actor:
+        return ScriptedActor.from_bytes(member.actor[ScriptedActor.KEY].numpy().tobytes()).eval()
     actor = Actor(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
     actor.load_state_dict(member.actor)
     return actor.eval()

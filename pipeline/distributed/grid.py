@@ -192,7 +192,9 @@ def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
     defaults = RunParams.model_fields
     seeds = list(params.get("seeds", defaults["seeds"].default))
     try:
-        lists = derived_lists(list(params.get("methods", defaults["methods"].default)), seeds)
+        section = params.get("import_specialists") or {}
+        imports = list(section.get("policies", [])) if isinstance(section, dict) else []
+        lists = derived_lists(list(params.get("methods", defaults["methods"].default)), seeds, imports)
     except ValueError as exc:
         raise GridError(f"{where}: {exc}") from None
     if not lists["pderl_seeds"] and params.get("pderl_seeds"):

@@ -23,7 +23,11 @@ KNOWN_SECTIONS = (
     "env",
     "seeds",
     "objectives",
+    "td3_seeds",
     "pderl_seeds",
+    "imported_seeds",
+    "import_collect",
+    "import_buffered",
     "extract_from",
     "extract_variants",
     "posthoc_from",
@@ -32,12 +36,14 @@ KNOWN_SECTIONS = (
     "methods",
     "train_specialist",
     "train_pderl",
+    "import_specialists",
     "fit_critics",
     "critic_fidelity",
     "extract",
     "evaluate",
     "score",
     "report",
+    "export",
     "mopderl",
     "morld",
 )
@@ -85,13 +91,16 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     A missing section is validated as empty, so models whose fields all have defaults accept it.
     """
     data = raw.get(name, {})
+    context = None
     if model is RunParams:
         data = {k: raw[k] for k in RUN_KEYS if k in raw}
         name = ""
+        imports = raw.get("import_specialists") or {}
+        context = {"imports": imports.get("policies", []) if isinstance(imports, dict) else []}
     if data is None:
         data = {}
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context=context)
     except ValidationError as exc:
         lines = [_describe(e, name) for e in exc.errors()]
         raise ParamsError(f"{path}: invalid params:\n  " + "\n  ".join(lines)) from None

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
 
 from pipeline.params.methods import derived_lists
 
@@ -50,21 +50,29 @@ class RunParams(Strict):
         "mapex_posthoc, warmup_only; kinds td3, pderl), mopderl, morld (pipeline/params/methods.py)",
     )
     # derived (generated block): see pipeline.params.methods.derived_lists
+    td3_seeds: list[int] = Field([0], description="derived: seeds of stage train_specialist (TD3 specialists)")
     pderl_seeds: list[int] = Field([], description="derived: seeds of stage train_pderl (PDERL specialists)")
+    imported_seeds: list[int] = Field([], description="derived: seeds of stage import_specialist (imported specialists)")
+    import_collect: list[dict] = Field(
+        [], description="derived: import_specialists.policies whose buffer stage import_specialist collects"
+    )
+    import_buffered: list[dict] = Field(
+        [], description="derived: import_specialists.policies that bring a buffer (stage import_specialist_buffered)"
+    )
     extract_from: list[Literal["td3", "pderl"]] = Field(
-        ["td3"], min_length=1, description="derived: kinds of specialists stage extract starts from (td3, pderl)"
+        ["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"
     )
     extract_variants: list[Literal["mapex", "warmup_only"]] = Field(
         ["mapex", "warmup_only"],
         description="derived: variants stage extract runs from each kind, with the joint critics",
     )
-    posthoc_from: list[Literal["td3", "pderl"]] = Field(
+    posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
     )
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
 
-    @field_validator("seeds", "objectives", "pderl_seeds", "mopderl_seeds", "morld_seeds")
+    @field_validator("seeds", "objectives", "td3_seeds", "pderl_seeds", "imported_seeds", "mopderl_seeds", "morld_seeds")
     @classmethod
     def _unique_non_negative(cls, v: list[int]) -> list[int]:
         if len(set(v)) != len(v):
@@ -81,11 +89,13 @@ class RunParams(Strict):
         return v
 
     @model_validator(mode="after")
-    def _consistent(self) -> "RunParams":
-        want = derived_lists(self.methods, self.seeds)
+    def _consistent(self, info: ValidationInfo) -> "RunParams":
+        # the import entries come from section import_specialists (pipeline.params.section passes them)
+        imports = (info.context or {}).get("imports", [])
+        want = derived_lists(self.methods, self.seeds, imports)
         for key, value in want.items():
             given = getattr(self, key)
-            same = sorted(given) == sorted(value)
+            same = sorted(given, key=repr) == sorted(value, key=repr)
             if key == "pderl_seeds" and not value and sorted(given) == sorted(self.seeds):
                 same = True  # PDERL specialists no method reads may still be trained
             if not same:

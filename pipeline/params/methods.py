@@ -32,6 +32,9 @@ METHODS: dict[str, Method] = {
         Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
         Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
         Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
+        Method(
+            "mapex_posthoc_imported", "mapex_posthoc", "imported", "MAPEX-PostHoc (imported)", "tab:brown", "extract_posthoc"
+        ),
         Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
         Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
     )
@@ -44,12 +47,19 @@ EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
 # extraction with joint critics does not depend on post-hoc critics: DVC deps cannot depend
 # on a matrix value.
 JOINT_VARIANTS = ("mapex", "warmup_only")
-# Kinds of specialists extraction can start from: td3 (stage train_specialist) and pderl
-# (stage train_pderl), under data/specialists/<kind>/seedS.
-SPECIALIST_KINDS = ("td3", "pderl")
+# Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
+# train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
+# only MAPEX-PostHoc extracts from them), under data/specialists/<kind>/seedS.
+SPECIALIST_KINDS = ("td3", "pderl", "imported")
+# The kinds trained here with critics of their own (stage extract's joint variants read them).
+TRAINED_KINDS = ("td3", "pderl")
 BASELINES = tuple(m.name for m in METHODS.values() if m.variant is None)
 # The report's rows for the starting policies alone (no method made them).
-SPECIALISTS_LABELS = {"specialists_pderl": "PDERL specialists only", "specialists_td3": "TD3 specialists only"}
+SPECIALISTS_LABELS = {
+    "specialists_pderl": "PDERL specialists only",
+    "specialists_td3": "TD3 specialists only",
+    "specialists_imported": "imported specialists only",
+}
 
 
 def method_name(variant: str, kind: str) -> str:
@@ -74,21 +84,27 @@ def specialist_kind(method: str) -> str | None:
     return m.kind if m else None
 
 
-def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
-    """The run lists dvc.yaml fans its producing stages out over, derived from `methods` and
-    `seeds` (DVC cannot filter a matrix, so each producing stage needs a list of its own):
-    pderl_seeds, extract_from, extract_variants, posthoc_from, mopderl_seeds, morld_seeds.
+def derived_lists(methods: list[str], seeds: list[int], imports: list[dict] | None = None) -> dict[str, list]:
+    """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
+    `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
+    imported_seeds, import_collect, import_buffered, extract_from, extract_variants,
+    posthoc_from, mopderl_seeds, morld_seeds (DVC cannot filter a matrix, so each producing
+    stage needs a list of its own).
 
     extract runs every joint variant of `extract_variants` from every kind of `extract_from`
     (a matrix), so the methods of stage extract must form that whole product; raises
-    ValueError naming the missing method otherwise. Unknown methods raise ValueError too.
-    extract_from also drives critic_fidelity (the joint critics' scores), so it is never empty."""
+    ValueError naming the missing method otherwise. Unknown methods raise ValueError too, and
+    so does an imported method without import_specialists.policies. extract_from also drives
+    critic_fidelity (the joint critics' scores): with no joint-critic method it names the
+    trained kinds the methods start from (td3 when none does, unless only imported
+    specialists are used). import_collect / import_buffered split the import entries into those
+    whose buffer is collected and those that bring one (their stages differ in a DVC dep)."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
     chosen = [METHODS[m] for m in methods]
     extract = [m for m in chosen if m.stage == "extract"]
-    kinds = [k for k in SPECIALIST_KINDS if any(m.kind == k for m in extract)]
+    kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in extract)]
     variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
     missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
     if missing:
@@ -96,13 +112,35 @@ def derived_lists(methods: list[str], seeds: list[int]) -> dict[str, list]:
             f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
             f"(a DVC matrix), so add {missing} (or drop the methods that need them)"
         )
+    uses_imported = any(m.kind == "imported" for m in chosen)
     if not kinds:  # no joint-critic extraction: extract runs no item, and critic_fidelity (a matrix over
-        # extract_from) scores the joint critics of the specialists the methods start from (TD3's are always trained)
-        kinds = [k for k in SPECIALIST_KINDS if any(m.kind == k for m in chosen)] or ["td3"]
+        # extract_from) scores the joint critics of the trained specialists the methods start from
+        kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in chosen)] or ([] if uses_imported else ["td3"])
     posthoc = [k for k in SPECIALIST_KINDS if method_name("mapex_posthoc", k) in methods]
     needs_pderl = any(m.kind == "pderl" for m in chosen)
+    entries = [dict(e) for e in imports or []]
+    if uses_imported and not entries:
+        raise ValueError(
+            f"methods = {methods} start from imported specialists, but import_specialists.policies is empty: "
+            "name one policy file per objective (docs/import_export.md)"
+        )
+    imported_seeds = list(seeds) if uses_imported else []
     return {
+        "td3_seeds": list(seeds) if "td3" in kinds or any(m.kind == "td3" for m in chosen) else [],
         "pderl_seeds": list(seeds) if needs_pderl else [],
+        "imported_seeds": imported_seeds,
+        "import_collect": [
+            {"objective": e["objective"], "file": e["file"], "format": e["format"]} for e in entries if not e.get("buffer")
+        ]
+        if uses_imported
+        else [],
+        "import_buffered": [
+            {"objective": e["objective"], "file": e["file"], "format": e["format"], "buffer": e["buffer"]}
+            for e in entries
+            if e.get("buffer")
+        ]
+        if uses_imported
+        else [],
         "extract_from": kinds,
         "extract_variants": variants,
         "posthoc_from": posthoc,

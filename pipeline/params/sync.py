@@ -17,11 +17,22 @@ import yaml
 from pipeline.params.common import GENERATED_BEGIN, GENERATED_END, RunParams
 from pipeline.params.methods import derived_lists
 
-DERIVED_KEYS = ("pderl_seeds", "extract_from", "extract_variants", "posthoc_from", "mopderl_seeds", "morld_seeds")
+DERIVED_KEYS = (
+    "td3_seeds",
+    "pderl_seeds",
+    "imported_seeds",
+    "import_collect",
+    "import_buffered",
+    "extract_from",
+    "extract_variants",
+    "posthoc_from",
+    "mopderl_seeds",
+    "morld_seeds",
+)
 
 
-def generated_block(methods: list[str], seeds: list[int]) -> str:
-    lists = derived_lists(methods, seeds)
+def generated_block(methods: list[str], seeds: list[int], imports: list[dict] | None = None) -> str:
+    lists = derived_lists(methods, seeds, imports)
     lines = [f"{key}: {json.dumps(lists[key])}" for key in DERIVED_KEYS]
     return "\n".join([GENERATED_BEGIN, *lines, GENERATED_END]) + "\n"
 
@@ -38,8 +49,10 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
     defaults = RunParams.model_fields
     methods = raw.get("methods", defaults["methods"].default)
     seeds = raw.get("seeds", defaults["seeds"].default)
+    section = raw.get("import_specialists") or {}
+    imports = section.get("policies", []) if isinstance(section, dict) else []
     try:
-        block = generated_block(list(methods), list(seeds))
+        block = generated_block(list(methods), list(seeds), list(imports))
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
     lines = text.splitlines(keepends=True)

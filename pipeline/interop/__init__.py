@@ -1,0 +1,1 @@
+"""Specialists trained elsewhere in, the front's policies out (docs/import_export.md)."""

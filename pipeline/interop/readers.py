@@ -1,0 +1,326 @@
+"""Readers for specialists trained elsewhere: Stable-Baselines3 zips, CleanRL checkpoints and
+TorchScript actors, each turned into a deterministic policy of this project (docs/import_export.md).
+
+Nothing here imports SB3 or CleanRL, and nothing unpickles: an SB3 `model.zip` is read from its
+`data` JSON (the algorithm, the spaces' shapes and bounds, the policy's keyword arguments) and
+its `policy.pth` (loaded with weights_only=True); a CleanRL `.cleanrl_model` is a tuple of
+state dicts, also loaded with weights_only=True. What only unpickling could read (a custom
+features extractor, an activation given as a class we do not build, a file of pickled
+objects) is refused with a message naming the file; so is anything that does not fit the env.
+
+- SB3 TD3 and DDPG (`TD3Policy`): `actor.mu` is Linear/ReLU/.../Linear then tanh; SB3 rescales
+  the [-1, 1] output to the action space's bounds outside the network.
+- SB3 SAC (`SACPolicy`): the deterministic action is tanh(mu(latent_pi(obs))), rescaled the same
+  way; log_std is not used. gSDE policies are refused (their mean is clipped and their noise is
+  state-dependent: a different network).
+- CleanRL TD3/DDPG (`fc1`, `fc2`, ..., `fc_mu`) and SAC (`fc_mean`, `fc_logstd` unused): tanh
+  output times `action_scale` plus `action_bias`.
+
+All of these are exactly `pipeline.core.nets.Actor` (ReLU MLP, tanh, centre + scale), so the
+imported weights are copied into one and everything downstream reads them as it reads its own.
+A TorchScript file becomes a `ScriptedActor` holding the file's bytes.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import io
+import json
+import pickle
+import pickletools
+import re
+import zipfile
+import zlib
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.core.artifacts import ArtifactError
+from pipeline.core.envs import EnvSpec
+from pipeline.core.nets import Actor, ScriptedActor
+
+FORMATS = ("sb3", "cleanrl", "torchscript")
+SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
+
+
+class ImportedPolicy(NamedTuple):
+    actor: Actor | ScriptedActor  # eval mode, CPU
+    architecture: str  # "mlp" (an Actor) or "torchscript"
+    hidden_sizes: list[int]  # [] for TorchScript
+    source: dict[str, Any]  # format, algorithm, file, sha256, library version where known
+
+
+class _Declared(NamedTuple):
+    """What a file says of its env (None where it says nothing)."""
+
+    obs_dim: int | None
+    act_dim: int | None
+    low: np.ndarray | None
+    high: np.ndarray | None
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
+    """torch.load(weights_only=True) of a file (or its bytes), unpickling refused with a clear line."""
+    try:
+        return torch.load(io.BytesIO(data) if data is not None else path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise ArtifactError(
+            f"{path}: {what} holds Python objects that only unpickling their code could read ({first[:160]}); "
+            "refused: save the weights as a state dict (or the actor as TorchScript) and import that"
+        ) from None
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise ArtifactError(f"{path}: {what} is not a readable torch file ({str(exc).splitlines()[0][:160]})") from None
+
+
+def mlp_actor(path: Path, layers: list[tuple[torch.Tensor, torch.Tensor]], low, high) -> Actor:
+    """An `Actor` holding these (weight (out, in), bias (out,)) Linear layers, ReLU between them."""
+    for i, (w, b) in enumerate(layers):
+        if w.ndim != 2 or b.shape != (w.shape[0],):
+            raise ArtifactError(f"{path}: layer {i} has weight {tuple(w.shape)} and bias {tuple(b.shape)}")
+        if i and w.shape[1] != layers[i - 1][0].shape[0]:
+            raise ArtifactError(f"{path}: layer {i} takes {w.shape[1]} inputs, layer {i - 1} gives {layers[i - 1][0].shape[0]}")
+    obs_dim, act_dim = layers[0][0].shape[1], layers[-1][0].shape[0]
+    hidden = [w.shape[0] for w, _ in layers[:-1]]
+    actor = Actor(obs_dim, act_dim, hidden, low, high)
+    linears = [m for m in actor.net if isinstance(m, nn.Linear)]
+    with torch.no_grad():
+        for lin, (w, b) in zip(linears, layers):
+            lin.weight.copy_(w.float())
+            lin.bias.copy_(b.float())
+    return actor.eval()
+
+
+def _indexed_layers(path: Path, state: dict[str, torch.Tensor], prefix: str) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """The Linear layers `prefix`0, `prefix`2, ... of an nn.Sequential of Linear and ReLU."""
+    found = sorted({int(m.group(1)) for k in state if (m := re.fullmatch(re.escape(prefix) + r"(\d+)\.weight", k))})
+    if found != list(range(0, 2 * len(found), 2)):
+        raise ArtifactError(
+            f"{path}: the layers of {prefix.rstrip('.')} are {found}; expected Linear layers 0, 2, 4, ... "
+            "with one activation between them (an SB3 MLP)"
+        )
+    return [(state[f"{prefix}{i}.weight"], state[f"{prefix}{i}.bias"]) for i in found]
+
+
+# -- Stable-Baselines3 --------------------------------------------------------------------------
+
+
+def _pickle_globals(path: Path, key: str, encoded: str) -> list[tuple[str, str]]:
+    """The (module, name) pairs a serialized SB3 entry refers to, read from its pickle opcodes
+    without running them (pickletools only lists them)."""
+    try:
+        raw = base64.b64decode(encoded)
+        ops = list(pickletools.genops(raw))
+    except (binascii.Error, ValueError, pickle.PickleError, EOFError) as exc:
+        raise ArtifactError(f"{path}: data[{key!r}] is not a readable serialized entry ({exc})") from None
+    out, strings = [], []
+    for op, arg, _ in ops:
+        if op.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
+            strings.append(arg)
+        elif op.name == "STACK_GLOBAL" and len(strings) >= 2:
+            out.append((strings[-2], strings[-1]))
+        elif op.name in ("GLOBAL", "INST"):
+            module, name = str(arg).split(" ", 1)
+            out.append((module, name))
+    return out
+
+
+def _space(path: Path, data: dict, key: str) -> dict:
+    entry = data.get(key)
+    if not isinstance(entry, dict) or ":type:" not in entry:
+        raise ArtifactError(f"{path}: data has no readable {key!r}; expected an SB3 model.zip")
+    return entry
+
+
+def _parse_bounds(text: Any) -> np.ndarray | None:
+    """An SB3 space's `low`/`high` as printed (numpy's repr, e.g. '[-1. -1.]'); None if elided."""
+    if not isinstance(text, str) or "..." in text:
+        return None
+    try:
+        return np.array(text.replace("[", " ").replace("]", " ").split(), dtype=np.float64)
+    except ValueError:
+        return None
+
+
+def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
+    try:
+        zf = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise ArtifactError(f"{path}: not a readable zip ({exc}); expected a Stable-Baselines3 model.zip") from None
+    with zf:
+        names = set(zf.namelist())
+        lacking = [n for n in ("data", "policy.pth") if n not in names]
+        if lacking:
+            raise ArtifactError(f"{path}: zip has no {lacking}; expected a Stable-Baselines3 model.zip (data, policy.pth)")
+        try:
+            data = json.loads(zf.read("data"))
+            policy_bytes = zf.read("policy.pth")
+            version = zf.read("_stable_baselines3_version").decode().strip() if "_stable_baselines3_version" in names else None
+        except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
+            raise ArtifactError(f"{path}: zip is damaged ({exc})") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise ArtifactError(f"{path}: its 'data' entry is not JSON ({exc}); expected a Stable-Baselines3 model.zip") from None
+    if not isinstance(data, dict):
+        raise ArtifactError(f"{path}: its 'data' entry is not a JSON object; expected a Stable-Baselines3 model.zip")
+    act_space, obs_space = _space(path, data, "action_space"), _space(path, data, "observation_space")
+    if "spaces.box.Box" not in act_space[":type:"]:
+        raise ArtifactError(
+            f"{path}: action space is {act_space[':type:']}, not a continuous Box; MAPEX extracts continuous-control "
+            "policies (SB3 TD3, DDPG or SAC)"
+        )
+    if "spaces.box.Box" not in obs_space[":type:"] or len(obs_space.get("_shape") or []) != 1:
+        raise ArtifactError(
+            f"{path}: observation space is {obs_space[':type:']} of shape {obs_space.get('_shape')}; expected a flat Box"
+        )
+    policy = data.get("policy_class")
+    classes = _pickle_globals(path, "policy_class", policy[":serialized:"]) if isinstance(policy, dict) and ":serialized:" in policy else []
+    cls = next((name for module, name in classes if module.startswith("stable_baselines3.")), None)
+    if cls not in SB3_POLICIES:
+        raise ArtifactError(
+            f"{path}: policy class {cls or 'unknown'}; expected one of {sorted(SB3_POLICIES)} "
+            "(SB3 TD3, DDPG or SAC with an MlpPolicy)"
+        )
+    algorithm = SB3_POLICIES[cls]
+    kwargs = data.get("policy_kwargs") or {}
+    if isinstance(kwargs, dict) and ":serialized:" in kwargs:
+        refs = [(m, n) for m, n in _pickle_globals(path, "policy_kwargs", kwargs[":serialized:"]) if m != "builtins"]
+        activations = [n for m, n in refs if m == "torch.nn.modules.activation"]
+        if any(a != "ReLU" for a in activations):
+            raise ArtifactError(
+                f"{path}: policy_kwargs set activation_fn {activations}; this reader builds ReLU networks (SB3's default)"
+            )
+        other = [f"{m}.{n}" for m, n in refs if m != "torch.nn.modules.activation"]
+        if other:
+            raise ArtifactError(
+                f"{path}: policy_kwargs refer to code ({', '.join(other)}); reading them would need unpickling, "
+                "refused: import the actor as TorchScript instead"
+            )
+    elif isinstance(kwargs, dict) and kwargs.get("use_sde"):
+        raise ArtifactError(f"{path}: a gSDE policy (use_sde: true); only SAC without gSDE is read")
+    if data.get("use_sde"):
+        raise ArtifactError(f"{path}: a gSDE policy (use_sde: true); only SAC without gSDE is read")
+    state = _weights_only(path, policy_bytes, "policy.pth")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise ArtifactError(f"{path}: policy.pth is not a state dict of tensors")
+    if algorithm == "td3":
+        layers = _indexed_layers(path, state, "actor.mu.")
+    else:
+        if "actor.mu.weight" not in state:
+            raise ArtifactError(f"{path}: SAC policy.pth has no actor.mu.weight")
+        layers = [*_indexed_layers(path, state, "actor.latent_pi."), (state["actor.mu.weight"], state["actor.mu.bias"])]
+    low, high = _parse_bounds(act_space.get("low")), _parse_bounds(act_space.get("high"))
+    shape = act_space.get("_shape") or [layers[-1][0].shape[0]]
+    actor = mlp_actor(path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape))
+    declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
+    return actor, declared, {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
+
+
+# -- CleanRL ------------------------------------------------------------------------------------
+
+
+def read_cleanrl(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
+    obj = _weights_only(path, None, "the checkpoint")
+    actor_state = obj[0] if isinstance(obj, (tuple, list)) and obj else obj
+    if not isinstance(actor_state, dict) or "fc1.weight" not in actor_state:
+        raise ArtifactError(
+            f"{path}: not a CleanRL checkpoint (expected a tuple of state dicts, the actor's first, with fc1, fc2, "
+            "fc_mu or fc_mean, action_scale and action_bias)"
+        )
+    head = "fc_mu" if "fc_mu.weight" in actor_state else "fc_mean" if "fc_mean.weight" in actor_state else None
+    if head is None or "action_scale" not in actor_state or "action_bias" not in actor_state:
+        raise ArtifactError(
+            f"{path}: CleanRL actor has keys {sorted(actor_state)[:8]}...; expected fc_mu (TD3, DDPG) or fc_mean (SAC) "
+            "with action_scale and action_bias"
+        )
+    hidden = sorted(int(m.group(1)) for k in actor_state if (m := re.fullmatch(r"fc(\d+)\.weight", k)))
+    if hidden != list(range(1, len(hidden) + 1)):
+        raise ArtifactError(f"{path}: CleanRL actor layers fc{hidden}; expected fc1, fc2, ... in order")
+    layers = [(actor_state[f"fc{i}.weight"], actor_state[f"fc{i}.bias"]) for i in hidden]
+    layers.append((actor_state[f"{head}.weight"], actor_state[f"{head}.bias"]))
+    scale = actor_state["action_scale"].double().flatten().numpy()
+    bias = actor_state["action_bias"].double().flatten().numpy()
+    actor = mlp_actor(path, layers, bias - scale, bias + scale)
+    declared = _Declared(layers[0][0].shape[1], layers[-1][0].shape[0], bias - scale, bias + scale)
+    algorithm = "sac" if head == "fc_mean" else "td3"  # DDPG's actor is TD3's
+    return actor, declared, {"algorithm": algorithm, "library": "cleanrl", "library_version": None}
+
+
+# -- TorchScript --------------------------------------------------------------------------------
+
+
+def read_torchscript(path: Path) -> tuple[ScriptedActor, _Declared, dict[str, Any]]:
+    data = path.read_bytes()
+    try:
+        actor = ScriptedActor.from_bytes(data)
+    except (RuntimeError, ValueError, OSError) as exc:
+        raise ArtifactError(
+            f"{path}: not a TorchScript file torch.jit.load can read ({str(exc).strip().splitlines()[0][:160]})"
+        ) from None
+    return actor.eval(), _Declared(None, None, None, None), {"algorithm": None, "library": "torchscript", "library_version": None}
+
+
+# -- checks against the env ---------------------------------------------------------------------
+
+
+def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
+    """The policy fits env `spec`: its declared dims and bounds match, and on a probe batch it
+    maps (B, obs_dim) observations to finite (B, act_dim) actions inside the bounds."""
+    env = f"env {spec.env_id}"
+    if declared.obs_dim is not None and declared.obs_dim != spec.obs_dim:
+        raise ArtifactError(f"{path}: a policy for {declared.obs_dim}-d observations; {env} has {spec.obs_dim} (a model of another env?)")
+    if declared.act_dim is not None and declared.act_dim != spec.act_dim:
+        raise ArtifactError(f"{path}: a policy for {declared.act_dim}-d actions; {env} has {spec.act_dim} (a model of another env?)")
+    low, high = np.array(spec.action_low), np.array(spec.action_high)
+    for name, got, want in (("low", declared.low, low), ("high", declared.high, high)):
+        if got is not None and (got.shape != want.shape or not np.allclose(got, want, rtol=1e-5, atol=1e-6)):
+            raise ArtifactError(f"{path}: action bounds {name} = {got.tolist()}; {env} has {want.tolist()}")
+    probe = torch.linspace(-1.0, 1.0, 4 * spec.obs_dim).reshape(4, spec.obs_dim)
+    try:
+        with torch.no_grad():
+            out = actor(probe)
+    except Exception as exc:  # a user's TorchScript may raise anything on the wrong input
+        raise ArtifactError(
+            f"{path}: the policy fails on a batch of {spec.obs_dim}-d observations of {env} ({str(exc).strip().splitlines()[0][:160]})"
+        ) from None
+    if not isinstance(out, torch.Tensor) or tuple(out.shape) != (4, spec.act_dim):
+        shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+        raise ArtifactError(f"{path}: the policy maps a (4, {spec.obs_dim}) batch to {shape}; expected (4, {spec.act_dim})")
+    if not torch.isfinite(out).all():
+        raise ArtifactError(f"{path}: the policy returns NaN or infinite actions on a probe batch")
+    slack = 1e-5 * (high - low)
+    if (out.numpy() < low - slack).any() or (out.numpy() > high + slack).any():
+        raise ArtifactError(
+            f"{path}: the policy returns actions outside {env}'s bounds [{low.min()}, {high.max()}] "
+            "(expected actions already rescaled to the env's bounds)"
+        )
+
+
+def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
+    """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`; raises
+    ArtifactError naming the file for a missing or unreadable file, a format it is not, a
+    policy that only unpickling could read, discrete actions, or dims and bounds of another env."""
+    path = Path(path)
+    if fmt not in FORMATS:
+        raise ArtifactError(f"{path}: format {fmt!r}; expected one of {list(FORMATS)}")
+    if not path.is_file():
+        raise ArtifactError(f"{path}: no such file (expected a {fmt} model)")
+    reader = {"sb3": read_sb3, "cleanrl": read_cleanrl, "torchscript": read_torchscript}[fmt]
+    actor, declared, source = reader(path)
+    _check_env(path, actor, declared, spec)
+    architecture = "torchscript" if isinstance(actor, ScriptedActor) else "mlp"
+    hidden = [] if architecture == "torchscript" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
+    return ImportedPolicy(actor, architecture, hidden, source)

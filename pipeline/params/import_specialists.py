@@ -1,0 +1,50 @@
+"""Section `import_specialists`: specialists trained elsewhere, one per objective (docs/import_export.md).
+
+Each entry of `policies` names the policy file of one objective, its format (an SB3 model.zip
+of TD3, DDPG or SAC; a CleanRL TD3, DDPG or SAC checkpoint; a TorchScript actor) and
+optionally a buffer of its own in the project's Zarr format, with every objective's reward.
+Without one, stage import_specialist collects `collect_rows` transitions of the policy in the
+MO env with TD3's Gaussian exploration noise. Post-hoc critics for every objective are then
+fitted on that buffer (stage fit_critics) and MAPEX-PostHoc extracts from them (method
+mapex_posthoc_imported).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from pipeline.params.common import Strict
+
+
+class ImportedPolicyEntry(Strict):
+    objective: int = Field(..., ge=0, description="the objective this specialist was trained for (its slot obj{k})")
+    file: str = Field(..., min_length=1, description="the policy file, relative to the repository root (a DVC dep)")
+    format: Literal["sb3", "cleanrl", "torchscript"] = Field(
+        ..., description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: torch.jit.save"
+    )
+    buffer: str | None = Field(
+        None,
+        description="optional: a buffer.zarr of this policy's transitions in the project's format (full reward "
+        "vectors); null: collect one",
+    )
+
+
+class ImportSpecialistsParams(Strict):
+    policies: list[ImportedPolicyEntry] = Field([], description="one entry per objective")
+    collect_rows: int = Field(25_000, gt=0, description="transitions collected per specialist without a buffer of its own")
+    exploration_noise: float = Field(
+        0.1, ge=0, description="std of the Gaussian collection noise, times the action half-range (TD3's 0.1)"
+    )
+    checkpoint_every: int = Field(
+        10_000, ge=0, description="collected rows between checkpoints (0: none); changes no artifact"
+    )
+
+    @field_validator("policies")
+    @classmethod
+    def _one_per_objective(cls, v: list[ImportedPolicyEntry]) -> list[ImportedPolicyEntry]:
+        objectives = [p.objective for p in v]
+        if len(set(objectives)) != len(objectives):
+            raise ValueError(f"one policy per objective, got objectives {objectives}")
+        return v

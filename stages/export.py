@@ -1,0 +1,132 @@
+"""Stage export: a front's policies as self-contained TorchScript (and ONNX) files, with front.csv/json."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from pipeline.core.artifacts import ArtifactError, atomic_path, read_json
+from pipeline.core.pareto import pareto_mask
+from pipeline.core.population import load_population, member_actor
+from pipeline.core.provenance import provenance
+from pipeline.interop.export import check_export, onnx_available, onnx_bytes, torchscript_bytes
+from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.export import ExportParams
+from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
+from stages.score import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated
+
+FRONT_FORMAT = "mapex.front"
+FRONT_VERSION = 1
+
+
+def read_std(path: Path, n_obj: int) -> np.ndarray:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    cols = [f"obj{m}_std" for m in range(n_obj)]
+    if rows and any(c not in rows[0] for c in cols):
+        raise ArtifactError(f"{path}: missing column(s) {[c for c in cols if c not in rows[0]]}")
+    return np.array([[float(r[c]) for c in cols] for r in rows]).reshape(len(rows), n_obj)
+
+
+def front_csv(records: list[dict], n_obj: int) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    objs = [f"obj{m}" for m in range(n_obj)]
+    w.writerow(["id", "file", "onnx_file", "origin", "objective", "policy_name", "iteration", "parents", "target_weight",
+                *objs, *(f"{c}_std" for c in objs), *(f"{c}_extract" for c in objs)])
+    for r in records:
+        w.writerow([
+            r["id"], r["file"], r["onnx_file"] or "", r["origin"], "" if r["objective"] is None else r["objective"],
+            r["policy_name"] or "", r["iteration"], ";".join(map(str, r["parents"])),
+            "" if r["target_weight"] is None else ";".join(f"{x:.6g}" for x in r["target_weight"]),
+            *r["returns"], *r["returns_std"], *r["returns_extract"],
+        ])
+    return buf.getvalue()
+
+
+@reports_errors
+def export(
+    population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
+    evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
+    out: Path = typer.Option(..., help="output directory: one TorchScript file per front policy, front.csv, front.json"),
+    onnx: str = typer.Option(None, help="auto | yes | no (default: params export.onnx)"),
+    params: Path = PARAMS_OPTION,
+) -> None:
+    """Export the non-dominated policies of one run as self-contained files.
+
+    The front is the non-dominated set of the re-evaluated mean returns (EVALUATED, as stage
+    score computes it). Each of its policies is written as OUT/member_<id>.pt, a TorchScript
+    module mapping a batch of observations (B, obs_dim) float32 to actions (B, act_dim) in the
+    env's bounds: `torch.jit.load(path)` reads it without this project. Each file is reloaded
+    and checked against the population's actor (largest action difference <= 1e-6). With the
+    optional onnx package (pip install -e ".[onnx]"), also OUT/member_<id>.onnx.
+
+    OUT/front.csv and OUT/front.json list, per policy: its file, its re-evaluated returns and
+    their spread (std over the evaluation episodes), its extraction-time returns, its origin
+    (a specialist's starting policy, or a child with its parents, target weight and iteration);
+    front.json adds the env (id, dims, bounds, episode cap) and the provenance of extraction,
+    evaluation and export. OUT is replaced as a whole, never left half-written.
+    """
+    raw, _, cfg = read_params(params, "export", ExportParams)
+    runs = section(raw, "", RunParams, params)
+    stray = [m for m in cfg.methods if m not in runs.methods]
+    if stray:
+        raise ParamsError(f"{params}: export.methods = {cfg.methods}: {stray} not in methods {runs.methods}")
+    want_onnx = onnx or cfg.onnx
+    if want_onnx not in ("auto", "yes", "no"):
+        raise ParamsError(f"--onnx {want_onnx!r}: expected auto, yes or no")
+    if want_onnx == "yes" and not onnx_available():
+        raise ParamsError('export.onnx = yes, but the onnx package is not installed (pip install -e ".[onnx]")')
+    write_onnx = want_onnx == "yes" or (want_onnx == "auto" and onnx_available())
+    members, meta = load_population(population, META_KEYS)
+    if not members:
+        raise ArtifactError(f"{population}: population has no members")
+    n_obj = meta["n_objectives"]
+    record = read_json(evaluated / "evaluation.json", EVALUATION_KEYS)
+    means = read_evaluated(evaluated / "evaluated.csv", members, n_obj)
+    stds = read_std(evaluated / "evaluated.csv", n_obj)
+    check_same_run(evaluated / "evaluation.json", record, population, meta, len(members))
+    front = np.flatnonzero(pareto_mask(means))
+    front = front[np.argsort(means[front, 0], kind="stable")]
+    records = []
+    with atomic_path(out) as tmp, progress(len(front), f"export {meta['method']} seed {meta['seed']}", unit="policy") as bar:
+        tmp.mkdir(parents=True)
+        for i in front.tolist():
+            m = members[i]
+            actor = member_actor(m, meta)
+            name = f"member_{i:04d}"
+            data = torchscript_bytes(actor)
+            (tmp / f"{name}.pt").write_bytes(data)
+            diff = check_export(out / f"{name}.pt", data, actor, meta["obs_dim"])
+            onnx_file = None
+            if write_onnx:
+                onnx_file = f"{name}.onnx"
+                (tmp / onnx_file).write_bytes(onnx_bytes(actor, meta["obs_dim"]))
+            records.append({
+                "id": i, "file": f"{name}.pt", "onnx_file": onnx_file, "origin": m.origin, "objective": m.objective,
+                "policy_name": m.policy_name, "iteration": m.iteration, "parents": list(m.parents),
+                "target_weight": m.target_weight, "returns": means[i].tolist(), "returns_std": stds[i].tolist(),
+                "returns_extract": [float(x) for x in m.returns], "export_max_abs_diff": diff,
+            })
+            bar.update(1)
+        env = {k: meta.get(k) for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high")}
+        doc = {
+            "format": FRONT_FORMAT,
+            "format_version": FRONT_VERSION,
+            "usage": "policy = torch.jit.load(file); action = policy(obs) with obs a float32 (B, obs_dim) tensor; "
+            "actions are in the env's bounds",
+            "env": env | {"max_episode_steps": record.get("max_episode_steps")},
+            "method": meta["method"],
+            "seed": meta["seed"],
+            "evaluation": {"episodes": record["episodes"]},
+            "policies": records,
+            "provenance": {"extract": meta.get("provenance"), "evaluate": record["provenance"], "export": provenance("cpu")},
+        }
+        (tmp / "front.csv").write_text(front_csv(records, n_obj))
+        (tmp / "front.json").write_text(json.dumps(doc, indent=2) + "\n")
+    typer.echo(f"export: {len(records)} front policies of {meta['method']} seed {meta['seed']} in {out}", err=True)

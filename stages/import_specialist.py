@@ -1,0 +1,178 @@
+"""Stage import_specialist: a specialist trained elsewhere becomes slot obj{K} of kind `imported`."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.buffer import load_buffer, save_buffer
+from pipeline.core.checkpoint import save_policy
+from pipeline.core.envs import EnvSpec, env_spec, make_env, spec_meta
+from pipeline.core.envstate import env_checkpoint_problem
+from pipeline.core.provenance import provenance
+from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
+from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
+from pipeline.interop.collect import CollectionRun
+from pipeline.interop.readers import FORMATS, read_policy
+from pipeline.params import EnvParams, ParamsError
+from pipeline.params.import_specialists import ImportSpecialistsParams
+from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+
+CHECKPOINT_NAME = "collect.ckpt.pt"
+
+
+def check_user_buffer(path: Path, spec: EnvSpec) -> tuple[dict[str, np.ndarray], dict]:
+    """Read a buffer a user hands in (the project's Zarr format, docs/artifacts.md) and check it
+    fits env `spec`: env id, dims, full reward vectors, dtypes and finite values. An SB3 replay
+    buffer (a pickle file) is refused with the reason it cannot serve."""
+    if path.is_file():
+        head = path.read_bytes()[:2]
+        if path.suffix in (".pkl", ".pickle") or head[:1] == b"\x80":
+            raise ArtifactError(
+                f"{path}: a pickled replay buffer (as SB3's save_replay_buffer writes); it holds only the scalar reward "
+                "the model was trained on, and MAPEX needs every objective's reward per transition, so it cannot serve: "
+                "leave the buffer out (null) and let import_specialist collect one"
+            )
+        raise ArtifactError(f"{path}: a file; expected a buffer.zarr directory in the project's format (docs/artifacts.md)")
+    data, attrs = load_buffer(path)  # format, checksums, shapes, finite values
+    for key, want in (("env_id", spec.env_id), ("obs_dim", spec.obs_dim), ("act_dim", spec.act_dim)):
+        if attrs.get(key) != want:
+            raise ArtifactError(f"{path}: {key} = {attrs.get(key)!r}; env.id {spec.env_id} needs {want!r}")
+    if attrs.get("n_objectives") != spec.n_objectives:
+        raise ArtifactError(
+            f"{path}: rewards of {attrs.get('n_objectives')} objectives; {spec.env_id} has {spec.n_objectives} "
+            "(the buffer must hold every objective's reward)"
+        )
+    dtypes = {"obs": np.float32, "action": np.float32, "reward": np.float32, "next_obs": np.float32}
+    dtypes |= {"terminated": np.bool_, "truncated": np.bool_, "episode": np.int64, "episode_step": np.int32}
+    for name, dtype in dtypes.items():
+        if data[name].dtype != dtype:
+            raise ArtifactError(f"{path}: array {name!r} is {data[name].dtype}, expected {np.dtype(dtype)}")
+    low, high = np.asarray(spec.action_low), np.asarray(spec.action_high)
+    if len(data["action"]) and ((data["action"] < low - 1e-6).any() or (data["action"] > high + 1e-6).any()):
+        raise ArtifactError(f"{path}: actions outside the bounds of {spec.env_id}")
+    if attrs["n_transitions"] == 0:
+        raise ArtifactError(f"{path}: buffer holds no transitions")
+    return data, attrs
+
+
+def episodes_csv(returns: list[list[float]], n_objectives: int) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["episode", *(f"obj{m}" for m in range(n_objectives))])
+    for i, r in enumerate(returns):
+        w.writerow([i, *(f"{x:.6g}" for x in r)])
+    return buf.getvalue()
+
+
+def collect(out: Path, actor, spec: EnvSpec, env_p: EnvParams, cfg: ImportSpecialistsParams, seed: int, objective: int, policy_file: Path) -> CollectionRun:
+    """Roll the imported policy out (resuming from OUT's checkpoint when one fits)."""
+    config = {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "import_specialists": cfg.model_dump(include={"collect_rows", "exploration_noise"}),
+        "seed": seed,
+        "objective": objective,
+    }
+    fp = run_fingerprint("import_specialist", config, "cpu", [policy_file])
+    ckpt = Checkpoint(checkpoint_dir(out, inside=False) / CHECKPOINT_NAME, fp, lambda line: typer.echo(line, err=True))
+    probe = make_env(env_p.id, env_p.max_episode_steps)
+    problem = env_checkpoint_problem(probe)
+    probe.close()
+
+    def fresh() -> CollectionRun:
+        env = make_env(env_p.id, env_p.max_episode_steps)
+        return CollectionRun(actor, env, spec, cfg.collect_rows, cfg.exploration_noise, seed, objective)
+
+    run, resumed = resume(ckpt, fresh) if problem is None else (fresh(), False)
+    if resumed:
+        typer.echo(f"import_specialist seed {seed} obj {objective}: resuming from row {run.t} of {ckpt.path}", err=True)
+    with progress(cfg.collect_rows, f"collect obj {objective} seed {seed}", unit="row") as bar, sigterm_deferred():
+        bar.update(run.t)
+        while not run.done:
+            ended = run.step()
+            bar.update(1)
+            if ended is not None:
+                bar.set_postfix_str(f"return {fmt_vec(ended)}", refresh=False)
+            every = cfg.checkpoint_every
+            if problem is None:
+                ckpt.safe_point(run, f"import_specialist seed {seed} obj {objective}", f"row {run.t}", bool(every) and run.t % every == 0 and not run.done)
+            elif stop_requested():
+                raise Stopped(f"import_specialist seed {seed} obj {objective}: SIGTERM at row {run.t}: no checkpoint ({problem})")
+    run.env.close()
+    run.ckpt = ckpt  # cleared once the artifacts are written
+    return run
+
+
+@reports_errors
+def import_specialist(
+    objective: int = typer.Option(..., help="k: the objective the policy was trained for (slot obj{k})"),
+    file: Path = typer.Option(..., "--file", help="the policy file: an SB3 model.zip, a CleanRL checkpoint or TorchScript"),
+    format: str = typer.Option(..., "--format", help=f"the file's format: one of {', '.join(FORMATS)}"),
+    buffer: Path | None = typer.Option(
+        None, help="a buffer.zarr of this policy's transitions with every objective's reward; omitted: collect one"
+    ),
+    seed: int = typer.Option(0, help="run seed: it fixes the collection's noise and episode starts"),
+    out: Path = typer.Option(..., help="the slot directory to write (policy.pt, buffer.zarr, collect.csv)"),
+    params: Path = PARAMS_OPTION,
+) -> None:
+    """Import a specialist trained elsewhere (Stable-Baselines3 TD3/DDPG/SAC, CleanRL
+    TD3/DDPG/SAC, or a TorchScript actor) as slot obj{K} of kind `imported`.
+
+    Params: `env` and section `import_specialists` (collect_rows, exploration_noise,
+    checkpoint_every). The policy is checked against env.id (continuous actions, observation
+    and action dimensions, action bounds) and written as OUT/policy.pt, loadable with
+    torch.load(weights_only=True). Unless --buffer hands one in (checked: format, env, dims,
+    every objective's reward, dtypes, finite values), its buffer is collected: collect_rows
+    transitions of the policy with Gaussian exploration noise in the MO env, episodes capped at
+    env.max_episode_steps, written as OUT/buffer.zarr with the full reward vector, plus
+    OUT/collect.csv (each collected episode's return vector). A long collection checkpoints
+    every checkpoint_every rows and on SIGTERM; a rerun resumes it. Post-hoc critics for every
+    objective come next (stage fit_critics), then MAPEX-PostHoc (docs/import_export.md).
+    """
+    _, env_p, cfg = read_params(params, "import_specialists", ImportSpecialistsParams)
+    env = make_env(env_p.id, env_p.max_episode_steps)
+    spec = env_spec(env, env_p.id, env_p.max_episode_steps)
+    env.close()
+    if not 0 <= objective < spec.n_objectives:
+        raise ParamsError(f"--objective {objective}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
+    imported = read_policy(file, format, spec)
+    source = imported.source
+    if buffer is not None:
+        data, battrs = check_user_buffer(buffer, spec)
+        origin = {"buffer": "given", "buffer_file": buffer.name, "buffer_checksums": dict(battrs.get("checksums", {}))}
+        collected, run = 0, None
+    else:
+        run = collect(out, imported.actor, spec, env_p, cfg, seed, objective, file)
+        data = run.data()
+        origin = {"buffer": "collected"}
+        collected = run.t
+    meta = spec_meta(spec) | {
+        "max_episode_steps": spec.max_episode_steps,
+        "hidden_sizes": imported.hidden_sizes,
+        "architecture": imported.architecture,
+        "seed": seed,
+        "objective": objective,
+        "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
+        "source": source | origin,
+        "collection_frames": collected,
+        "provenance": provenance("cpu"),
+    }
+    buf_attrs = {k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
+    save_buffer(out / "buffer.zarr", data, buf_attrs | {"objective": objective, "source": origin["buffer"], "collection_frames": collected})
+    save_policy(out / "policy.pt", imported.actor, meta)
+    if run is not None:
+        write_text_atomic(out / "collect.csv", episodes_csv(run.returns, spec.n_objectives))
+        run.ckpt.clear()
+        mean = np.mean(run.returns, axis=0).tolist() if run.returns else None
+        typer.echo(
+            f"import_specialist obj {objective} seed {seed}: {collected} rows, {len(run.returns)} whole episodes"
+            + (f", mean return {fmt_vec(mean)}" if mean else ""),
+            err=True,
+        )
+    else:
+        write_text_atomic(out / "collect.csv", episodes_csv([], spec.n_objectives))
