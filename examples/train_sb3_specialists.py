@@ -64,7 +64,13 @@ def main() -> None:
     parser.add_argument("--objectives", type=int, nargs="+", default=[0, 1], help="one specialist each")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-episode-steps", type=int, default=750)
-    parser.add_argument("--net-arch", type=int, nargs="+", default=[64, 64], help="hidden widths (SB3 TD3 default: 400 300; 64 64 keeps 100k steps within about 15 min here)")
+    parser.add_argument(
+        "--net-arch",
+        type=int,
+        nargs="+",
+        default=[64, 64],
+        help="hidden widths (SB3 TD3 default: 400 300; 64 64 keeps 100k steps within about 15 min here)",
+    )
     parser.add_argument("--out", type=Path, default=Path("models"))
     parser.add_argument("--processes", type=int, default=2, help="objectives trained at once")
     a = parser.parse_args()

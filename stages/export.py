@@ -15,7 +15,7 @@ from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population, member_actor
 from pipeline.core.provenance import provenance
 from pipeline.interop.export import check_export, onnx_available, onnx_bytes, torchscript_bytes
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import ParamsError
 from pipeline.params.export import ExportParams
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
 from stages.score import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated
@@ -37,15 +37,39 @@ def front_csv(records: list[dict], n_obj: int) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     objs = [f"obj{m}" for m in range(n_obj)]
-    w.writerow(["id", "file", "onnx_file", "origin", "objective", "policy_name", "iteration", "parents", "target_weight",
-                *objs, *(f"{c}_std" for c in objs), *(f"{c}_extract" for c in objs)])
+    w.writerow(
+        [
+            "id",
+            "file",
+            "onnx_file",
+            "origin",
+            "objective",
+            "policy_name",
+            "iteration",
+            "parents",
+            "target_weight",
+            *objs,
+            *(f"{c}_std" for c in objs),
+            *(f"{c}_extract" for c in objs),
+        ]
+    )
     for r in records:
-        w.writerow([
-            r["id"], r["file"], r["onnx_file"] or "", r["origin"], "" if r["objective"] is None else r["objective"],
-            r["policy_name"] or "", r["iteration"], ";".join(map(str, r["parents"])),
-            "" if r["target_weight"] is None else ";".join(f"{x:.6g}" for x in r["target_weight"]),
-            *r["returns"], *r["returns_std"], *r["returns_extract"],
-        ])
+        w.writerow(
+            [
+                r["id"],
+                r["file"],
+                r["onnx_file"] or "",
+                r["origin"],
+                "" if r["objective"] is None else r["objective"],
+                r["policy_name"] or "",
+                r["iteration"],
+                ";".join(map(str, r["parents"])),
+                "" if r["target_weight"] is None else ";".join(f"{x:.6g}" for x in r["target_weight"]),
+                *r["returns"],
+                *r["returns_std"],
+                *r["returns_extract"],
+            ]
+        )
     return buf.getvalue()
 
 
@@ -53,7 +77,9 @@ def front_csv(records: list[dict], n_obj: int) -> str:
 def export(
     population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
-    out: Path = typer.Option(..., help="output directory: one TorchScript file per front policy, front.csv, front.json"),
+    out: Path = typer.Option(
+        ..., help="output directory: one TorchScript file per front policy, front.csv, front.json"
+    ),
     onnx: str = typer.Option(None, help="auto | yes | no (default: params export.onnx)"),
     params: Path = PARAMS_OPTION,
 ) -> None:
@@ -72,11 +98,7 @@ def export(
     front.json adds the env (id, dims, bounds, episode cap) and the provenance of extraction,
     evaluation and export. OUT is replaced as a whole, never left half-written.
     """
-    raw, _, cfg = read_params(params, "export", ExportParams)
-    runs = section(raw, "", RunParams, params)
-    stray = [m for m in cfg.methods if m not in runs.methods]
-    if stray:
-        raise ParamsError(f"{params}: export.methods = {cfg.methods}: {stray} not in methods {runs.methods}")
+    _, _, cfg = read_params(params, "export", ExportParams)  # export.methods must be in methods (RunParams)
     want_onnx = onnx or cfg.onnx
     if want_onnx not in ("auto", "yes", "no"):
         raise ParamsError(f"--onnx {want_onnx!r}: expected auto, yes or no")
@@ -94,7 +116,10 @@ def export(
     front = np.flatnonzero(pareto_mask(means))
     front = front[np.argsort(means[front, 0], kind="stable")]
     records = []
-    with atomic_path(out) as tmp, progress(len(front), f"export {meta['method']} seed {meta['seed']}", unit="policy") as bar:
+    with (
+        atomic_path(out) as tmp,
+        progress(len(front), f"export {meta['method']} seed {meta['seed']}", unit="policy") as bar,
+    ):
         tmp.mkdir(parents=True)
         for i in front.tolist():
             m = members[i]
@@ -107,12 +132,23 @@ def export(
             if write_onnx:
                 onnx_file = f"{name}.onnx"
                 (tmp / onnx_file).write_bytes(onnx_bytes(actor, meta["obs_dim"]))
-            records.append({
-                "id": i, "file": f"{name}.pt", "onnx_file": onnx_file, "origin": m.origin, "objective": m.objective,
-                "policy_name": m.policy_name, "iteration": m.iteration, "parents": list(m.parents),
-                "target_weight": m.target_weight, "returns": means[i].tolist(), "returns_std": stds[i].tolist(),
-                "returns_extract": [float(x) for x in m.returns], "export_max_abs_diff": diff,
-            })
+            records.append(
+                {
+                    "id": i,
+                    "file": f"{name}.pt",
+                    "onnx_file": onnx_file,
+                    "origin": m.origin,
+                    "objective": m.objective,
+                    "policy_name": m.policy_name,
+                    "iteration": m.iteration,
+                    "parents": list(m.parents),
+                    "target_weight": m.target_weight,
+                    "returns": means[i].tolist(),
+                    "returns_std": stds[i].tolist(),
+                    "returns_extract": [float(x) for x in m.returns],
+                    "export_max_abs_diff": diff,
+                }
+            )
             bar.update(1)
         env = {k: meta.get(k) for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high")}
         doc = {
@@ -125,7 +161,11 @@ def export(
             "seed": meta["seed"],
             "evaluation": {"episodes": record["episodes"]},
             "policies": records,
-            "provenance": {"extract": meta.get("provenance"), "evaluate": record["provenance"], "export": provenance("cpu")},
+            "provenance": {
+                "extract": meta.get("provenance"),
+                "evaluate": record["provenance"],
+                "export": provenance("cpu"),
+            },
         }
         (tmp / "front.csv").write_text(front_csv(records, n_obj))
         (tmp / "front.json").write_text(json.dumps(doc, indent=2) + "\n")

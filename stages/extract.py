@@ -48,7 +48,8 @@ def extract(
         "(with critics fitted post hoc, --posthoc) or 'warmup_only' (ablation: epochs = 0)",
     ),
     kind: str = typer.Option(
-        "td3", help="the kind of specialists: 'td3', 'pderl' or 'imported'; the run is method VARIANT_KIND (mapex_td3, ...)"
+        "td3",
+        help="the kind of specialists: 'td3', 'pderl' or 'imported'; the run is method VARIANT_KIND (mapex_td3, ...)",
     ),
     specialists: Path = typer.Option(
         ...,
@@ -155,7 +156,15 @@ def extract(
         save_population(
             out / "population.pt",
             run.members,
-            {**meta, "seed": seed, "method": method, "params": config, "provenance": provenance(device)},
+            {
+                **meta,
+                "seed": seed,
+                "method": method,
+                "params": config,
+                # env frames spent collecting imported specialists' buffers (their sample cost; 0 otherwise)
+                "collection_frames": sum(int(s.buffer_attrs.get("collection_frames", 0)) for s in slots),
+                "provenance": provenance(device),
+            },
         )
         write_text_atomic(out / "history.csv", history_csv(run.history))
         ckpt.clear()

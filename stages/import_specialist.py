@@ -38,7 +38,9 @@ def check_user_buffer(path: Path, spec: EnvSpec) -> tuple[dict[str, np.ndarray],
                 "the model was trained on, and MAPEX needs every objective's reward per transition, so it cannot serve: "
                 "leave the buffer out (null) and let import_specialist collect one"
             )
-        raise ArtifactError(f"{path}: a file; expected a buffer.zarr directory in the project's format (docs/artifacts.md)")
+        raise ArtifactError(
+            f"{path}: a file; expected a buffer.zarr directory in the project's format (docs/artifacts.md)"
+        )
     data, attrs = load_buffer(path)  # format, checksums, shapes, finite values
     for key, want in (("env_id", spec.env_id), ("obs_dim", spec.obs_dim), ("act_dim", spec.act_dim)):
         if attrs.get(key) != want:
@@ -70,7 +72,16 @@ def episodes_csv(returns: list[list[float]], n_objectives: int) -> str:
     return buf.getvalue()
 
 
-def collect(out: Path, actor, spec: EnvSpec, env_p: EnvParams, cfg: ImportSpecialistsParams, seed: int, objective: int, policy_file: Path) -> CollectionRun:
+def collect(
+    out: Path,
+    actor,
+    spec: EnvSpec,
+    env_p: EnvParams,
+    cfg: ImportSpecialistsParams,
+    seed: int,
+    objective: int,
+    policy_file: Path,
+) -> CollectionRun:
     """Roll the imported policy out (resuming from OUT's checkpoint when one fits)."""
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
@@ -100,9 +111,16 @@ def collect(out: Path, actor, spec: EnvSpec, env_p: EnvParams, cfg: ImportSpecia
                 bar.set_postfix_str(f"return {fmt_vec(ended)}", refresh=False)
             every = cfg.checkpoint_every
             if problem is None:
-                ckpt.safe_point(run, f"import_specialist seed {seed} obj {objective}", f"row {run.t}", bool(every) and run.t % every == 0 and not run.done)
+                ckpt.safe_point(
+                    run,
+                    f"import_specialist seed {seed} obj {objective}",
+                    f"row {run.t}",
+                    bool(every) and run.t % every == 0 and not run.done,
+                )
             elif stop_requested():
-                raise Stopped(f"import_specialist seed {seed} obj {objective}: SIGTERM at row {run.t}: no checkpoint ({problem})")
+                raise Stopped(
+                    f"import_specialist seed {seed} obj {objective}: SIGTERM at row {run.t}: no checkpoint ({problem})"
+                )
     run.env.close()
     run.ckpt = ckpt  # cleared once the artifacts are written
     return run
@@ -111,7 +129,9 @@ def collect(out: Path, actor, spec: EnvSpec, env_p: EnvParams, cfg: ImportSpecia
 @reports_errors
 def import_specialist(
     objective: int = typer.Option(..., help="k: the objective the policy was trained for (slot obj{k})"),
-    file: Path = typer.Option(..., "--file", help="the policy file: an SB3 model.zip, a CleanRL checkpoint or TorchScript"),
+    file: Path = typer.Option(
+        ..., "--file", help="the policy file: an SB3 model.zip, a CleanRL checkpoint or TorchScript"
+    ),
     format: str = typer.Option(..., "--format", help=f"the file's format: one of {', '.join(FORMATS)}"),
     buffer: Path | None = typer.Option(
         None, help="a buffer.zarr of this policy's transitions with every objective's reward; omitted: collect one"
@@ -162,8 +182,14 @@ def import_specialist(
         "collection_frames": collected,
         "provenance": provenance("cpu"),
     }
-    buf_attrs = {k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")}
-    save_buffer(out / "buffer.zarr", data, buf_attrs | {"objective": objective, "source": origin["buffer"], "collection_frames": collected})
+    buf_attrs = {
+        k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
+    }
+    save_buffer(
+        out / "buffer.zarr",
+        data,
+        buf_attrs | {"objective": objective, "source": origin["buffer"], "collection_frames": collected},
+    )
     save_policy(out / "policy.pt", imported.actor, meta)
     if run is not None:
         write_text_atomic(out / "collect.csv", episodes_csv(run.returns, spec.n_objectives))

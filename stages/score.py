@@ -93,6 +93,8 @@ def score(
         "iterations": int(iteration.max()),
         "env_samples_extraction": max(m.env_samples for m in members),
         "env_samples_evaluation": record["env_samples_evaluation"],
+        # imported specialists: env frames spent collecting their buffers (stage import_specialist)
+        "env_samples_collection": int(meta.get("collection_frames", 0)),
         **summary,
         "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
         "reference_point": ref.tolist(),

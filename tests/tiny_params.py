@@ -1,6 +1,17 @@
 """TINY: the whole pipeline's params at toy size (40-step episodes, 16-unit networks, 300-step
 specialists, 2 children), shared by the tests that run real stage chains (DVC, sweeps, the
-payoff scripts), so that they test one preset. Each test copies it before changing anything."""
+payoff scripts), so that they test one preset. Each test copies it before changing anything.
+Their run lists are derived as `mapex sync-params` writes them (with_lists)."""
+
+from pipeline.params.methods import derived_lists
+
+
+def with_lists(params: dict) -> dict:
+    """`params` with the run lists derived from its methods, seeds, imports and export methods."""
+    imports = (params.get("import_specialists") or {}).get("policies", [])
+    export = (params.get("export") or {}).get("methods", [])
+    return {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+
 
 TINY = {
     "env": {
@@ -11,12 +22,6 @@ TINY = {
     },
     "seeds": [0],
     "objectives": [0, 1],
-    "pderl_seeds": [],
-    "extract_from": ["td3"],
-    "extract_variants": ["mapex", "warmup_only"],
-    "posthoc_from": [],
-    "mopderl_seeds": [],
-    "morld_seeds": [],
     "methods": ["mapex_td3", "warmup_only_td3"],
     "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
     "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
@@ -37,6 +42,7 @@ TINY = {
     "score": {"distinct_tol": 0.02},
     "report": {"dpi": 60},
 }
+TINY = with_lists(TINY)
 
 # The tiny sizes of the PDERL specialists and the two baselines, and TINY_ALL: every method of
 # the pipeline at once (TD3 and PDERL specialists, post-hoc critics from both, MOPDERL, MORL/D),
@@ -79,12 +85,6 @@ MORLD_TINY = {
 }
 TINY_ALL = {
     **TINY,
-    "pderl_seeds": [0],
-    "extract_from": ["td3", "pderl"],
-    "extract_variants": ["mapex", "warmup_only"],
-    "posthoc_from": ["td3", "pderl"],
-    "mopderl_seeds": [0],
-    "morld_seeds": [0],
     "methods": [
         "mapex_td3",
         "warmup_only_td3",
@@ -102,3 +102,4 @@ TINY_ALL = {
     "extract": {**TINY["extract"], "iterations": 1},
     "evaluate": {"episodes": 1},
 }
+TINY_ALL = with_lists(TINY_ALL)

@@ -78,7 +78,10 @@ class ScriptedActor(nn.Module):
         if set(state_dict) != {self.KEY}:
             raise RuntimeError(f"a ScriptedActor state dict holds exactly {self.KEY!r}, got {sorted(state_dict)}")
         data = state_dict[self.KEY].cpu().numpy().tobytes()
-        self.module, self._bytes = torch.jit.load(io.BytesIO(data), map_location="cpu"), data  # on the CPU, like every artifact
+        self.module, self._bytes = (
+            torch.jit.load(io.BytesIO(data), map_location="cpu"),
+            data,
+        )  # on the CPU, like every artifact
         return torch.nn.modules.module._IncompatibleKeys([], [])
 
 

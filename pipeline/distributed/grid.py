@@ -186,15 +186,16 @@ def validate_params(params: dict[str, Any], where: str) -> None:
 def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
     """`params` with the run lists derived from its methods and seeds (as `mapex sync-params`
     writes them), so a cell lists what it runs once, like a preset."""
+    from pipeline.params import context_lists
     from pipeline.params.common import RunParams
     from pipeline.params.methods import derived_lists
 
     defaults = RunParams.model_fields
     seeds = list(params.get("seeds", defaults["seeds"].default))
     try:
-        section = params.get("import_specialists") or {}
-        imports = list(section.get("policies", [])) if isinstance(section, dict) else []
-        lists = derived_lists(list(params.get("methods", defaults["methods"].default)), seeds, imports)
+        context = context_lists(params)
+        methods = list(params.get("methods", defaults["methods"].default))
+        lists = derived_lists(methods, seeds, context["imports"], context["export"])
     except ValueError as exc:
         raise GridError(f"{where}: {exc}") from None
     if not lists["pderl_seeds"] and params.get("pderl_seeds"):

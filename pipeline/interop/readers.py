@@ -92,7 +92,9 @@ def mlp_actor(path: Path, layers: list[tuple[torch.Tensor, torch.Tensor]], low, 
         if w.ndim != 2 or b.shape != (w.shape[0],):
             raise ArtifactError(f"{path}: layer {i} has weight {tuple(w.shape)} and bias {tuple(b.shape)}")
         if i and w.shape[1] != layers[i - 1][0].shape[0]:
-            raise ArtifactError(f"{path}: layer {i} takes {w.shape[1]} inputs, layer {i - 1} gives {layers[i - 1][0].shape[0]}")
+            raise ArtifactError(
+                f"{path}: layer {i} takes {w.shape[1]} inputs, layer {i - 1} gives {layers[i - 1][0].shape[0]}"
+            )
     obs_dim, act_dim = layers[0][0].shape[1], layers[-1][0].shape[0]
     hidden = [w.shape[0] for w, _ in layers[:-1]]
     actor = Actor(obs_dim, act_dim, hidden, low, high)
@@ -164,15 +166,23 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         names = set(zf.namelist())
         lacking = [n for n in ("data", "policy.pth") if n not in names]
         if lacking:
-            raise ArtifactError(f"{path}: zip has no {lacking}; expected a Stable-Baselines3 model.zip (data, policy.pth)")
+            raise ArtifactError(
+                f"{path}: zip has no {lacking}; expected a Stable-Baselines3 model.zip (data, policy.pth)"
+            )
         try:
             data = json.loads(zf.read("data"))
             policy_bytes = zf.read("policy.pth")
-            version = zf.read("_stable_baselines3_version").decode().strip() if "_stable_baselines3_version" in names else None
+            version = (
+                zf.read("_stable_baselines3_version").decode().strip()
+                if "_stable_baselines3_version" in names
+                else None
+            )
         except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
             raise ArtifactError(f"{path}: zip is damaged ({exc})") from None
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise ArtifactError(f"{path}: its 'data' entry is not JSON ({exc}); expected a Stable-Baselines3 model.zip") from None
+            raise ArtifactError(
+                f"{path}: its 'data' entry is not JSON ({exc}); expected a Stable-Baselines3 model.zip"
+            ) from None
     if not isinstance(data, dict):
         raise ArtifactError(f"{path}: its 'data' entry is not a JSON object; expected a Stable-Baselines3 model.zip")
     act_space, obs_space = _space(path, data, "action_space"), _space(path, data, "observation_space")
@@ -186,7 +196,11 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
             f"{path}: observation space is {obs_space[':type:']} of shape {obs_space.get('_shape')}; expected a flat Box"
         )
     policy = data.get("policy_class")
-    classes = _pickle_globals(path, "policy_class", policy[":serialized:"]) if isinstance(policy, dict) and ":serialized:" in policy else []
+    classes = (
+        _pickle_globals(path, "policy_class", policy[":serialized:"])
+        if isinstance(policy, dict) and ":serialized:" in policy
+        else []
+    )
     cls = next((name for module, name in classes if module.startswith("stable_baselines3.")), None)
     if cls not in SB3_POLICIES:
         raise ArtifactError(
@@ -223,7 +237,9 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         layers = [*_indexed_layers(path, state, "actor.latent_pi."), (state["actor.mu.weight"], state["actor.mu.bias"])]
     low, high = _parse_bounds(act_space.get("low")), _parse_bounds(act_space.get("high"))
     shape = act_space.get("_shape") or [layers[-1][0].shape[0]]
-    actor = mlp_actor(path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape))
+    actor = mlp_actor(
+        path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape)
+    )
     declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
     return actor, declared, {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
 
@@ -269,7 +285,11 @@ def read_torchscript(path: Path) -> tuple[ScriptedActor, _Declared, dict[str, An
         raise ArtifactError(
             f"{path}: not a TorchScript file torch.jit.load can read ({str(exc).strip().splitlines()[0][:160]})"
         ) from None
-    return actor.eval(), _Declared(None, None, None, None), {"algorithm": None, "library": "torchscript", "library_version": None}
+    return (
+        actor.eval(),
+        _Declared(None, None, None, None),
+        {"algorithm": None, "library": "torchscript", "library_version": None},
+    )
 
 
 # -- checks against the env ---------------------------------------------------------------------
@@ -280,9 +300,13 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
     maps (B, obs_dim) observations to finite (B, act_dim) actions inside the bounds."""
     env = f"env {spec.env_id}"
     if declared.obs_dim is not None and declared.obs_dim != spec.obs_dim:
-        raise ArtifactError(f"{path}: a policy for {declared.obs_dim}-d observations; {env} has {spec.obs_dim} (a model of another env?)")
+        raise ArtifactError(
+            f"{path}: a policy for {declared.obs_dim}-d observations; {env} has {spec.obs_dim} (a model of another env?)"
+        )
     if declared.act_dim is not None and declared.act_dim != spec.act_dim:
-        raise ArtifactError(f"{path}: a policy for {declared.act_dim}-d actions; {env} has {spec.act_dim} (a model of another env?)")
+        raise ArtifactError(
+            f"{path}: a policy for {declared.act_dim}-d actions; {env} has {spec.act_dim} (a model of another env?)"
+        )
     low, high = np.array(spec.action_low), np.array(spec.action_high)
     for name, got, want in (("low", declared.low, low), ("high", declared.high, high)):
         if got is not None and (got.shape != want.shape or not np.allclose(got, want, rtol=1e-5, atol=1e-6)):
@@ -297,7 +321,9 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
         ) from None
     if not isinstance(out, torch.Tensor) or tuple(out.shape) != (4, spec.act_dim):
         shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-        raise ArtifactError(f"{path}: the policy maps a (4, {spec.obs_dim}) batch to {shape}; expected (4, {spec.act_dim})")
+        raise ArtifactError(
+            f"{path}: the policy maps a (4, {spec.obs_dim}) batch to {shape}; expected (4, {spec.act_dim})"
+        )
     if not torch.isfinite(out).all():
         raise ArtifactError(f"{path}: the policy returns NaN or infinite actions on a probe batch")
     slack = 1e-5 * (high - low)
@@ -321,6 +347,8 @@ def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
     actor, declared, source = reader(path)
     _check_env(path, actor, declared, spec)
     architecture = "torchscript" if isinstance(actor, ScriptedActor) else "mlp"
-    hidden = [] if architecture == "torchscript" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    hidden = (
+        [] if architecture == "torchscript" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    )
     source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
     return ImportedPolicy(actor, architecture, hidden, source)

@@ -33,6 +33,7 @@ KNOWN_SECTIONS = (
     "posthoc_from",
     "mopderl_seeds",
     "morld_seeds",
+    "export_methods",
     "methods",
     "train_specialist",
     "train_pderl",
@@ -74,6 +75,16 @@ def load_params(path: str | Path) -> dict[str, Any]:
     return raw
 
 
+def context_lists(raw: dict[str, Any]) -> dict[str, list]:
+    """What the derived run lists read besides methods and seeds: import_specialists.policies
+    (as "imports") and export.methods (as "export"), [] where absent."""
+    imports, export = raw.get("import_specialists") or {}, raw.get("export") or {}
+    return {
+        "imports": list(imports.get("policies") or []) if isinstance(imports, dict) else [],
+        "export": list(export.get("methods") or []) if isinstance(export, dict) else [],
+    }
+
+
 def _describe(err: dict[str, Any], prefix: str) -> str:
     loc = ".".join(str(p) for p in (prefix, *err["loc"]) if p != "")
     if not err["loc"]:  # a check across keys (a model validator): its message names the keys
@@ -95,8 +106,7 @@ def section(raw: dict[str, Any], name: str, model: type[M], path: str | Path = "
     if model is RunParams:
         data = {k: raw[k] for k in RUN_KEYS if k in raw}
         name = ""
-        imports = raw.get("import_specialists") or {}
-        context = {"imports": imports.get("policies", []) if isinstance(imports, dict) else []}
+        context = context_lists(raw)
     if data is None:
         data = {}
     try:

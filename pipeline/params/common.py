@@ -52,7 +52,9 @@ class RunParams(Strict):
     # derived (generated block): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] = Field([0], description="derived: seeds of stage train_specialist (TD3 specialists)")
     pderl_seeds: list[int] = Field([], description="derived: seeds of stage train_pderl (PDERL specialists)")
-    imported_seeds: list[int] = Field([], description="derived: seeds of stage import_specialist (imported specialists)")
+    imported_seeds: list[int] = Field(
+        [], description="derived: seeds of stage import_specialist (imported specialists)"
+    )
     import_collect: list[dict] = Field(
         [], description="derived: import_specialists.policies whose buffer stage import_specialist collects"
     )
@@ -71,8 +73,11 @@ class RunParams(Strict):
     )
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
+    export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
 
-    @field_validator("seeds", "objectives", "td3_seeds", "pderl_seeds", "imported_seeds", "mopderl_seeds", "morld_seeds")
+    @field_validator(
+        "seeds", "objectives", "td3_seeds", "pderl_seeds", "imported_seeds", "mopderl_seeds", "morld_seeds"
+    )
     @classmethod
     def _unique_non_negative(cls, v: list[int]) -> list[int]:
         if len(set(v)) != len(v):
@@ -91,8 +96,8 @@ class RunParams(Strict):
     @model_validator(mode="after")
     def _consistent(self, info: ValidationInfo) -> "RunParams":
         # the import entries come from section import_specialists (pipeline.params.section passes them)
-        imports = (info.context or {}).get("imports", [])
-        want = derived_lists(self.methods, self.seeds, imports)
+        context = info.context or {}
+        want = derived_lists(self.methods, self.seeds, context.get("imports", []), context.get("export", []))
         for key, value in want.items():
             given = getattr(self, key)
             same = sorted(given, key=repr) == sorted(value, key=repr)

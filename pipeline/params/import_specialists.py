@@ -22,7 +22,8 @@ class ImportedPolicyEntry(Strict):
     objective: int = Field(..., ge=0, description="the objective this specialist was trained for (its slot obj{k})")
     file: str = Field(..., min_length=1, description="the policy file, relative to the repository root (a DVC dep)")
     format: Literal["sb3", "cleanrl", "torchscript"] = Field(
-        ..., description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: torch.jit.save"
+        ...,
+        description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: torch.jit.save",
     )
     buffer: str | None = Field(
         None,
@@ -33,7 +34,9 @@ class ImportedPolicyEntry(Strict):
 
 class ImportSpecialistsParams(Strict):
     policies: list[ImportedPolicyEntry] = Field([], description="one entry per objective")
-    collect_rows: int = Field(25_000, gt=0, description="transitions collected per specialist without a buffer of its own")
+    collect_rows: int = Field(
+        25_000, gt=0, description="transitions collected per specialist without a buffer of its own"
+    )
     exploration_noise: float = Field(
         0.1, ge=0, description="std of the Gaussian collection noise, times the action half-range (TD3's 0.1)"
     )

@@ -33,7 +33,12 @@ METHODS: dict[str, Method] = {
         Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
         Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
         Method(
-            "mapex_posthoc_imported", "mapex_posthoc", "imported", "MAPEX-PostHoc (imported)", "tab:brown", "extract_posthoc"
+            "mapex_posthoc_imported",
+            "mapex_posthoc",
+            "imported",
+            "MAPEX-PostHoc (imported)",
+            "tab:brown",
+            "extract_posthoc",
         ),
         Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
         Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
@@ -84,12 +89,15 @@ def specialist_kind(method: str) -> str | None:
     return m.kind if m else None
 
 
-def derived_lists(methods: list[str], seeds: list[int], imports: list[dict] | None = None) -> dict[str, list]:
+def derived_lists(
+    methods: list[str], seeds: list[int], imports: list[dict] | None = None, export: list[str] | None = None
+) -> dict[str, list]:
     """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
     `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
     imported_seeds, import_collect, import_buffered, extract_from, extract_variants,
-    posthoc_from, mopderl_seeds, morld_seeds (DVC cannot filter a matrix, so each producing
-    stage needs a list of its own).
+    posthoc_from, mopderl_seeds, morld_seeds, and export_methods from `export` (section
+    export's methods, each of which must be in `methods`). DVC cannot filter a matrix, so each
+    producing stage needs a list of its own.
 
     extract runs every joint variant of `extract_variants` from every kind of `extract_from`
     (a matrix), so the methods of stage extract must form that whole product; raises
@@ -125,12 +133,17 @@ def derived_lists(methods: list[str], seeds: list[int], imports: list[dict] | No
             "name one policy file per objective (docs/import_export.md)"
         )
     imported_seeds = list(seeds) if uses_imported else []
+    stray = [m for m in export or [] if m not in methods]
+    if stray:
+        raise ValueError(f"export.methods lists {stray}, which methods = {methods} does not run")
     return {
         "td3_seeds": list(seeds) if "td3" in kinds or any(m.kind == "td3" for m in chosen) else [],
         "pderl_seeds": list(seeds) if needs_pderl else [],
         "imported_seeds": imported_seeds,
         "import_collect": [
-            {"objective": e["objective"], "file": e["file"], "format": e["format"]} for e in entries if not e.get("buffer")
+            {"objective": e["objective"], "file": e["file"], "format": e["format"]}
+            for e in entries
+            if not e.get("buffer")
         ]
         if uses_imported
         else [],
@@ -146,4 +159,5 @@ def derived_lists(methods: list[str], seeds: list[int], imports: list[dict] | No
         "posthoc_from": posthoc,
         "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
         "morld_seeds": list(seeds) if "morld" in methods else [],
+        "export_methods": list(export or []),
     }

@@ -28,11 +28,14 @@ DERIVED_KEYS = (
     "posthoc_from",
     "mopderl_seeds",
     "morld_seeds",
+    "export_methods",
 )
 
 
-def generated_block(methods: list[str], seeds: list[int], imports: list[dict] | None = None) -> str:
-    lists = derived_lists(methods, seeds, imports)
+def generated_block(
+    methods: list[str], seeds: list[int], imports: list[dict] | None = None, export: list[str] | None = None
+) -> str:
+    lists = derived_lists(methods, seeds, imports, export)
     lines = [f"{key}: {json.dumps(lists[key])}" for key in DERIVED_KEYS]
     return "\n".join([GENERATED_BEGIN, *lines, GENERATED_END]) + "\n"
 
@@ -49,10 +52,11 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
     defaults = RunParams.model_fields
     methods = raw.get("methods", defaults["methods"].default)
     seeds = raw.get("seeds", defaults["seeds"].default)
-    section = raw.get("import_specialists") or {}
-    imports = section.get("policies", []) if isinstance(section, dict) else []
+    from pipeline.params import context_lists
+
+    context = context_lists(raw)
     try:
-        block = generated_block(list(methods), list(seeds), list(imports))
+        block = generated_block(list(methods), list(seeds), context["imports"], context["export"])
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
     lines = text.splitlines(keepends=True)

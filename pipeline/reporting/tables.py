@@ -12,7 +12,7 @@ from pipeline.evaluation.metrics import mean_sem
 from pipeline.params.methods import label, specialist_kind
 from pipeline.reporting.runs import METHOD_ORDER, Run, methods_in
 
-SPECIALIST_ORDER = ("pderl", "td3")  # the report's order of the kinds of specialists
+SPECIALIST_ORDER = ("pderl", "td3", "imported")  # the report's order of the kinds of specialists
 
 
 def fmt_num(x: float | None) -> str:
@@ -127,7 +127,7 @@ def details_table(runs: list[Run]) -> str:
                 fmt_mean_sem([x["front"]["cardinality"] for x in m]),
                 fmt_mean_sem([x["extraction_hypervolume"] for x in m]),
                 fmt_mean_sem([x["iterations"] for x in m]),
-                fmt_mean_sem([x["env_samples_extraction"] for x in m]),
+                frames_cell(m),
             ]
         )
     for g in specialist_groups(runs):
@@ -151,6 +151,16 @@ def details_table(runs: list[Run]) -> str:
             ]
         )
     return _md_table(header, rows)
+
+
+def frames_cell(metrics: list[dict]) -> str:
+    """Env frames after the specialists; for imported specialists, plus the frames spent
+    collecting their buffers (that path's sample cost, stage import_specialist)."""
+    cell = fmt_mean_sem([x["env_samples_extraction"] for x in metrics])
+    collected = [x.get("env_samples_collection", 0) for x in metrics]
+    if any(collected):
+        cell += f" + {fmt_mean_sem(collected)} collecting the imported specialists' buffers"
+    return cell
 
 
 def _md_table(header: list[str], rows: list[list[str]]) -> str:
