@@ -31,10 +31,10 @@ repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install
-	@# the test tools (dev) and the optional extras (Ray, morl-baselines), so tests/test_sweep.py
-	@# and tests/test_morld.py run instead of skipping
-	$(BIN)/pip install -q -e ".[dev,sweep,baselines]" >> $(VENV)/install.log 2>&1 \
-	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines] failed (log: $(VENV)/install.log)"; exit 1; }
+	@# the test tools (dev, with stable-baselines3) and the optional extras (Ray, morl-baselines,
+	@# onnx), so tests/test_sweep.py, tests/test_morld.py and the ONNX export test run instead of skipping
+	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
 
 lint: install

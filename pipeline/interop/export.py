@@ -56,8 +56,9 @@ def onnx_available() -> bool:
 def onnx_bytes(actor, obs_dim: int) -> bytes:
     """The ONNX file of `actor` (opset 17, a dynamic batch axis); needs the `onnx` package."""
     buf = io.BytesIO()
+    module = actor.module if isinstance(actor, ScriptedActor) else actor  # a user's TorchScript as itself
     torch.onnx.export(
-        actor.cpu().eval(),
+        module.cpu().eval(),
         (torch.zeros(1, obs_dim),),
         buf,
         input_names=["obs"],

@@ -120,6 +120,14 @@ def _indexed_layers(path: Path, state: dict[str, torch.Tensor], prefix: str) -> 
 # -- Stable-Baselines3 --------------------------------------------------------------------------
 
 
+def _pickle_strings(encoded: str) -> list[str]:
+    """The string constants of a serialized SB3 entry (class names of a class pickled by value among them)."""
+    try:
+        return [arg for op, arg, _ in pickletools.genops(base64.b64decode(encoded)) if isinstance(arg, str)]
+    except (binascii.Error, ValueError, pickle.PickleError, EOFError):
+        return []
+
+
 def _pickle_globals(path: Path, key: str, encoded: str) -> list[tuple[str, str]]:
     """The (module, name) pairs a serialized SB3 entry refers to, read from its pickle opcodes
     without running them (pickletools only lists them)."""
@@ -216,11 +224,13 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
             raise ArtifactError(
                 f"{path}: policy_kwargs set activation_fn {activations}; this reader builds ReLU networks (SB3's default)"
             )
-        other = [f"{m}.{n}" for m, n in refs if m != "torch.nn.modules.activation"]
+        other = sorted({f"{m}.{n}" for m, n in refs if m != "torch.nn.modules.activation"})
         if other:
+            classes = sorted({t for t in _pickle_strings(kwargs[":serialized:"]) if re.fullmatch(r"[A-Z]\w+", t)})
+            named = f"classes {', '.join(classes)}; " if classes else ""
             raise ArtifactError(
-                f"{path}: policy_kwargs refer to code ({', '.join(other)}); reading them would need unpickling, "
-                "refused: import the actor as TorchScript instead"
+                f"{path}: policy_kwargs refer to code ({named}{', '.join(other)[:200]}); reading them would need "
+                "unpickling, refused: import the actor as TorchScript instead"
             )
     elif isinstance(kwargs, dict) and kwargs.get("use_sde"):
         raise ArtifactError(f"{path}: a gSDE policy (use_sde: true); only SAC without gSDE is read")
