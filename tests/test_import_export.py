@@ -56,7 +56,9 @@ def sb3_models(tmp_path_factory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("sb3")
     out = {}
     for name, cls, k in (("td3", sb3.TD3, 0), ("sac", sb3.SAC, 1)):
-        model = cls("MlpPolicy", scalar_env(k), learning_starts=100, policy_kwargs={"net_arch": [32, 24]}, seed=k, device="cpu")
+        model = cls(
+            "MlpPolicy", scalar_env(k), learning_starts=100, policy_kwargs={"net_arch": [32, 24]}, seed=k, device="cpu"
+        )
         model.learn(200)
         model.save(root / f"{name}.zip")
         out[name] = root / f"{name}.zip"
@@ -151,7 +153,9 @@ def test_torchscript_actor_imports_and_round_trips(spec, tmp_path):
     with torch.no_grad():
         assert torch.equal(imported.actor(x), module(x))
     # as a population member: the state dict is the file's bytes, read back with weights_only=True
-    member = Member("specialist", 0, 0, [], None, [0.0, 0.0], [0.0, 0.0], 1, 0, [], imported.actor.state_dict(), "policy")
+    member = Member(
+        "specialist", 0, 0, [], None, [0.0, 0.0], [0.0, 0.0], 1, 0, [], imported.actor.state_dict(), "policy"
+    )
     save_population(tmp_path / "population.pt", [member], {"n_objectives": 2, "obs_dim": spec.obs_dim})
     (back,), meta = load_population(tmp_path / "population.pt")
     with torch.no_grad():
@@ -295,7 +299,11 @@ def test_import_refuses_what_only_unpickling_could_read(cli, sb3_models, tmp_pat
         pass
 
     custom = sb3.TD3(
-        "MlpPolicy", scalar_env(0), learning_starts=1000, policy_kwargs={"features_extractor_class": MyExtractor}, device="cpu"
+        "MlpPolicy",
+        scalar_env(0),
+        learning_starts=1000,
+        policy_kwargs={"features_extractor_class": MyExtractor},
+        device="cpu",
     )
     custom.save(tmp_path / "custom.zip")
     result, out = run_import(cli, tmp_path, tmp_path / "custom.zip", "sb3")
@@ -398,7 +406,9 @@ def test_export_writes_the_front_as_torchscript_that_loads_without_the_project(c
     population = tiny_population(tmp_path, spec, with_scripted=script)
     evaluated = fake_evaluation(tmp_path, population)
     out = tmp_path / "export"
-    result = cli("export", "--population", population, "--evaluated", evaluated, "--out", out, "--params", params_file(tmp_path))
+    result = cli(
+        "export", "--population", population, "--evaluated", evaluated, "--out", out, "--params", params_file(tmp_path)
+    )
     assert result.exit_code == 0, result.output
     doc = json.loads((out / "front.json").read_text())
     assert [p["id"] for p in doc["policies"]] == [1, 3, 0]  # member 2 is dominated by 0; sorted by obj0
@@ -444,3 +454,70 @@ def test_export_writes_onnx_when_installed(cli, spec, tmp_path):
         with torch.no_grad():
             want = member_actor(members[p["id"]], meta)(torch.from_numpy(obs)).numpy()
         np.testing.assert_allclose(session.run(None, {"obs": obs})[0], want, atol=1e-5, rtol=0)
+
+
+# -- the pipeline: one dvc repro from imported specialists to the report --------------------------
+
+
+def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
+    """import_specialist -> fit_critics -> extract_posthoc -> evaluate -> score -> export -> report
+    on a tiny preset; then replacing one model reruns its own chain and not the other's."""
+    import re
+    import shutil
+
+    import yaml
+    from tiny_params import TINY, with_lists
+
+    root = Path(__file__).resolve().parents[1]
+    bin_dir = Path(sys.executable).parent
+    repo = tmp_path / "repo"
+    for name in ("pipeline", "stages"):
+        shutil.copytree(root / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copy(root / "dvc.yaml", repo / "dvc.yaml")
+    (repo / "models").mkdir()
+    shutil.copy(sb3_models["td3"], repo / "models" / "speed.zip")
+    shutil.copy(sb3_models["sac"], repo / "models" / "energy.zip")
+    params = with_lists(
+        {
+            **TINY,
+            "methods": ["mapex_posthoc_imported"],
+            "import_specialists": {
+                "policies": [
+                    {"objective": 0, "file": "models/speed.zip", "format": "sb3"},
+                    {"objective": 1, "file": "models/energy.zip", "format": "sb3"},
+                ],
+                "collect_rows": 200,
+                "exploration_noise": 0.1,
+            },
+            "export": {"methods": ["mapex_posthoc_imported"]},
+        }
+    )
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    (repo / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(repo)}
+
+    def run(*cmd: str) -> str:
+        r = subprocess.run(list(cmd), cwd=repo, env=env, capture_output=True, text=True)
+        assert r.returncode == 0, f"{' '.join(cmd)} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+        return r.stdout + r.stderr
+
+    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@e.com"], ["git", "config", "user.name", "t"]):
+        run(*cmd)
+    run(str(bin_dir / "dvc"), "init", "-q")
+    run("git", "add", "-A")
+    run("git", "commit", "-qm", "imported")
+    out = run(str(bin_dir / "dvc"), "repro")
+    ran = set(re.findall(r"Running stage '([^']+)'", out))
+    assert {"import_specialist@0-policy0", "import_specialist@0-policy1", "extract_posthoc@0-imported", "report"} <= ran
+    assert not any(s.startswith("train_specialist") for s in ran)  # nothing trained here
+    report = (repo / "data" / "report" / "report.md").read_text()
+    assert "MAPEX-PostHoc (imported)" in report and "collecting the imported specialists' buffers" in report
+    doc = json.loads((repo / "data/export/mapex_posthoc_imported/seed0/front.json").read_text())
+    assert doc["policies"] and all(
+        (repo / "data/export/mapex_posthoc_imported/seed0" / p["file"]).is_file() for p in doc["policies"]
+    )
+    # a new energy specialist in the same file: its import and fit rerun, the speed one's do not
+    shutil.copy(sb3_models["td3"], repo / "models" / "energy.zip")
+    again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
+    assert {"import_specialist@0-policy1", "fit_critics@0-imported-1", "extract_posthoc@0-imported"} <= again
+    assert "import_specialist@0-policy0" not in again and "fit_critics@0-imported-0" not in again

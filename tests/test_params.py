@@ -196,7 +196,15 @@ def test_run_lists_are_derived_from_methods_and_checked():
     assert section(ok, "", RunParams).posthoc_from == ["pderl"]
     assert derived_lists(ok["methods"], ok["seeds"]) == {
         k: v for k, v in ok.items() if k not in ("seeds", "methods")
-    } | {"mopderl_seeds": [], "morld_seeds": []}
+    } | {
+        "td3_seeds": [0, 1],
+        "imported_seeds": [],
+        "import_collect": [],
+        "import_buffered": [],
+        "mopderl_seeds": [],
+        "morld_seeds": [],
+        "export_methods": [],
+    }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(
         ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: run `mapex sync-params`"

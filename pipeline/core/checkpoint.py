@@ -58,7 +58,7 @@ def actor_from_meta(meta: dict[str, Any]) -> Actor | ScriptedActor:
     `Actor` of meta's hidden_sizes, or a `ScriptedActor` where meta["architecture"] is
     "torchscript" (a policy imported as TorchScript, docs/import_export.md)."""
     if meta.get("architecture") == "torchscript":
-        return ScriptedActor()
+        return ScriptedActor(meta["action_low"], meta["action_high"])
     return Actor(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
 
 

@@ -53,16 +53,32 @@ class ScriptedActor(nn.Module):
 
     KEY = "torchscript"
 
-    def __init__(self) -> None:
+    def __init__(self, low=None, high=None) -> None:
         super().__init__()
         self.module: torch.jit.ScriptModule | None = None
         self._bytes = b""
+        if low is not None and high is not None:
+            # the env's bounds, as `Actor` holds them (children and TD3 target smoothing read them);
+            # not in the state dict: they come from the artifact's metadata
+            low_t, high_t = torch.as_tensor(low, dtype=torch.float32), torch.as_tensor(high, dtype=torch.float32)
+            self.register_buffer("scale", (high_t - low_t) / 2, persistent=False)
+            self.register_buffer("centre", (high_t + low_t) / 2, persistent=False)
 
     @classmethod
-    def from_bytes(cls, data: bytes) -> "ScriptedActor":
-        out = cls()
+    def from_bytes(cls, data: bytes, low=None, high=None) -> "ScriptedActor":
+        out = cls(low, high)
         out.load_state_dict({cls.KEY: torch.frombuffer(bytearray(data), dtype=torch.uint8)})
         return out
+
+    def __deepcopy__(self, memo) -> "ScriptedActor":
+        # a copy loaded afresh from the same bytes (copying a loaded ScriptModule leaves its
+        # parameters non-leaf), on the device the original is on
+        bounds = (self.centre - self.scale, self.centre + self.scale) if hasattr(self, "scale") else (None, None)
+        bounds = tuple(None if b is None else b.cpu() for b in bounds)
+        out = ScriptedActor.from_bytes(self._bytes, *bounds) if self.module is not None else ScriptedActor(*bounds)
+        device = self.scale.device if hasattr(self, "scale") else None
+        out.train(self.training)
+        return out.to(device) if device is not None else out
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if self.module is None:

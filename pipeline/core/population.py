@@ -74,7 +74,8 @@ def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
     """Rebuild a member's actor (eval mode, CPU): an `Actor`, or a `ScriptedActor` for a
     starting policy imported as TorchScript (its state dict holds the TorchScript file)."""
     if ScriptedActor.KEY in member.actor:
-        return ScriptedActor.from_bytes(member.actor[ScriptedActor.KEY].numpy().tobytes()).eval()
+        data = member.actor[ScriptedActor.KEY].numpy().tobytes()
+        return ScriptedActor.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
     actor = Actor(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
     actor.load_state_dict(member.actor)
     return actor.eval()

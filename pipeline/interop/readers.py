@@ -287,10 +287,10 @@ def read_cleanrl(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
 # -- TorchScript --------------------------------------------------------------------------------
 
 
-def read_torchscript(path: Path) -> tuple[ScriptedActor, _Declared, dict[str, Any]]:
+def read_torchscript(path: Path, spec: EnvSpec) -> tuple[ScriptedActor, _Declared, dict[str, Any]]:
     data = path.read_bytes()
     try:
-        actor = ScriptedActor.from_bytes(data)
+        actor = ScriptedActor.from_bytes(data, spec.action_low, spec.action_high)
     except (RuntimeError, ValueError, OSError) as exc:
         raise ArtifactError(
             f"{path}: not a TorchScript file torch.jit.load can read ({str(exc).strip().splitlines()[0][:160]})"
@@ -353,8 +353,10 @@ def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
         raise ArtifactError(f"{path}: format {fmt!r}; expected one of {list(FORMATS)}")
     if not path.is_file():
         raise ArtifactError(f"{path}: no such file (expected a {fmt} model)")
-    reader = {"sb3": read_sb3, "cleanrl": read_cleanrl, "torchscript": read_torchscript}[fmt]
-    actor, declared, source = reader(path)
+    if fmt == "torchscript":
+        actor, declared, source = read_torchscript(path, spec)
+    else:
+        actor, declared, source = (read_sb3 if fmt == "sb3" else read_cleanrl)(path)
     _check_env(path, actor, declared, spec)
     architecture = "torchscript" if isinstance(actor, ScriptedActor) else "mlp"
     hidden = (

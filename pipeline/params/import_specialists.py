@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from pipeline.params.common import Strict
 
@@ -43,6 +43,15 @@ class ImportSpecialistsParams(Strict):
     checkpoint_every: int = Field(
         10_000, ge=0, description="collected rows between checkpoints (0: none); changes no artifact"
     )
+
+    @model_validator(mode="after")
+    def _written_out(self) -> "ImportSpecialistsParams":
+        # stage import_specialist lists these two keys as DVC params, and DVC reads them from
+        # params.yaml itself (no defaults there): with policies to import, they must be written
+        missing = [k for k in ("collect_rows", "exploration_noise") if self.policies and k not in self.model_fields_set]
+        if missing:
+            raise ValueError(f"{missing} must be written out when policies are listed (dvc.yaml tracks them)")
+        return self
 
     @field_validator("policies")
     @classmethod

@@ -16,8 +16,10 @@ def section_models() -> dict[str, type[BaseModel]]:
     """Every params section's model: "env", "" (the top-level lists) and each stage section."""
     from pipeline.params.critic_fidelity import CriticFidelityParams
     from pipeline.params.evaluate import EvaluateParams
+    from pipeline.params.export import ExportParams
     from pipeline.params.extract import ExtractParams
     from pipeline.params.fit_critics import FitCriticsParams
+    from pipeline.params.import_specialists import ImportSpecialistsParams
     from pipeline.params.mopderl import MopderlParams
     from pipeline.params.morld import MorldParams
     from pipeline.params.report import ReportParams
@@ -30,6 +32,7 @@ def section_models() -> dict[str, type[BaseModel]]:
         "": RunParams,
         "train_specialist": TrainSpecialistParams,
         "train_pderl": TrainPderlParams,
+        "import_specialists": ImportSpecialistsParams,
         "fit_critics": FitCriticsParams,
         "critic_fidelity": CriticFidelityParams,
         "extract": ExtractParams,
@@ -38,4 +41,5 @@ def section_models() -> dict[str, type[BaseModel]]:
         "evaluate": EvaluateParams,
         "score": ScoreParams,
         "report": ReportParams,
+        "export": ExportParams,
     }
