@@ -14,23 +14,14 @@ from pipeline.core.artifacts import ArtifactError, atomic_path, read_json
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population, member_actor
 from pipeline.core.provenance import provenance
+from pipeline.evaluation.evaluated import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated, read_std
 from pipeline.interop.export import check_export, onnx_available, onnx_bytes, torchscript_bytes
 from pipeline.params import ParamsError
 from pipeline.params.export import ExportParams
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
-from stages.score import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated
 
 FRONT_FORMAT = "mapex.front"
 FRONT_VERSION = 1
-
-
-def read_std(path: Path, n_obj: int) -> np.ndarray:
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    cols = [f"obj{m}_std" for m in range(n_obj)]
-    if rows and any(c not in rows[0] for c in cols):
-        raise ArtifactError(f"{path}: missing column(s) {[c for c in cols if c not in rows[0]]}")
-    return np.array([[float(r[c]) for c in cols] for r in rows]).reshape(len(rows), n_obj)
 
 
 def front_csv(records: list[dict], n_obj: int) -> str:

@@ -16,7 +16,11 @@ ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ("pipeline", "stages")
 # dvc.yaml stages that run another stage's command (stage name -> stages/<module>.py); every
 # other stage runs stages/<its name>.py.
-STAGE_MODULES = {"extract_posthoc": "extract", "critic_fidelity_posthoc": "critic_fidelity"}
+STAGE_MODULES = {
+    "extract_posthoc": "extract",
+    "critic_fidelity_posthoc": "critic_fidelity",
+    "import_specialist_buffered": "import_specialist",
+}
 
 
 def stage_module(stage: str) -> str:
