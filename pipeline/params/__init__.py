@@ -19,22 +19,10 @@ __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "K
 
 # Top-level keys params.yaml may hold. Shared: env and the lists of RUN_KEYS. The others are the
 # stage sections, each named like its stage (dvc.yaml stage = stages/<name>.py = section).
+RUN_KEYS = tuple(RunParams.model_fields)  # the top-level lists, validated together by RunParams
 KNOWN_SECTIONS = (
     "env",
-    "seeds",
-    "objectives",
-    "td3_seeds",
-    "pderl_seeds",
-    "imported_seeds",
-    "import_collect",
-    "import_buffered",
-    "extract_from",
-    "extract_variants",
-    "posthoc_from",
-    "mopderl_seeds",
-    "morld_seeds",
-    "export_methods",
-    "methods",
+    *RUN_KEYS,
     "train_specialist",
     "train_pderl",
     "import_specialists",
@@ -49,7 +37,6 @@ KNOWN_SECTIONS = (
     "morld",
 )
 
-RUN_KEYS = tuple(RunParams.model_fields)  # the top-level lists, validated together by RunParams
 
 M = TypeVar("M", bound=BaseModel)
 

@@ -17,19 +17,8 @@ import yaml
 from pipeline.params.common import GENERATED_BEGIN, GENERATED_END, RunParams
 from pipeline.params.methods import derived_lists
 
-DERIVED_KEYS = (
-    "td3_seeds",
-    "pderl_seeds",
-    "imported_seeds",
-    "import_collect",
-    "import_buffered",
-    "extract_from",
-    "extract_variants",
-    "posthoc_from",
-    "mopderl_seeds",
-    "morld_seeds",
-    "export_methods",
-)
+# the generated lists: RunParams' fields other than those written by hand, in its order
+DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in ("seeds", "objectives", "methods"))
 
 
 def generated_block(
