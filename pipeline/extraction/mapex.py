@@ -1,14 +1,29 @@
 """MAPEX extraction (paper, Algorithm 1 and section "Method", steps 1-3).
 
 Each iteration: find the non-dominated set of the population, pick a gap on it by roulette
-wheel over edge lengths, derive the target weight from the parents' centroid, build a hybrid
+wheel over gap sizes, derive the target weight from the parents' centroid, build a hybrid
 buffer from the specialists' buffers in proportion to the weight, warm a fresh policy up on
 the mean parent action, then train it by mixed-advantage-weighted regression.
 
+Step 1 (pipeline.extraction.gaps, re-exported here): for N = 2 objectives the paper's rule,
+the front sorted along objective 0, a gap = an edge between neighbours, drawn with probability
+proportional to its length, its 2 endpoints the parents. For N >= 3 the front is triangulated
+(projected onto the hyperplane orthogonal to (1, ..., 1), then Delaunay), a gap = a facet of
+N vertices drawn with probability proportional to its (N - 1)-dimensional volume, its N
+vertices the parents. Either way the target weight is the unit vector towards the centroid of
+the parents' normalised returns.
+
 Deviations from the paper, each a param unless it is a necessary reading:
-- Edge lengths and the centroid are measured in objective space normalised by the population's
-  per-objective range (necessary: raw returns differ in scale by orders of magnitude and can be
-  negative, so a raw centroid can point anywhere, even away from both parents).
+- Edge lengths (facet sizes) and the centroid are measured in objective space normalised by the
+  population's per-objective range (necessary: raw returns differ in scale by orders of
+  magnitude and can be negative, so a raw centroid can point anywhere, even away from both
+  parents).
+- N >= 3 objectives: the paper defines the gap for N = 2 only and leaves N >= 3 to future
+  work; the facet rule above is this project's extension (docs/n_objectives.md), with
+  documented fallbacks for degenerate fronts (fewer parents on a front of lower affine rank,
+  the per-objective best policies on a front of one point). N = 2 is unchanged.
+- A front of one point (no gap of positive size): the policies best on each objective are the
+  parents (a case the paper does not cover).
 - `advantage_norm`: `none` mixes the raw advantages A_m with a weight w computed from
   range-normalised returns: a mix of units that neither the paper (raw returns and raw
   advantages throughout) nor a consistent reading uses. It is a deviation, kept as the default
@@ -57,59 +72,13 @@ import torch
 
 from pipeline.core.finite import TrainingDiverged, check_finite, due, first_nonfinite, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
-from pipeline.core.pareto import pareto_mask, population_scale
+from pipeline.core.pareto import population_scale
 from pipeline.core.seeding import torch_generator
 
-# ---------------------------------------------------------------- step 1: gaps and weights
-
-
-def front_edges(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Non-dominated policies sorted along objective 0, and the normalised lengths of the edges
-    between sorted neighbours.
-
-    returns: (n, 2). Result: ids (f,) and lengths (f - 1,), Euclidean in objective space scaled
-    by the population's per-objective range.
-    """
-    if returns.shape[1] != 2:
-        raise ValueError(f"gap identification is defined for 2 objectives (paper, Step 1), got {returns.shape[1]}")
-    lo, span = population_scale(returns)
-    ids = np.flatnonzero(pareto_mask(returns))
-    # Ties on objective 0 are broken by objective 1 so the order is total and reproducible.
-    ids = ids[np.lexsort((returns[ids, 1], returns[ids, 0]))]
-    norm = (returns[ids] - lo) / span
-    return ids, np.linalg.norm(np.diff(norm, axis=0), axis=1)
-
-
-def select_parents(returns: np.ndarray, rng: np.random.Generator) -> tuple[int, int]:
-    """Draw one front edge with probability proportional to its normalised length (roulette
-    wheel, paper Step 1) and return its two endpoint policy ids.
-
-    If the front has no edge of positive length (one policy dominates all others), the two
-    policies that are best on each objective are used as parents.
-    """
-    ids, lengths = front_edges(returns)
-    total = lengths.sum() if len(lengths) else 0.0
-    if total <= 0:
-        return int(np.argmax(returns[:, 0])), int(np.argmax(returns[:, 1]))
-    e = int(rng.choice(len(lengths), p=lengths / total))
-    return int(ids[e]), int(ids[e + 1])
-
-
-def target_weight(returns: np.ndarray, parents: Sequence[int], norm: str = "l2") -> np.ndarray:
-    """Unit target weight towards the centroid of the parents' normalised returns (paper Step 1).
-
-    Returns are scaled to [0, 1] by the population's per-objective range before the centroid is
-    taken; the centroid is divided by its L2 norm (paper) or L1 sum (precursor). A zero centroid
-    gives the uniform weight.
-    """
-    lo, span = population_scale(returns)
-    centroid = ((returns[list(parents)] - lo) / span).mean(axis=0)
-    size = np.linalg.norm(centroid) if norm == "l2" else np.abs(centroid).sum()
-    if size <= 1e-12:
-        m = returns.shape[1]
-        return np.full(m, 1 / np.sqrt(m) if norm == "l2" else 1 / m)
-    return centroid / size
-
+# Step 1 (gaps, parents, target weight) lives in pipeline.extraction.gaps; re-exported here.
+from pipeline.extraction.gaps import front_edges as front_edges
+from pipeline.extraction.gaps import select_parents as select_parents
+from pipeline.extraction.gaps import target_weight as target_weight
 
 # ---------------------------------------------------------------- step 2: hybrid buffer
 
@@ -384,7 +353,7 @@ class ChildSeeds(NamedTuple):
 
 @dataclass
 class ChildRecord:
-    parents: tuple[int, int]
+    parents: tuple[int, ...]  # m policy ids for m objectives (fewer on a degenerate front)
     weight: np.ndarray  # (m,) unit target weight
     counts: np.ndarray  # (m,) hybrid rows drawn from each buffer
     stats: dict[str, float]
@@ -394,7 +363,7 @@ class ChildRecord:
 class ChildStart:
     """A child before its training: parents, target weight, hybrid buffer, warm-up targets."""
 
-    parents: tuple[int, int]
+    parents: tuple[int, ...]
     weight: np.ndarray  # (m,) unit target weight
     hybrid: Hybrid
     a_bar: torch.Tensor  # (N, act_dim) mean parent action at each hybrid state
