@@ -12,8 +12,11 @@ Definitions (and where they come from):
 - hv_fraction: hypervolume / volume of the box [ref, ideal]; with the ideal point of the front
   itself it measures how much of its own bounding box a front fills (1 for a single point).
 - sparsity: the paper's Table 1 caption: "the average Euclidean distance between neighbouring
-  points", neighbours along the front sorted by objective 0. Raw return units, so only
-  comparable within one env. Lower is denser.
+  points". For 2 objectives, neighbours along the front sorted by objective 0. For N >= 3
+  (an extension, docs/n_objectives.md), neighbours = the edges of the front's mesh
+  (pipeline.core.front_mesh: the front scaled by its own per-objective range, projected onto
+  the hyperplane orthogonal to (1, ..., 1) and Delaunay-triangulated), each edge once. Raw
+  return units either way, so only comparable within one env. Lower is denser.
 - sparsity_pgmorl: PGMORL's indicator (Xu et al. 2020), used by the precursor and MOPDERL code:
   sort the front along each objective separately, sum the squared gaps between neighbours over
   all objectives, divide by n - 1. Squared units: not comparable with the paper's Table 1.
@@ -35,8 +38,9 @@ import math
 
 import numpy as np
 
+from pipeline.core.front_mesh import first_unique, mesh_edges, triangulate
 from pipeline.core.pareto import hypervolume as _pareto_hypervolume
-from pipeline.core.pareto import ideal_box_volume, pareto_mask
+from pipeline.core.pareto import ideal_box_volume, pareto_mask, population_scale
 
 
 def _as_points(points: np.ndarray, m: int | None = None) -> np.ndarray:
@@ -92,14 +96,42 @@ def hv_fraction(points: np.ndarray, ref: np.ndarray | list[float], ideal: np.nda
 
 def sparsity(points: np.ndarray) -> float:
     """The paper's sparsity (Table 1 caption): mean Euclidean distance between neighbouring
-    points of `points` (n, m), neighbours along the order of objective 0 (ties broken by the
-    others). 0 for n < 2. For n evenly spaced points on a segment from a to b: |b - a| / (n - 1).
+    points of `points` (n, m), in raw units. 0 for n < 2.
+
+    m <= 2: neighbours along the order of objective 0 (ties broken by the others); a repeated
+    point is a neighbour at distance 0. For n evenly spaced points on a segment from a to b:
+    |b - a| / (n - 1).
+    m >= 3: the mean length of the distinct edges of the front mesh (`mesh_sparsity`).
     """
     p = _as_points(points)
     if len(p) < 2:
         return 0.0
+    if p.shape[1] >= 3:
+        return mesh_sparsity(p)
     order = np.lexsort(p.T[::-1])  # by objective 0, then 1, ...
     return float(np.linalg.norm(np.diff(p[order], axis=0), axis=1).mean())
+
+
+def mesh_sparsity(points: np.ndarray) -> float:
+    """Mean Euclidean length, in raw units, of the distinct edges of the mesh over `points`
+    (n, m >= 2): the paper's sparsity for N >= 3 objectives (docs/n_objectives.md).
+
+    The mesh's topology is computed with the points scaled to [0, 1] by their own per-objective
+    range (pipeline.core.front_mesh.triangulate: projection onto the hyperplane orthogonal to
+    (1, ..., 1), Delaunay; lower-rank fronts in their affine hull, collinear ones as a chain).
+    Repeated points are merged first. The points should be mutually non-dominated (a front,
+    as `front_metrics` passes it). 0 when there is no edge (fewer than 2 distinct points).
+    For n evenly spaced points on a segment from a to b: |b - a| / (n - 1), as for m = 2.
+    """
+    p = _as_points(points)
+    p = p[first_unique(p)]
+    if len(p) < 2:
+        return 0.0
+    lo, span = population_scale(p)
+    edges = mesh_edges(triangulate((p - lo) / span))
+    if len(edges) == 0:
+        return 0.0
+    return float(np.linalg.norm(p[edges[:, 1]] - p[edges[:, 0]], axis=1).mean())
 
 
 def sparsity_pgmorl(points: np.ndarray) -> float:
