@@ -255,6 +255,11 @@ def test_duplicates_keep_the_lowest_policy_id():
     rng = np.random.default_rng(4)
     drawn = {p for _ in range(300) for p in ex.select_parents(returns, rng)}
     assert drawn == {0, 1, 2, 3}
+    # on a line (no qhull): a copy of the middle point (id 3) is no vertex, not a zero-length edge
+    line = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.7, 0.0], [0.3, 0.7, 0.0]])
+    assert gaps.front_facets(line)[0].tolist() == [[0, 2], [1, 2]]
+    # and the copy first: the lowest id is kept
+    assert gaps.front_facets(line[[3, 0, 1, 2]])[0].tolist() == [[0, 1], [0, 2]]
 
 
 def test_distinct_points_closer_than_the_rank_tolerance_are_one_point():
