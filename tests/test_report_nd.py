@@ -183,7 +183,7 @@ def collection(ax, name: str):
 
 def coords(coll, ndim: int) -> np.ndarray:
     """The data coordinates a scatter was given: (n, 2) offsets, or (n, 3) on a 3-D axes."""
-    if ndim == 3:
+    if ndim == 3:  # matplotlib keeps a 3-D scatter's data coordinates only in this private attribute
         return np.column_stack([np.asarray(c, float) for c in coll._offsets3d])
     return np.asarray(coll.get_offsets(), float)
 
@@ -215,7 +215,7 @@ def test_one_panel_per_pair_of_objectives_and_a_3d_view(m, n_pairs):
         assert ("objectives 0-2" in ax3.get_title()) == (m > 3)
         assert len(got) == n_pairs + 1
     # the methods' blocks and the suptitle
-    assert sorted(sf._suptitle.get_text() for sf in fig.subfigs if sf._suptitle) == sorted(label(v) for v in METHODS)
+    assert sorted(sf.get_suptitle() for sf in fig.subfigs if sf.get_suptitle()) == sorted(label(v) for v in METHODS)
     assert fig.get_suptitle() == "Re-evaluated fronts: mo-hopper-v5, seed 0"
     # the same limits for one pair in every method's block, so the blocks compare by eye
     a, b = (panels(fig, v) for v in METHODS)
