@@ -11,9 +11,9 @@ from pipeline.core.envs import objective_names
 from pipeline.params import RunParams, section
 from pipeline.params.methods import label
 from pipeline.params.report import ReportParams
-from pipeline.reporting.figures import front_figure, history_figure
+from pipeline.reporting.figures import front_caption, front_figure, history_figure
 from pipeline.reporting.report import report_markdown
-from pipeline.reporting.runs import Run, check_comparable, load_runs, methods_in
+from pipeline.reporting.runs import Run, check_comparable, load_runs
 from stages.common import PARAMS_OPTION, check_min_return, read_params, reports_errors
 
 
@@ -37,7 +37,8 @@ def report(
     Table-1-shaped metrics table (mean ± SEM across seeds) and a details table (counts of
     starting policies and of the members each method made), the frames MAPEX and MOPDERL need
     to reach each other's hypervolume (when both ran), one front figure per seed
-    (front_seedS.png: starting policies apart from the rest), the hypervolume history
+    (front_seedS.png: starting policies apart from the rest; with 3 or more objectives every
+    pair of objectives and a 3-D view), the hypervolume history
     (hypervolume.png) and each run's provenance. The folder is built beside OUT and renamed
     into place when complete.
     """
@@ -57,11 +58,7 @@ def report(
     for seed in sorted({r.seed for r in runs}):
         by_variant = {r.method: r for r in runs if r.seed == seed}
         figures[f"front_seed{seed}"] = front_figure(by_variant, names, env_p.id, seed, cfg.figure_width)
-        captions[f"front_seed{seed}.png"] = (
-            f"Seed {seed}: re-evaluated returns of every member, starting policies "
-            f"as stars (one colour per specialist), what each method made coloured by iteration; "
-            f"{' vs '.join(label(v) for v in methods_in(list(by_variant.values())))} side by side."
-        )
+        captions[f"front_seed{seed}.png"] = front_caption(list(by_variant.values()), seed)
     figures["hypervolume"] = history_figure(runs, env_p.id, cfg.figure_width)
     captions["hypervolume.png"] = (
         "Hypervolume of the population after each iteration (MOPDERL: generation), vs "

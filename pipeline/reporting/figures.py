@@ -1,10 +1,12 @@
 """The report's figures: the fronts of one seed (one panel per method, starting policies apart
-from what each method made) and the hypervolume history (vs iteration and vs env frames), with
-the panel, legend, front-line and mean +- SEM band helpers the grid report's figures share.
+from what each method made; with 3 or more objectives, every pair of objectives and a 3-D view
+per method) and the hypervolume history (vs iteration and vs env frames), with the panel,
+legend, front-line and mean +- SEM band helpers the grid report's figures share.
 Matplotlib `Figure`s rendered with Agg (no pyplot, no global backend state)."""
 
 from __future__ import annotations
 
+import itertools
 import warnings
 
 import numpy as np
@@ -13,6 +15,7 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
+from pipeline.core.pareto import pareto_mask
 from pipeline.params.methods import colour, label
 from pipeline.reporting.runs import Run, methods_in
 
@@ -59,19 +62,19 @@ def _front_line(ax, points: np.ndarray, **kw) -> None:
     ax.step(p[:, 0], p[:, 1], where="pre", **kw)
 
 
-def _starting_policies(ax, run: Run, pts: np.ndarray) -> None:
+def _starting_policies(ax, run: Run, pts: np.ndarray, scale: float = 1.0) -> None:
     """The starting policies as stars, one colour per specialist (by its objective); smaller
-    stars where a specialist gave a whole policy set."""
+    stars where a specialist gave a whole policy set. `pts` (n, 2) or, on a 3-D axes, (n, 3):
+    the coordinates drawn of every member; `scale` multiplies the stars' area."""
     spec = run.origin == "specialist"
     objective = run.objective if run.objective is not None else np.full(len(spec), -1)
     for k, n in run.starting_counts().items():
         sel = spec & (objective == k)
         name = "specialist" if k < 0 else f"specialist {k}"
         ax.scatter(
-            pts[sel, 0],
-            pts[sel, 1],
+            *pts[sel].T,
             marker="*",
-            s=220 if n == 1 else 110,
+            s=(220 if n == 1 else 110) * scale,
             color=SPECIALIST_COLOURS[k % len(SPECIALIST_COLOURS)] if k >= 0 else "tab:red",
             edgecolors="black",
             lw=0.8,
@@ -81,6 +84,35 @@ def _starting_policies(ax, run: Run, pts: np.ndarray) -> None:
 
 
 def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
+    """Fronts of one seed (`runs`: method -> its run of that seed), starting policies apart from
+    what each method made. Two objectives: one panel per method (`front_figure_2d`); three or
+    more: every pairwise projection and a 3-D view per method (`front_figure_nd`)."""
+    m = next(iter(runs.values())).returns.shape[1]
+    if m < 3:
+        return front_figure_2d(runs, names, env_id, seed, width)
+    return front_figure_nd(runs, names, env_id, seed, width)
+
+
+def front_caption(runs: list[Run], seed: int) -> str:
+    """The caption of `front_figure` for the runs of one seed."""
+    methods = " vs ".join(label(v) for v in methods_in(runs))
+    m = runs[0].returns.shape[1]
+    if m < 3:
+        return (
+            f"Seed {seed}: re-evaluated returns of every member, starting policies "
+            f"as stars (one colour per specialist), what each method made coloured by iteration; "
+            f"{methods} side by side."
+        )
+    first3 = "" if m == 3 else " (the first three objectives)"
+    return (
+        f"Seed {seed}: re-evaluated returns of every member, one row of panels per method ({methods}): "
+        f"each pair of the {m} objectives, then a 3-D view{first3}. Starting policies as stars (one colour "
+        f"per specialist), what each method made coloured by iteration; ringed: the members non-dominated "
+        f"in all {m} objectives (in a projection they may look dominated)."
+    )
+
+
+def front_figure_2d(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
     """Fronts of one seed, one panel per variant: starting policies vs children coloured by iteration.
 
     Starting policies (every policy of each specialist's policy set; one per specialist for
@@ -138,6 +170,135 @@ def front_figure(runs: dict[str, Run], names: list[str], env_id: str, seed: int,
         cbar = fig.colorbar(mappable, ax=list(axes), label="iteration (MOPDERL: generation)", shrink=0.9)
         cbar.locator = MaxNLocator(integer=True)
         cbar.update_ticks()
+    fig.suptitle(f"Re-evaluated fronts: {env_id}, seed {seed}")
+    return fig
+
+
+ND_COLUMNS = 3  # projections per row of a method's block in the m >= 3 front figure (the 3-D view beside them)
+ND_STAR_SCALE = 0.5  # the stars' area there, relative to the one-panel-per-method figure's
+ND_3D_WIDTH = (1.4, 2.0)  # the 3-D view's width relative to a projection's, beside one row of them, beside more
+
+
+def _nd_members(ax, run: Run, pts: np.ndarray, nd: np.ndarray, norm: Normalize):
+    """One panel of the m >= 3 figure: children coloured by iteration, the members non-dominated
+    in all objectives (`nd`) ringed, the starting policies as stars; `pts` (n, 2) or (n, 3) are
+    the coordinates drawn. Returns the children's scatter (None without children)."""
+    child = run.origin != "specialist"
+    made = None
+    if child.any():
+        made = ax.scatter(
+            *pts[child].T,
+            c=np.maximum(run.iteration[child], 1),
+            cmap="viridis",
+            norm=norm,
+            s=14,
+            alpha=0.85,
+            label="made by the method (colour: iteration)",
+        )
+    if nd.any():
+        # around a star the ring is drawn larger, so that it encloses it
+        ax.scatter(
+            *pts[nd].T,
+            s=np.where(child[nd], 45, 150),
+            facecolors="none",
+            edgecolors="black",
+            lw=1.0,
+            zorder=6,
+            label=f"non-dominated (all {run.returns.shape[1]} objectives)",
+        )
+    _starting_policies(ax, run, pts, ND_STAR_SCALE)
+    return made
+
+
+def _limits(values: np.ndarray) -> tuple[float, float]:
+    """Axis limits holding `values` with a 5% margin (a unit margin when they are all equal)."""
+    lo, hi = float(np.min(values)), float(np.max(values))
+    pad = 0.05 * (hi - lo) if hi > lo else 1.0
+    return lo - pad, hi + pad
+
+
+def _nd_foot(foot, axes: list, mappable) -> float:
+    """Below the blocks of the m >= 3 front figure: one legend for every panel (first label
+    wins), then the iteration colour bar. Returns the height (inches) the foot needs."""
+    seen: dict[str, object] = {}
+    for ax in axes:
+        for handle, name in zip(*ax.get_legend_handles_labels()):
+            seen.setdefault(name, handle)
+    longest = max(map(len, seen), default=0)
+    cols = min(4 if longest <= 32 else 3 if longest <= 44 else 2, max(len(seen), 1))
+    legend_height = 0.19 * -(-len(seen) // cols) + 0.12
+    bar_height = 0.6 if mappable is not None else 0.0
+    height = legend_height + bar_height
+    if seen:
+        foot.legend(list(seen.values()), list(seen), loc="upper center", ncols=cols, fontsize="small")
+    if mappable is not None:
+        cax = foot.add_axes((0.3, 0.42 / height, 0.4, 0.12 / height))
+        cbar = foot.colorbar(mappable, cax=cax, orientation="horizontal")
+        cbar.set_label("iteration (MOPDERL: generation)", fontsize="small")
+        cbar.locator = MaxNLocator(integer=True)
+        cbar.update_ticks()
+    return height
+
+
+def front_figure_nd(runs: dict[str, Run], names: list[str], env_id: str, seed: int, width: float) -> Figure:
+    """Fronts of one seed with m >= 3 objectives: per method, a block of panels, one per pair of
+    objectives (i, j), i < j (x: objective i, y: objective j), up to ND_COLUMNS a row, and beside
+    them a 3-D view of objectives 0, 1, 2 as high as the block.
+
+    Each panel shows every member: children coloured by iteration, starting policies as stars
+    (one colour per specialist), and rings around the members non-dominated in all m objectives
+    (`pareto_mask` of the run's returns; a ringed point may look dominated in a projection).
+    The panels of one pair (and the 3-D views) have the same limits in every method's block.
+    Axes are labelled "<method>: objectives i, j" and "<method>: 3-D" (`Axes.get_label`).
+    """
+    variants = methods_in(list(runs.values()))
+    m = next(iter(runs.values())).returns.shape[1]
+    pairs = list(itertools.combinations(range(m), 2))
+    cols = min(len(pairs), ND_COLUMNS)
+    rows = -(-len(pairs) // cols)
+    width_3d = ND_3D_WIDTH[0] if rows == 1 else ND_3D_WIDTH[1]
+    panel = width / (cols + width_3d)
+    block_height = panel * (1.1 if rows == 1 else 0.95) * rows + 0.3  # one row: taller, for the 3-D view
+    fig = _figure(width, block_height * len(variants))
+    fig.get_layout_engine().set(w_pad=0.1)  # room for the 3-D views' z labels at the right edge
+    # the foot (legend and colour bar) is sized once its legend is known
+    stack = fig.add_gridspec(len(variants) + 1, 1, wspace=0, hspace=0)
+    *blocks, foot = (fig.add_subfigure(stack[k]) for k in range(len(variants) + 1))
+    every = np.concatenate([runs[v].returns for v in variants])
+    max_it = max(max(int(r.iteration.max()), 1) for r in runs.values())
+    norm = Normalize(vmin=1, vmax=max_it)
+    mappable, axes = None, []
+    for block, v in zip(blocks, variants):
+        run = runs[v]
+        nd = pareto_mask(run.returns)
+        grid = block.add_gridspec(rows, cols + 1, width_ratios=[1] * cols + [width_3d])
+        for n, (i, j) in enumerate(pairs):
+            ax = block.add_subplot(grid[n // cols, n % cols], label=f"{v}: objectives {i}, {j}")
+            mappable = _nd_members(ax, run, run.returns[:, [i, j]], nd, norm) or mappable
+            ax.set_xlim(*_limits(every[:, i]))
+            ax.set_ylim(*_limits(every[:, j]))
+            ax.set_xlabel(names[i], fontsize="small")
+            ax.set_ylabel(names[j], fontsize="small")
+            ax.tick_params(labelsize="x-small")
+            ax.grid(alpha=0.3)
+            axes.append(ax)
+        ax3 = block.add_subplot(grid[:, cols], projection="3d", label=f"{v}: 3-D")
+        mappable = _nd_members(ax3, run, run.returns[:, :3], nd, norm) or mappable
+        for k, axis in enumerate((ax3.set_xlim, ax3.set_ylim, ax3.set_zlim)):
+            axis(*_limits(every[:, k]))
+        ax3.set_xlabel(names[0], fontsize="small", labelpad=0)
+        ax3.set_ylabel(names[1], fontsize="small", labelpad=0)
+        ax3.set_zlabel(names[2], fontsize="small", labelpad=0)
+        ax3.tick_params(labelsize="x-small", pad=0)
+        ax3.set_box_aspect(None, zoom=0.9 if rows == 1 else 0.8)  # in a tall cell the cube fills its width
+        for axis in (ax3.xaxis, ax3.yaxis, ax3.zaxis):
+            axis.set_major_locator(MaxNLocator(4))
+        ax3.set_title("3-D view" if m == 3 else "3-D view, objectives 0-2", fontsize="small")
+        axes.append(ax3)
+        block.suptitle(label(v), fontsize="medium", fontweight="bold")
+    foot_height = _nd_foot(foot, axes, mappable)
+    stack.set_height_ratios([block_height] * len(variants) + [foot_height])
+    fig.set_size_inches(width, block_height * len(variants) + foot_height + 0.3)
     fig.suptitle(f"Re-evaluated fronts: {env_id}, seed {seed}")
     return fig
 

@@ -120,6 +120,16 @@ def report_markdown(
         "squared units, not comparable with the paper's.",
         "- Expected utility: mean over evenly spread weight vectors w of max over the front of w · J, on "
         "raw (unnormalised) returns as morl-baselines does; the larger-scale objective weighs more.",
+        *(
+            [
+                f"- With {len(names)} objectives the front is not a curve: the order along objective 0 is no "
+                "path along it, so the paper's sparsity measures the spacing only roughly (PGMORL's sorts "
+                "along each objective). Expected utility's weight vectors are then a Das-Dennis lattice on the "
+                "simplex, the coarsest with at least score.utility_weights of them."
+            ]
+            if len(names) >= 3
+            else []
+        ),
         "- Distinct points: non-dominated points left after merging points closer than the tolerance "
         "(a fraction of the [reference, ideal] box side, objectives normalised to it).",
         "- Extraction-time HV: hypervolume of the front of the returns measured during extraction "
