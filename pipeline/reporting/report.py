@@ -122,10 +122,10 @@ def report_markdown(
         "raw (unnormalised) returns as morl-baselines does; the larger-scale objective weighs more.",
         *(
             [
-                f"- With {len(names)} objectives the front is not a curve: the order along objective 0 is no "
-                "path along it, so the paper's sparsity measures the spacing only roughly (PGMORL's sorts "
-                "along each objective). Expected utility's weight vectors are then a Das-Dennis lattice on the "
-                "simplex, the coarsest with at least score.utility_weights of them."
+                f"- With {len(names)} objectives the front is a surface, not a curve: the paper's sparsity is "
+                "then the mean Euclidean length of the edges of a triangulation of the front (docs/n_objectives.md; "
+                "for 2 objectives it is the definition above). Expected utility's weight vectors are then a "
+                "Das-Dennis lattice on the simplex, the coarsest with at least score.utility_weights of them."
             ]
             if len(names) >= 3
             else []
