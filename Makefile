@@ -11,6 +11,9 @@ VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 BIN := $(VENV)/bin
+# pytest-xdist workers for `make test`, one per core of the 2-core machines this project targets;
+# each test file runs whole in one worker (--dist loadfile), so module fixtures are built once.
+TEST_WORKERS ?= 2
 
 .PHONY: install repro test lint format bench clean-venv
 
@@ -35,7 +38,7 @@ test: install
 	@# onnx), so tests/test_sweep.py, tests/test_morld.py and the ONNX export test run instead of skipping
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
-	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q
+	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 lint: install
 	$(BIN)/pip install -q -e ".[dev]" >> $(VENV)/install.log 2>&1 \

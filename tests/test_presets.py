@@ -23,9 +23,13 @@ PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
 
 
 PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
+# Three objectives (docs/n_objectives.md): paper-scale and quickstart-scale, mo-hopper-v5 and mo-ant-v5
+NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
 
 
-@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS, PAYOFF], ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize(
+    "path", [ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ], ids=lambda p: f"{p.parent.name}/{p.name}"
+)
 def test_params_file_validates(path, tmp_path):
     """params.yaml as it is; a preset as `mapex sync-params --from` writes it (presets list
     what runs once, in `methods`)."""
@@ -36,7 +40,7 @@ def test_params_file_validates(path, tmp_path):
     env = section(raw, "env", EnvParams, path)
     for name, model in section_models().items():
         section(raw, name, model, path)
-    assert env.reference_point is not None and len(env.reference_point) == 2
+    assert env.reference_point is not None and len(env.reference_point) == len(raw["objectives"])
 
 
 def test_every_known_section_has_a_model():
@@ -65,6 +69,8 @@ RL_SYNC_PERIOD = {
     "mo-hopper-2obj-v5": 1,
     "mo-walker2d-v5": 1,
     "mo-ant-2obj-v5": 1,
+    "mo-hopper-v5": 1,
+    "mo-ant-v5": 1,
 }
 
 
@@ -83,6 +89,26 @@ def test_presets_set_pderls_rl_sync_period_of_their_env():
         assert section(raw, "train_pderl", TrainPderlParams, path).rl_sync_period == RL_SYNC_PERIOD[env.id], path
 
 
+def test_three_objective_presets():
+    """A paper-scale and a quickstart-scale preset for each 3-objective env, all three objectives,
+    the reference point of presets/reference_points.yaml, and extraction values set explicitly
+    (the paper has none for these envs); the paper-scale ones carry the paper's budgets."""
+    refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
+    assert {p.stem for p in NOBJ} == {"mo-hopper-v5", "mo-hopper-v5-quick", "mo-ant-v5", "mo-ant-v5-quick"}
+    for path in NOBJ:
+        raw = load_params(path)
+        env = section(raw, "env", EnvParams, path)
+        assert env.id == path.stem.removesuffix("-quick") and raw["objectives"] == [0, 1, 2]
+        assert env.reference_point == refs[env.id] and env.max_episode_steps == 750
+        assert all(raw["extract"].get(k) is not None for k in ("epochs", "beta", "omega_max")), path
+        ts = section(raw, "train_specialist", TrainSpecialistParams, path)
+        assert ts.secondary_critics
+        if not path.stem.endswith("-quick"):
+            assert ts == TrainSpecialistParams(total_steps=2_000_000)
+            ex = section(raw, "extract", ExtractParams, path)
+            assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
+
+
 def test_payoff_preset_is_the_issue_settings():
     """300k-step specialists at 256 units, 2 seeds; paper-form children (HalfCheetah: 20 epochs, beta 1,
     omega_max 1) on 200k-row hybrid buffers at 256 units, at least 12 each, one per iteration."""
@@ -96,7 +122,9 @@ def test_payoff_preset_is_the_issue_settings():
     assert (ex.child_buffer_size, ex.hidden_sizes) == (200_000, [256, 256])
 
 
-@pytest.mark.parametrize("path", [ROOT / "params.yaml", *PRESETS, PAYOFF], ids=lambda p: f"{p.parent.name}/{p.name}")
+@pytest.mark.parametrize(
+    "path", [ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ], ids=lambda p: f"{p.parent.name}/{p.name}"
+)
 def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
     """`dvc stage list` with dvc.yaml and the params file: its matrices resolve, and every
     method x seed of `methods` gets an evaluate and a score item."""

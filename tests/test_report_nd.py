@@ -419,7 +419,7 @@ def test_three_objective_report(hopper_report):
     table = next(line for line in text.splitlines() if line.startswith(f"| {HOPPER} |"))
     mean, sem = mean_sem([m["hypervolume"] for m in hv])
     assert table.split("|")[2].strip() == f"{fmt_num(mean)} ± {fmt_num(sem)}"
-    assert "With 3 objectives the front is not a curve" in text
+    assert "With 3 objectives the front is a surface, not a curve" in text
     caption = "each pair of the 3 objectives, then a 3-D view"
     assert text.count(caption) == 4  # two front figures: alt text and caption each
 

@@ -90,6 +90,9 @@ OBJECTIVE_NAMES: dict[str, list[str]] = {
     "mo-swimmer-v5": ["x velocity", "energy efficiency"],
     "mo-walker2d-v5": ["x velocity", "energy efficiency"],
     "mo-halfcheetah-v5": ["x velocity", "energy efficiency"],
+    # the 3-objective versions (docs/n_objectives.md)
+    "mo-hopper-v5": ["x velocity", "jump height", "energy efficiency"],
+    "mo-ant-v5": ["x velocity", "y velocity", "energy efficiency"],
 }
 
 
