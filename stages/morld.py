@@ -24,6 +24,7 @@ from pipeline.core.provenance import provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
+from pipeline.params import ParamsError
 from pipeline.params.morld import MorldParams
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
 
@@ -76,6 +77,14 @@ def morld(
     probe = make_env(env_p.id, env_p.max_episode_steps)
     spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
     probe.close()
+    if cfg.weight_init == "uniform" and cfg.pop_size < spec.n_objectives:
+        # morl-baselines spreads uniform weights with pymoo's Riesz-energy directions, which fail
+        # (an AttributeError deep in pymoo 0.6.2) for fewer points than objectives
+        raise ParamsError(
+            f"{params}: morld.pop_size = {cfg.pop_size}, but env.id = {env_p.id!r} has {spec.n_objectives} "
+            "objectives: uniform weight_init needs pop_size >= the number of objectives (one agent per corner "
+            "of the weight simplex at least)"
+        )
     device = select_device(cfg.device)
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),

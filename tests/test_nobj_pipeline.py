@@ -52,7 +52,7 @@ def tiny_hopper(methods: list[str]) -> dict:
     params["train_specialist"] = {**TINY["train_specialist"], "buffer_size": 2000}
     params["train_pderl"] = PDERL_TINY
     params["mopderl"] = MOPDERL_TINY
-    params["morld"] = MORLD_TINY
+    params["morld"] = {**MORLD_TINY, "pop_size": 3}  # uniform weights need one agent per objective at least
     params["extract"] = {**TINY["extract"], "iterations": 3}
     params["evaluate"] = {"episodes": 1}
     for key in ("td3_seeds", "pderl_seeds", "extract_from", "extract_variants", "posthoc_from"):
@@ -137,3 +137,18 @@ def test_every_method_is_scored_in_three_dimensions(hopper3):
     assert list((hopper3 / "data" / "report").glob("front_seed0.*"))
     # a second repro runs nothing: the 3-objective stages are as pure as the 2-objective ones
     assert ran(run([str(BIN / "dvc"), "repro"], hopper3)) == set()
+
+
+def test_morld_needs_an_agent_per_objective(tmp_path, cli):
+    """Uniform MORL/D weights on 3 objectives with 2 agents: one line naming the key and the
+    env, exit 2, before anything is trained (pymoo would fail deep inside otherwise)."""
+    pytest.importorskip("morl_baselines")
+    params = tiny_hopper(["morld"])
+    params["morld"] = {**MORLD_TINY, "pop_size": 2}
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    out = tmp_path / "out"
+    r = cli("morld", "--seed", 0, "--out", out, "--params", path)
+    assert r.exit_code == 2, r.output
+    assert "morld.pop_size = 2" in r.output and "mo-hopper-v5" in r.output and "3 objectives" in r.output
+    assert not (out / "population.pt").exists()
