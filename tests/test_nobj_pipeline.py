@@ -87,9 +87,16 @@ def hopper3(tmp_path_factory) -> Path:
     ):
         run(cmd, root)
     out = run([str(BIN / "dvc"), "repro"], root)
-    assert {"train_specialist", "train_pderl", "fit_critics", "extract", "mopderl", "evaluate", "score", "report"} <= ran(
-        out
-    )
+    assert {
+        "train_specialist",
+        "train_pderl",
+        "fit_critics",
+        "extract",
+        "mopderl",
+        "evaluate",
+        "score",
+        "report",
+    } <= ran(out)
     return root
 
 
