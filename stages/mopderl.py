@@ -27,8 +27,18 @@ from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
 # train_specialist keys phase 2 does not read: the budget is mopderl.total_frames, the buffers
 # are already full (no start timesteps), the networks' shapes come from the artifacts, and
-# the agents run on mopderl.device (cuda_graphs is read: the agents are TD3Learners).
-_UNUSED_TD3_KEYS = {"total_steps", "learning_starts", "hidden_sizes", "secondary_critics", "batched", "device"}
+# the agents run on mopderl.device (cuda_graphs is read: the agents are TD3Learners); keep-best
+# selection is train_specialist's alone.
+_UNUSED_TD3_KEYS = {
+    "total_steps",
+    "learning_starts",
+    "hidden_sizes",
+    "secondary_critics",
+    "batched",
+    "device",
+    "keep_best_every",
+    "keep_best_episodes",
+}
 
 
 def history_csv(records: list[GenerationRecord]) -> str:
@@ -70,8 +80,8 @@ def mopderl(
 
     Params: sections `env`, `objectives` (every objective 0..m-1), `mopderl` (population,
     operators, phase-2 frame budget) and `train_specialist` (the RL agents' TD3
-    hyperparameters and cuda_graphs; its total_steps, learning_starts, hidden_sizes, batched
-    and device are not read). The population starts as every population actor of every
+    hyperparameters and cuda_graphs; its total_steps, learning_starts, hidden_sizes, batched,
+    device and keep_best_* are not read). The population starts as every population actor of every
     specialist's policy set, each evaluated. Each generation makes mopderl.children
     distillation-crossover children of tournament-picked pairs (Pareto rank, then crowding),
     one child per RL agent distilled with its RL actor, and proximally mutated clones; every

@@ -34,8 +34,9 @@ def checkpoint_path(out: Path, k: int) -> Path:
 
 
 # train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
-# RL agent runs on train_pderl.device): left out of the resume fingerprint. cuda_graphs is read.
-_UNUSED_TD3_KEYS = {"total_steps", "batched", "processes", "device"}
+# RL agent runs on train_pderl.device; keep-best selection is train_specialist's alone): left
+# out of the resume fingerprint. cuda_graphs is read.
+_UNUSED_TD3_KEYS = {"total_steps", "batched", "processes", "device", "keep_best_every", "keep_best_episodes"}
 
 
 @reports_errors
@@ -50,7 +51,8 @@ def train_pderl(
     """Train the PDERL specialists of one seed: one PDERL run per objective.
 
     Params: sections `env`, `objectives`, `train_pderl` (population, evolution, budget) and
-    `train_specialist` (the RL agent: TD3 with secondary critics; its total_steps is unused).
+    `train_specialist` (the RL agent: TD3 with secondary critics; its total_steps and
+    keep_best_* are unused).
     Each generation evaluates the population (fitness: return of the specialist's objective),
     evolves it (elites, tournament selection, distillation crossover, proximal mutation), runs
     one noisy RL episode and makes one TD3 update per frame collected (once

@@ -21,7 +21,7 @@ from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
+from pipeline.specialists.td3_training import KeepBest, SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
@@ -52,7 +52,10 @@ def train_specialist(
     Writes OUT/obj{K}/ for each objective K: buffer.zarr (Zarr replay buffer with full reward
     vectors), policy.pt (actor and target actor), critics.pt (all critics, online and target)
     and returns.csv (the undiscounted return vector of every training episode, a learning
-    curve for `dvc plots`).
+    curve for `dvc plots`). With train_specialist.keep_best_every > 0 (off by default: the
+    final actor, as in the paper), policy.pt holds instead the actor that scored best in the
+    deterministic evaluations made every keep_best_every steps and at the end, and
+    keep_best.csv lists every evaluation (step, score, kept).
 
     Every train_specialist.checkpoint_every env steps the specialists trained together save
     their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
@@ -123,6 +126,10 @@ def train_part(
             results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
             for result in results:
                 save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+                if result.keep_best is not None:
+                    send(
+                        "say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result)
+                    )
             Checkpoint(checkpoint_path(out, group), "", print).clear()  # and one a kill cut short
 
 
@@ -208,15 +215,44 @@ def train_group(
         checkpoints = problem is None and (cfg.checkpoint_every > 0 or ckpt.good)
         raise exc.within("train_specialist", ckpt.path if checkpoints else None, ckpt.good) from None
     finally:
-        for env in run.envs:
-            env.close()
+        run.close()
 
 
 def save_td3_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
-    """Write one specialist's four artifacts (each atomically) into `out`."""
+    """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
+    keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check)."""
     meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()}, device)
-    save_specialist(out, meta, result.objective, result)
+    kb = result.keep_best
+    policy_meta = None
+    if kb is not None:
+        policy_meta = {"keep_best": {"step": kb.step, "score": kb.score, "checks": [[t, x] for t, x in kb.checks]}}
+    save_specialist(out, meta, result.objective, result, policy_meta)
     write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
+    if kb is not None:
+        write_text_atomic(out / "keep_best.csv", keep_best_csv(kb))
+
+
+def keep_best_csv(kb: KeepBest) -> str:
+    """Every keep-best check as CSV: step, score (mean deterministic return on the specialist's
+    own objective), kept (1 on the check whose actor policy.pt holds)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["step", "score", "kept"])
+    for t, score in kb.checks:
+        w.writerow([t, f"{score:.6g}", int(t == kb.step)])
+    return buf.getvalue()
+
+
+def kept_line(result: SpecialistResult) -> str:
+    """What keep-best kept, in words."""
+    kb = result.keep_best
+    final_step, final_score = kb.checks[-1]
+    if kb.step is None:
+        return f"keep-best: no check scored a finite return; the final actor (step {final_step}) is kept"
+    return (
+        f"keep-best kept the actor of step {kb.step} (score {kb.score:.1f} over {kb.episodes} deterministic "
+        f"episodes; the final one, step {final_step}: {final_score:.1f})"
+    )
 
 
 def returns_csv(episodes, n_objectives: int) -> str:

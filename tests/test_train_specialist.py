@@ -570,20 +570,32 @@ def assert_same_artifacts(a: Path, b: Path) -> None:
         for key in sx:
             assert torch.equal(sx[key], sy[key]), (k, key)
         assert (a / f"obj{k}" / "returns.csv").read_text() == (b / f"obj{k}" / "returns.csv").read_text()
+        # keep-best (when on): the same kept step, score and checks
+        ka, kb = (torch_load_checked(d / f"obj{k}" / "policy.pt", POLICY_FORMAT, 1)["meta"] for d in (a, b))
+        assert ka.get("keep_best") == kb.get("keep_best"), k
+        csv_a, csv_b = a / f"obj{k}" / "keep_best.csv", b / f"obj{k}" / "keep_best.csv"
+        assert csv_a.exists() == csv_b.exists() == ("keep_best" in ka), k
+        if csv_a.exists():
+            assert csv_a.read_text() == csv_b.read_text()
 
 
 @pytest.mark.parametrize(
-    ("batched", "objective", "die_at", "resumed_at", "checkpoint"),
-    [(True, 0, 250, 210, "specialist_state_obj0-obj1.pt"), (False, 1, 150, 140, "specialist_state_obj1.pt")],
-    ids=["stacked", "one-at-a-time"],
+    ("batched", "objective", "die_at", "resumed_at", "checkpoint", "keep_best_every"),
+    [
+        (True, 0, 250, 210, "specialist_state_obj0-obj1.pt", 0),
+        (False, 1, 150, 140, "specialist_state_obj1.pt", 0),
+        (True, 0, 250, 210, "specialist_state_obj0-obj1.pt", 40),
+    ],
+    ids=["stacked", "one-at-a-time", "stacked-keep-best"],
 )
 def test_killed_stage_resumes_to_identical_artifacts(
-    batched, objective, die_at, resumed_at, checkpoint, tmp_path, write_params, cli, monkeypatch
+    batched, objective, die_at, resumed_at, checkpoint, keep_best_every, tmp_path, write_params, cli, monkeypatch
 ):
     """The stage dies between two checkpoints; the rerun resumes from the last one, takes
     only the steps left, ends with the same bytes as a run never stopped, and removes the
-    checkpoint. One at a time: it dies in the second specialist, after the first was saved."""
-    overrides = {"batched": batched}
+    checkpoint. One at a time: it dies in the second specialist, after the first was saved.
+    Keep-best: checks at 120, 160 and 200 precede the checkpoint, 240, 280 and 300 follow it."""
+    overrides = {"batched": batched, "keep_best_every": keep_best_every}
     ref = run_stage(cli, tmp_path / "ref", write_params, overrides)
     assert ref.exit_code == 0, ref.stderr
     counter = count_steps(monkeypatch, die_at, objective)
@@ -682,12 +694,14 @@ def test_plan_splits_objectives_into_contiguous_parts(objectives, processes, bat
     assert plan(objectives, cfg) == expected
 
 
-def test_side_by_side_processes_give_the_one_at_a_time_bits(tmp_path, write_params, cli):
+@pytest.mark.parametrize("keep_best_every", [0, 40], ids=["final", "keep-best"])
+def test_side_by_side_processes_give_the_one_at_a_time_bits(keep_best_every, tmp_path, write_params, cli):
     """processes: 2 trains each specialist alone in its own worker process: the same bytes as
-    batched: false, which trains them alone one after another in the stage's process."""
-    ref = run_stage(cli, tmp_path / "ref", write_params, {"batched": False})
+    batched: false, which trains them alone one after another in the stage's process (with
+    keep-best: the same kept actors and checks too)."""
+    ref = run_stage(cli, tmp_path / "ref", write_params, {"batched": False, "keep_best_every": keep_best_every})
     assert ref.exit_code == 0, ref.stderr
-    two = run_stage(cli, tmp_path / "two", write_params, {"processes": 2})
+    two = run_stage(cli, tmp_path / "two", write_params, {"processes": 2, "keep_best_every": keep_best_every})
     assert two.exit_code == 0, two.stderr
     assert_same_artifacts(tmp_path / "ref" / "out", tmp_path / "two" / "out")
     assert sorted(p.name for p in (tmp_path / "two" / "out").iterdir()) == ["obj0", "obj1"]

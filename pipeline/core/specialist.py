@@ -47,15 +47,18 @@ def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) 
     }
 
 
-def save_specialist(slot: Path, meta: dict, objective: int, result) -> None:
+def save_specialist(slot: Path, meta: dict, objective: int, result, policy_meta: dict | None = None) -> None:
     """Write an RL agent's buffer.zarr, policy.pt and critics.pt (each atomically) into `slot`.
 
     `result` has buffer, actor, actor_target, critic, critic_target and objectives (a TD3
-    specialist's result, or PDERL's RL agent)."""
+    specialist's result, or PDERL's RL agent). `policy_meta`: keys only policy.pt's metadata
+    gets (a TD3 specialist's `keep_best`)."""
     save_buffer(
         slot / "buffer.zarr", result.buffer, {key: meta[key] for key in _BUFFER_META_KEYS} | {"objective": objective}
     )
-    save_policy(slot / "policy.pt", result.actor, meta | {"objective": objective}, result.actor_target)
+    save_policy(
+        slot / "policy.pt", result.actor, meta | (policy_meta or {}) | {"objective": objective}, result.actor_target
+    )
     save_critics(
         slot / "critics.pt",
         result.critic,

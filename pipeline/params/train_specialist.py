@@ -50,6 +50,25 @@ class TrainSpecialistParams(Strict):
         "replay buffers, RNGs, envs); a rerun with the same params, code, device and threads resumes; 0: off",
     )
 
+    keep_best_every: int = Field(
+        0,
+        ge=0,
+        description="keep-best selection, a deviation from plain TD3 and from the paper (which does not say which "
+        "policy it keeps; off, 0, the default: the final actor). When > 0, after every env step t that is a multiple "
+        "of it and past learning_starts, and after the last step, each specialist's actor is evaluated "
+        "deterministically (keep_best_episodes episodes on an env of its own, mean return on its own objective), and "
+        "the best-scoring actor and its target actor are written instead of the final ones (critics and buffer stay "
+        "final; training itself is unchanged). Why: TD3's policy oscillates late in short trainings, so the final "
+        "weights can score far below the best seen; the TD3 paper's evaluations and Stable-Baselines3's EvalCallback "
+        "(best_model) select the same way",
+    )
+    keep_best_episodes: int = Field(
+        3,
+        ge=1,
+        description="deterministic episodes per keep-best check and specialist (env seeds from seed, objective and "
+        "check index; they cost env steps, no training draws)",
+    )
+
     @model_validator(mode="after")
     def _consistent(self) -> "TrainSpecialistParams":
         if any(h <= 0 for h in self.hidden_sizes):
@@ -58,4 +77,9 @@ class TrainSpecialistParams(Strict):
             raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
         if self.learning_starts >= self.total_steps:
             raise ValueError(f"learning_starts ({self.learning_starts}) must be < total_steps ({self.total_steps})")
+        if self.keep_best_every > self.total_steps:
+            raise ValueError(
+                f"keep_best_every ({self.keep_best_every}) must be <= total_steps ({self.total_steps}); 0 turns "
+                "keep-best off"
+            )
         return self

@@ -22,11 +22,24 @@ mid-episode state, `env_state`), so a run restored after any step goes on bitwis
 uninterrupted one on a CPU. Only MuJoCo envs (behind gymnasium's standard wrappers) can be
 saved mid-episode; `env_checkpoint_problem` says why another cannot. On CUDA the state is
 saved as CPU tensors and restored onto the device (untested here: no GPU).
+
+Keep-best (train_specialist.keep_best_every > 0; off by default, as in the paper and plain
+TD3): after every env step t that is a multiple of keep_best_every and past learning_starts,
+and after the last step (`keep_best_steps`), each specialist's actor is scored by
+keep_best_episodes deterministic episodes (no exploration noise) on an evaluation env of its
+own, reset with seeds derived from (seed, objective, check index) alone: the mean undiscounted
+return on its own objective. A CPU copy of the best-scoring actor and its target actor (the
+earlier on ties; never a non-finite score) is kept, and `results` returns them instead of the
+final ones; critics and buffer stay final. The checks draw from no training stream (the
+training envs, numpy generators, torch generators and torch's global RNG are untouched), so
+the training itself is bitwise the same with keep-best on or off; the snapshots and every
+check's (step, score) are part of `state_dict`.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -35,11 +48,12 @@ import numpy as np
 import torch
 
 from pipeline.core.buffer import StackedReplay
-from pipeline.core.envs import EnvSpec
+from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite, optimizer_state, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.evaluation.episodes import evaluate_policy
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3 import GraphedUpdate, StackedTD3, TD3State, stacked_update
 
@@ -51,6 +65,17 @@ class EpisodeRecord:
     length: int
     returns: np.ndarray  # (n_objectives,) undiscounted
     terminated: bool
+
+
+@dataclass
+class KeepBest:
+    """What keep-best selection (train_specialist.keep_best_every > 0) did for one specialist."""
+
+    every: int  # keep_best_every
+    episodes: int  # keep_best_episodes
+    checks: list[tuple[int, float]]  # (env step, score) of every check, in order; the last is the final actor's
+    step: int | None  # env step of the kept actor; None: no check scored finite, the final actor is kept
+    score: float | None  # its score (mean deterministic return on the specialist's own objective)
 
 
 @dataclass
@@ -66,6 +91,7 @@ class SpecialistResult:
     objectives: list[int]  # objectives its critic ensemble covers, in member order
     buffer: dict[str, np.ndarray]
     episodes: list[EpisodeRecord] = field(default_factory=list)
+    keep_best: KeepBest | None = None  # None: keep-best off, `actor` is the final one
 
 
 def covered_objectives(objective: int, n_objectives: int, secondary: bool) -> tuple[list[int], int]:
@@ -157,6 +183,43 @@ def stack_td3(
     )
 
 
+KEEP_BEST_TAG = 0x6B33_B357  # separates keep-best evaluation seeds from a specialist's training streams
+
+
+def keep_best_due(cfg: TrainSpecialistParams, t: int) -> bool:
+    """Whether a keep-best check follows env step t (t steps taken): t a multiple of
+    keep_best_every past learning_starts, or the last step; never when keep-best is off."""
+    every = cfg.keep_best_every
+    return every > 0 and cfg.learning_starts < t <= cfg.total_steps and (t % every == 0 or t == cfg.total_steps)
+
+
+def keep_best_steps(cfg: TrainSpecialistParams) -> list[int]:
+    """Every env step a keep-best check follows, in order ([] when keep-best is off)."""
+    return [t for t in range(cfg.learning_starts + 1, cfg.total_steps + 1) if keep_best_due(cfg, t)]
+
+
+def keep_best_seeds(seed: int, objective: int, check: int, episodes: int) -> list[int]:
+    """Env reset seeds of keep-best check number `check` (0-based) of specialist (seed, objective)."""
+    return derive_seeds(seed, objective, KEEP_BEST_TAG, check, n=episodes)
+
+
+def keep_best_score(actor: Actor, env: gym.Env, objective: int, seeds: Sequence[int]) -> float:
+    """Mean undiscounted return on `objective` of deterministic episodes of `actor` (CPU), one
+    per seed, one after another on `env`. NaN, without running any episode, if a weight is not
+    finite (MuJoCo would be stepped with NaN actions)."""
+    if not all(bool(torch.isfinite(v).all()) for v in actor.state_dict().values()):
+        return math.nan
+    returns = [evaluate_policy(actor, [env], [int(s)]).returns[0, objective] for s in seeds]
+    return float(np.mean(returns))
+
+
+def unstack_actor(actor: StackedActor, s: int) -> Actor:
+    """Actor s of a stacked set as a CPU `Actor`, leaving torch's global RNG as it was (building
+    an `Actor` draws its throwaway initial weights from it)."""
+    with torch.random.fork_rng(devices=[]):
+        return actor.unstack(s)
+
+
 def exploration_actions(
     actor: StackedActor, obs: np.ndarray, noise_std: float, rngs: Sequence[np.random.Generator]
 ) -> np.ndarray:
@@ -225,7 +288,7 @@ class _Updater:
 
 
 STATE_FORMAT = "mapex.specialists_state"
-STATE_VERSION = 1
+STATE_VERSION = 2  # 2: keep-best checks and snapshots
 
 
 def _cpu(obj: Any) -> Any:
@@ -406,14 +469,20 @@ class SpecialistsRun:
         self._truncated = np.zeros(n, bool)
         self.t = 0  # env steps taken by each specialist
         self.n_updates = 0
+        # keep-best: every check's (step, score) and the best snapshot ({step, score, actor,
+        # actor_target}, CPU state dicts) per specialist; the evaluation envs are built at the first check
+        self.checks: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+        self.best: list[dict[str, Any] | None] = [None] * n
+        self.eval_envs: list[gym.Env] | None = None
 
     @property
     def done(self) -> bool:
         return self.t >= self.cfg.total_steps
 
     def step(self) -> list[EpisodeRecord | None]:
-        """One env step of every specialist (and one update once learning has started);
-        returns, per specialist, the record of the episode this step ended, else None."""
+        """One env step of every specialist (and one update once learning has started, and a
+        keep-best check where `keep_best_due`); returns, per specialist, the record of the
+        episode this step ended, else None."""
         cfg, envs, t = self.cfg, self.envs, self.t
         if t < cfg.learning_starts:
             actions = np.stack([np.asarray(env.action_space.sample(), dtype=np.float32) for env in envs])
@@ -443,7 +512,47 @@ class SpecialistsRun:
         self.t = t + 1
         if t >= cfg.learning_starts and due(self.n_updates):
             self.check_finite()
+        if keep_best_due(cfg, self.t):
+            self.keep_best_check()
         return records
+
+    def keep_best_check(self) -> None:
+        """Score every specialist's current actor (`keep_best_score`, on its own evaluation env,
+        seeds from (seed, objective, check index)); record (step, score) and keep a CPU copy of
+        the actor and its target actor if the score is finite and beats the best so far."""
+        if self.eval_envs is None:
+            self.eval_envs = [make_env(self.spec.env_id, self.spec.max_episode_steps) for _ in self.jobs]
+        for s, ((seed, objective), env) in enumerate(zip(self.jobs, self.eval_envs)):
+            seeds = keep_best_seeds(seed, objective, len(self.checks[s]), self.cfg.keep_best_episodes)
+            actor = unstack_actor(self.state.actor, s)
+            score = keep_best_score(actor, env, objective, seeds)
+            self.checks[s].append((self.t, score))
+            best = self.best[s]
+            if math.isfinite(score) and (best is None or score > best["score"]):
+                self.best[s] = {
+                    "step": self.t,
+                    "score": score,
+                    "actor": actor.state_dict(),
+                    "actor_target": unstack_actor(self.state.actor_target, s).state_dict(),
+                }
+
+    def keep_best_record(self, s: int) -> KeepBest | None:
+        """Specialist s's keep-best record so far (None when keep-best is off)."""
+        if not self.cfg.keep_best_every:
+            return None
+        best = self.best[s]
+        return KeepBest(
+            every=self.cfg.keep_best_every,
+            episodes=self.cfg.keep_best_episodes,
+            checks=list(self.checks[s]),
+            step=None if best is None else best["step"],
+            score=None if best is None else best["score"],
+        )
+
+    def close(self) -> None:
+        """Close the training envs and the evaluation envs."""
+        for env in [*self.envs, *(self.eval_envs or [])]:
+            env.close()
 
     def check_finite(self, full: bool = False) -> None:
         """Raise TrainingDiverged, naming the specialist (seed, objective) it found it in, if
@@ -463,22 +572,32 @@ class SpecialistsRun:
         raise TrainingDiverged(*bad, self.t, seed=seed, objective=objective)
 
     def results(self) -> list[SpecialistResult]:
+        """Each specialist's networks (the final ones; with keep-best, the kept actor and its
+        target actor), buffer rows and episode history."""
         state, n = self.state, len(self.jobs)
         e = state.critic.n_members // n
-        return [
-            SpecialistResult(
-                seed=seed,
-                objective=objective,
-                actor=state.actor.unstack(s),
-                actor_target=state.actor_target.unstack(s),
-                critic=state.critic.subset(s * e, (s + 1) * e).cpu(),
-                critic_target=state.critic_target.subset(s * e, (s + 1) * e).cpu().requires_grad_(False),
-                objectives=state.reward_index[s].tolist(),
-                buffer=self.buffer.chronological(s),
-                episodes=self.episodes[s],
+        out = []
+        for s, (seed, objective) in enumerate(self.jobs):
+            actor, actor_target = state.actor.unstack(s), state.actor_target.unstack(s)
+            best = self.best[s] if self.cfg.keep_best_every else None
+            if best is not None:
+                actor.load_state_dict(best["actor"])
+                actor_target.load_state_dict(best["actor_target"])
+            out.append(
+                SpecialistResult(
+                    seed=seed,
+                    objective=objective,
+                    actor=actor,
+                    actor_target=actor_target,
+                    critic=state.critic.subset(s * e, (s + 1) * e).cpu(),
+                    critic_target=state.critic_target.subset(s * e, (s + 1) * e).cpu().requires_grad_(False),
+                    objectives=state.reward_index[s].tolist(),
+                    buffer=self.buffer.chronological(s),
+                    episodes=self.episodes[s],
+                    keep_best=self.keep_best_record(s),
+                )
             )
-            for s, (seed, objective) in enumerate(self.jobs)
-        ]
+        return out
 
     # -- checkpoints ----------------------------------------------------------------------
 
@@ -522,6 +641,15 @@ class SpecialistsRun:
                 "cuda": torch.cuda.get_rng_state(self.device) if cuda else None,
             },
             "envs": [env_state(env) for env in self.envs],
+            # the evaluation envs hold nothing between checks: every episode starts with a seeded reset
+            "keep_best": [
+                {
+                    "check_step": torch.tensor([t for t, _ in checks], dtype=torch.int64),
+                    "check_score": torch.tensor([x for _, x in checks], dtype=torch.float64),
+                    "best": None if best is None else _cpu(best),
+                }
+                for checks, best in zip(self.checks, self.best)
+            ],
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -571,6 +699,7 @@ class SpecialistsRun:
                 if rng["cuda"] is not None:
                     torch.cuda.set_rng_state(rng["cuda"], self.device)
             torch.set_rng_state(rng["torch"])
+            self._load_keep_best(state["keep_best"])
         except (RuntimeError, KeyError, TypeError) as exc:
             raise ValueError(f"state does not fit this run ({type(exc).__name__}: {exc})") from None
         if len(self.episodes) != len(self.jobs):
@@ -579,6 +708,30 @@ class SpecialistsRun:
             )
         c = state["counters"]
         self.t, self.n_updates = int(c["t"]), int(c["n_updates"])
+
+    def _load_keep_best(self, saved: list[dict[str, Any]]) -> None:
+        """Restore the keep-best checks and snapshots of `state_dict` (each snapshot tried on an
+        actor of this run's architecture)."""
+        if len(saved) != len(self.jobs):
+            raise ValueError(
+                f"state holds the keep-best checks of {len(saved)} specialists, the run trains {len(self.jobs)}"
+            )
+        checks, best = [], []
+        for s, item in enumerate(saved):
+            steps, scores = item["check_step"].tolist(), item["check_score"].tolist()
+            if len(steps) != len(scores):
+                raise ValueError(f"keep-best checks of specialist {s}: {len(steps)} steps, {len(scores)} scores")
+            checks.append([(int(t), float(x)) for t, x in zip(steps, scores)])
+            b = item["best"]
+            if b is not None:
+                for name, stacked in (("actor", self.state.actor), ("actor_target", self.state.actor_target)):
+                    unstack_actor(stacked, s).load_state_dict(b[name])
+                b = {"step": int(b["step"]), "score": float(b["score"])} | {
+                    name: _cpu(b[name])
+                    for name in ("actor", "actor_target")  # copies: the state may be memory-mapped
+                }
+            best.append(b)
+        self.checks, self.best = checks, best
 
 
 def continue_training(
