@@ -103,6 +103,8 @@ def test_three_objective_presets():
         assert all(raw["extract"].get(k) is not None for k in ("epochs", "beta", "omega_max")), path
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
         assert ts.secondary_critics
+        # DVC refuses a stage whose params section is missing (it does not take the defaults)
+        assert {"train_specialist", "critic_fidelity", "extract", "evaluate", "score", "report"} <= set(raw), path
         if not path.stem.endswith("-quick"):
             assert ts == TrainSpecialistParams(total_steps=2_000_000)
             ex = section(raw, "extract", ExtractParams, path)
