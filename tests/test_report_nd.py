@@ -454,3 +454,33 @@ def box_union_volume(points: np.ndarray, ref: np.ndarray) -> float:
         if (p >= upper).all(axis=1).any():
             total += float(np.prod([e[i + 1] - e[i] for e, i in zip(edges, cell)]))
     return total
+
+
+def test_grid_fronts_figure_projects_a_three_objective_cell_and_keeps_two_objective_cells():
+    """The sweep's grid report: a 3-objective cell shows its front points (non-dominated in all 3)
+    projected onto objectives 0 and 1, titled as a projection; a 2-objective cell keeps its
+    staircase line and generic labels."""
+    from pipeline.reporting.grid import Cell, grid_fronts_figure
+
+    rng = np.random.default_rng(5)
+    three = fake_run("mapex_td3", rng.uniform(0, 10, size=(12, 3)), 3)
+    two = two_objective_runs()["mapex_td3"]
+    cells = [
+        Cell("mo-hopper-v5", "mo-hopper-v5", [three], names=["x velocity", "jump height", "energy efficiency"]),
+        Cell("mo-halfcheetah-v5", "mo-halfcheetah-v5", [two]),
+    ]
+    fig = grid_fronts_figure(cells, 8.0)
+    ax3, ax2 = fig.axes[:2]
+    assert ax3.get_title() == "mo-hopper-v5 (projection of 3 objectives)"
+    assert (ax3.get_xlabel(), ax3.get_ylabel()) == ("x velocity", "jump height")
+    assert not ax3.get_lines()
+    offsets = np.asarray(ax3.collections[0].get_offsets())
+    np.testing.assert_allclose(offsets, three.returns[three.on_front][:, :2])
+    assert ax2.get_title() == "mo-halfcheetah-v5" and (ax2.get_xlabel(), ax2.get_ylabel()) == (
+        "objective 0",
+        "objective 1",
+    )
+    (line,) = ax2.get_lines()
+    x, y = step_line(two.returns[two.on_front])
+    np.testing.assert_allclose(line.get_xdata(), x)
+    np.testing.assert_allclose(line.get_ydata(), y)

@@ -94,22 +94,26 @@ def grid_provenance_table(cells: list[Cell]) -> str:
 
 
 def grid_fronts_figure(cells: list[Cell], width: float) -> Figure:
-    """One panel per cell: every method's re-evaluated front, one line per seed (same colour)."""
+    """One panel per cell: every method's re-evaluated front, one line per seed (same colour).
+
+    A cell with three or more objectives has no front line in two dimensions: its panel shows
+    the front's points (non-dominated in all objectives) projected onto objectives 0 and 1, and
+    says so; the per-cell report (stage `report`) has every pair and a 3-D view."""
     fig, _, axes = _panels(len(cells), width, 0.9)
     for ax, c in zip(axes, cells):
+        m = max((r.returns.shape[1] for r in c.runs), default=2)
+        names = c.names or [f"objective {k}" for k in range(m)]
         for v in methods_in(c.runs):
             for i, r in enumerate(sorted((r for r in c.runs if r.method == v), key=lambda r: r.seed)):
-                _front_line(
-                    ax,
-                    r.returns[r.on_front, :2],
-                    color=colour(v),
-                    lw=1.1,
-                    alpha=0.8,
-                    label=label(v) if i == 0 else None,
-                )
-        ax.set_title(c.name, fontsize="medium")
-        ax.set_xlabel("objective 0")
-        ax.set_ylabel("objective 1")
+                kw = {"color": colour(v), "alpha": 0.8, "label": label(v) if i == 0 else None}
+                if m > 2:
+                    pts = r.returns[r.on_front]
+                    ax.scatter(pts[:, 0], pts[:, 1], s=14, **kw)
+                else:
+                    _front_line(ax, r.returns[r.on_front, :2], lw=1.1, **kw)
+        ax.set_title(c.name if m <= 2 else f"{c.name} (projection of {m} objectives)", fontsize="medium")
+        ax.set_xlabel(names[0] if m > 2 else "objective 0")
+        ax.set_ylabel(names[1] if m > 2 else "objective 1")
         ax.grid(alpha=0.3)
     _shared_legend(fig, axes)
     fig.suptitle("Re-evaluated fronts per cell (one line per seed)")
