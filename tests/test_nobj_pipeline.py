@@ -12,32 +12,15 @@ from __future__ import annotations
 
 import copy
 import json
-import os
-import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from dvc_repo import DVC, make_repo, ran, run
 from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY, with_lists
 
-ROOT = Path(__file__).resolve().parents[1]
-BIN = Path(sys.executable).parent
 HOPPER_REF = [-100.0, -3390.0, -1510.0]  # presets/reference_points.yaml
-
-
-def run(cmd: list[str], cwd: Path) -> str:
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(ROOT)}
-    r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
-    assert r.returncode == 0, f"{' '.join(cmd)} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
-    return r.stdout + r.stderr
-
-
-def ran(output: str) -> set[str]:
-    return {m.split("@")[0] for m in re.findall(r"Running stage '([^']+)'", output)}
 
 
 def tiny_hopper(methods: list[str]) -> dict:
@@ -63,25 +46,9 @@ def tiny_hopper(methods: list[str]) -> dict:
 
 @pytest.fixture(scope="module")
 def hopper3(tmp_path_factory) -> Path:
-    if shutil.which("dvc", path=str(BIN)) is None:
-        pytest.fail(f"dvc is not installed next to {sys.executable}")
-    root = tmp_path_factory.mktemp("hopper3")
-    for name in ("pipeline", "stages"):
-        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     methods = ["mapex_td3", "warmup_only_td3", "mapex_posthoc_td3"]
-    (root / "params.yaml").write_text(yaml.safe_dump(tiny_hopper(methods)))
-    (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
-    for cmd in (
-        ["git", "init", "-q"],
-        ["git", "config", "user.email", "t@example.com"],
-        ["git", "config", "user.name", "t"],
-        [str(BIN / "dvc"), "init", "-q"],
-        ["git", "add", "-A"],
-        ["git", "commit", "-qm", "hopper3"],
-    ):
-        run(cmd, root)
-    out = run([str(BIN / "dvc"), "repro"], root)
+    root = make_repo(tmp_path_factory.mktemp("hopper3"), tiny_hopper(methods))
+    out = run([DVC, "repro"], root)
     assert ran(out) == {
         "train_specialist",
         "critic_fidelity",
@@ -137,7 +104,7 @@ def test_every_method_is_scored_in_three_dimensions(hopper3):
         assert name in report, name
     assert list((hopper3 / "data" / "report").glob("front_seed0.*"))
     # a second repro runs nothing: the 3-objective stages are as pure as the 2-objective ones
-    assert ran(run([str(BIN / "dvc"), "repro"], hopper3)) == set()
+    assert ran(run([DVC, "repro"], hopper3)) == set()
 
 
 def test_morld_needs_an_agent_per_objective(tmp_path, cli):

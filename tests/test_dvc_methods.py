@@ -1,0 +1,91 @@
+"""Every method through one evaluate -> score -> report chain, in a temporary git + DVC copy of
+the repository: TD3 and PDERL specialists, the extraction variants from both, post-hoc critics
+and the baselines (MORL/D when its optional extra is installed); then an edit to MAPEX's code
+leaves everything but extraction up to date."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+
+from dvc_repo import BIN, make_repo, ran, run
+from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
+
+
+# Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the
+# extraction variants from both, and the baselines (MORL/D when its optional extra is installed).
+def test_every_method_is_scored_by_one_chain(tmp_path_factory):
+    try:
+        import morl_baselines  # noqa: F401
+
+        baselines = ["mopderl", "morld"]
+    except ImportError:  # the optional extra is not installed: the chain without MORL/D
+        baselines = ["mopderl"]
+    methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
+    params = {
+        **TINY,
+        "pderl_seeds": [0],
+        "extract_from": ["td3", "pderl"],
+        "extract_variants": ["mapex"],
+        "posthoc_from": ["td3", "pderl"],
+        "mopderl_seeds": [0],
+        "morld_seeds": [0] if "morld" in baselines else [],
+        "methods": methods,
+        "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+        "train_pderl": PDERL_TINY,
+        "mopderl": MOPDERL_TINY,
+        "morld": MORLD_TINY,
+        "extract": {**TINY["extract"], "iterations": 1},
+        "evaluate": {"episodes": 1},
+    }
+    root = make_repo(tmp_path_factory.mktemp("methods"), params)
+    out = run([str(BIN / "dvc"), "repro"], root)
+    assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
+    for m in methods:
+        metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
+        assert metrics["method"] == m and metrics["front"]["cardinality"] >= 1
+    # PDERL's policy sets start the PDERL methods (population + RL actor per objective); TD3 one each
+    assert (
+        json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())[
+            "starting_policies"
+        ]
+        == 8
+    )
+    assert (
+        json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"]
+        == 2
+    )
+    report = (root / "data" / "report" / "report.md").read_text()
+    for name in (
+        "| MAPEX |",
+        "| MAPEX-PostHoc |",
+        "| MAPEX-TD3 |",
+        "| MOPDERL |",
+        "| PDERL specialists only |",
+        "| TD3 specialists only |",
+        "MAPEX (PDERL specialists)",
+        "Sample efficiency",
+        "| MAPEX | MOPDERL |",
+    ):
+        assert name in report, name
+    if "morld" in baselines:
+        assert "| MORL/D |" in report
+    assert ran(run([str(BIN / "dvc"), "repro"], root)) == set()
+
+    # an edit to MAPEX's code (pipeline/extraction/) leaves the specialists, the post-hoc
+    # critics and the baselines up to date: only extraction and what reads its fronts rerun
+    with open(root / "pipeline" / "extraction" / "mapex.py", "a") as fh:
+        fh.write("\n# an edit\n")
+    status = json.loads(
+        subprocess.run(
+            [str(BIN / "dvc"), "status", "--json"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            env={**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"},
+        ).stdout
+    )
+    stale = {name.split("@")[0] for name in status}
+    assert "extract" in stale and "extract_posthoc" in stale
+    assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale
