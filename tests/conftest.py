@@ -125,3 +125,27 @@ def cli() -> Callable[..., Any]:
 def mapex() -> Callable[..., subprocess.CompletedProcess]:
     """Runner: mapex("train-specialist", "--objective", 0, ..., cwd=dir) -> CompletedProcess."""
     return _run_mapex
+
+
+# The test files that take longest (about 40 s to 3 min each on the 2-core machine), longest
+# first. `make test` runs the suite in two pytest-xdist workers, each file whole in one worker
+# (--dist loadfile), handed out in collection order; starting with these keeps one worker from
+# being left with a long file at the end while the other idles.
+SLOWEST_FILES = (
+    "test_sweep.py",
+    "test_dvc_methods.py",
+    "test_nobj_pipeline.py",
+    "test_import_export.py",
+    "test_dvc_pipeline.py",
+    "test_train_specialist.py",
+    "test_extract_stage.py",
+    "test_policy_sets.py",
+    "test_payoff_scripts.py",
+    "test_extract_inputs.py",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Run the slowest files first (a stable sort: the order within a file and among the rest is kept)."""
+    rank = {name: i for i, name in enumerate(SLOWEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(SLOWEST_FILES)))
