@@ -9,12 +9,14 @@ import json
 import os
 import subprocess
 
+import pytest
 from dvc_repo import BIN, make_repo, ran, run
 from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
 
 
 # Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the
 # extraction variants from both, and the baselines (MORL/D when its optional extra is installed).
+@pytest.mark.slow  # every method's stages through DVC: `make test-slow` (CI runs it)
 def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     try:
         import morl_baselines  # noqa: F401

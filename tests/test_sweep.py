@@ -321,6 +321,7 @@ def swept(cluster, source, tmp_path_factory):
     return base, result, (serial / "dvc.lock").read_bytes()
 
 
+@pytest.mark.slow  # a Ray cluster and whole sweeps: `make test-slow` (CI runs it)
 def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster):
     base, result, serial = swept
     assert result.exit_code == 0, result.output
@@ -338,6 +339,7 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster)
     assert [p for p in (base / "scratch").rglob("*") if p.is_dir() and p.parent != base / "scratch"] == []
 
 
+@pytest.mark.slow  # a Ray cluster and whole sweeps: `make test-slow` (CI runs it)
 def test_a_second_sweep_runs_nothing(swept, source):
     base, _, _ = swept
     ws = base / "work" / "mo-hopper-2obj-v5"
@@ -349,6 +351,7 @@ def test_a_second_sweep_runs_nothing(swept, source):
     assert (ws / "dvc.lock").read_bytes() == lock
 
 
+@pytest.mark.slow  # a Ray cluster and whole sweeps: `make test-slow` (CI runs it)
 def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
     """Another grid, up to critic_fidelity@0-td3-0: 2 envs x 2 override sets (`b` changes
     critic_fidelity.episodes). hopper.a has the first sweep's params (another cell name), so its
@@ -404,6 +407,7 @@ def test_a_grid_of_two_envs_shares_and_restores_runs(swept, source, tmp_path):
 SHARED = ("train_specialist@0", "critic_fidelity@0-td3-0")
 
 
+@pytest.mark.slow  # a Ray cluster and whole sweeps: `make test-slow` (CI runs it)
 def test_a_failing_stage_is_reported_not_retried_and_its_downstream_not_run(cluster, source, tmp_path):
     grid = write_grid(
         tmp_path / "bad.yaml",
@@ -457,6 +461,7 @@ def s3_server():
     server.stop()
 
 
+@pytest.mark.slow  # a Ray cluster and whole sweeps: `make test-slow` (CI runs it)
 def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_path, s3_server):
     """The first sweep's cell up to critic_fidelity@0-td3-0 again, with an S3-compatible remote: the
     stages compute (the bucket's run-cache is empty), their lock entries equal the local-remote
