@@ -1,5 +1,5 @@
 # Two entry points for a fresh machine (see README):
-#   make repro   install into .venv, then run the whole pipeline (dvc repro on params.yaml)
+#   make repro   install into .venv, sync params.yaml's run lists, then run the whole pipeline (dvc repro)
 #   make test    install into .venv, then run the test suite
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #
@@ -30,7 +30,11 @@ install: $(BIN)/python
 	$(BIN)/pip install -q "$(TORCH_SPEC)" -e . > $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install failed (log: $(VENV)/install.log)"; exit 1; }
 
+# The run lists dvc.yaml fans out over are derived from `methods` and `seeds`: synced first, so
+# editing those two is all a user does before `make repro` (plain `dvc repro` needs
+# `mapex sync-params` after such an edit; every stage names it when the lists are stale).
 repro: install
+	PATH="$(CURDIR)/$(BIN):$$PATH" mapex sync-params
 	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
 
 test: install

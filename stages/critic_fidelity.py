@@ -16,7 +16,7 @@ from pipeline.params.critic_fidelity import CriticFidelityParams
 from stages.common import PARAMS_OPTION, reports_errors
 
 # Which params section of a critics file's meta holds the discount it was trained with.
-_GAMMA_SECTION = {"joint": "train_specialist", "posthoc": "fit_critics"}
+_GAMMA_SECTION = {"joint": "td3", "posthoc": "fit_critics"}
 
 
 def trained_gamma(path: Path, meta: dict[str, Any]) -> float:

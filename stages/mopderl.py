@@ -20,27 +20,11 @@ from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import load_slots
 from pipeline.params import RunParams, section
 from pipeline.params.mopderl import MopderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.pderl import EpisodeResult
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
-# train_specialist keys phase 2 does not read: the budget is mopderl.total_frames, the buffers
-# are already full (no start timesteps), the networks' shapes come from the artifacts, and
-# the agents run on mopderl.device (cuda_graphs is read: the agents are TD3Learners); keep-best
-# selection is train_specialist's alone.
-_UNUSED_TD3_KEYS = {
-    "total_steps",
-    "learning_starts",
-    "hidden_sizes",
-    "secondary_critics",
-    "batched",
-    "device",
-    "keep_best_every",
-    "keep_best_episodes",
-}
-
-
 def history_csv(records: list[GenerationRecord]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
@@ -79,9 +63,9 @@ def mopderl(
     """MOPDERL phase 2 (the baseline): evolve the merged PDERL populations towards a Pareto front.
 
     Params: sections `env`, `objectives` (every objective 0..m-1), `mopderl` (population,
-    operators, phase-2 frame budget) and `train_specialist` (the RL agents' TD3
-    hyperparameters and cuda_graphs; its total_steps, learning_starts, hidden_sizes, batched,
-    device and keep_best_* are not read). The population starts as every population actor of every
+    operators, phase-2 frame budget) and `td3` (the RL agents' TD3 hyperparameters and
+    cuda_graphs; learning_starts, hidden_sizes and secondary_critics come with the PDERL
+    specialists). The population starts as every population actor of every
     specialist's policy set, each evaluated. Each generation makes mopderl.children
     distillation-crossover children of tournament-picked pairs (Pareto rank, then crowding),
     one child per RL agent distilled with its RL actor, and proximally mutated clones; every
@@ -116,7 +100,7 @@ def mopderl(
     """
     raw, env_p, cfg = read_params(params, "mopderl", MopderlParams)
     run_p = section(raw, "", RunParams, params)
-    td3 = section(raw, "train_specialist", TrainSpecialistParams, params)
+    td3 = section(raw, "td3", TD3Params, params)
     cfg = cfg.resolved(env_p.id)
     env = make_env(env_p.id, env_p.max_episode_steps)
     try:
@@ -131,7 +115,9 @@ def mopderl(
         config = {
             "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
             "mopderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
-            "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
+            # all of td3: the keys phase 2 does not read (learning_starts, hidden_sizes,
+            # secondary_critics) change the PDERL specialists it starts from, so the run anyway
+            "td3": td3.model_dump(),
             "seed": seed,
         }
         ckpt = Checkpoint(

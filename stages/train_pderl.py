@@ -19,11 +19,11 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
-from stages.common import PARAMS_OPTION, progress, reports_errors, run_parts
+from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
 
@@ -31,12 +31,6 @@ CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
 def checkpoint_path(out: Path, k: int) -> Path:
     """Objective k's checkpoint: in .<OUT's name>.resume beside OUT (pipeline.core.resume.checkpoint_dir)."""
     return checkpoint_dir(out, inside=False) / f"{CHECKPOINT_PREFIX}obj{k}.pt"
-
-
-# train_specialist keys PDERL does not read (its budget is train_pderl.total_frames; its one
-# RL agent runs on train_pderl.device; keep-best selection is train_specialist's alone): left
-# out of the resume fingerprint. cuda_graphs is read.
-_UNUSED_TD3_KEYS = {"total_steps", "batched", "processes", "device", "keep_best_every", "keep_best_episodes"}
 
 
 @reports_errors
@@ -51,8 +45,7 @@ def train_pderl(
     """Train the PDERL specialists of one seed: one PDERL run per objective.
 
     Params: sections `env`, `objectives`, `train_pderl` (population, evolution, budget) and
-    `train_specialist` (the RL agent: TD3 with secondary critics; its total_steps and
-    keep_best_* are unused).
+    `td3` (the RL agent: TD3 with secondary critics).
     Each generation evaluates the population (fitness: return of the specialist's objective),
     evolves it (elites, tournament selection, distillation crossover, proximal mutation), runs
     one noisy RL episode and makes one TD3 update per frame collected (once
@@ -79,14 +72,12 @@ def train_pderl(
     generation and what went bad, and exit code 3; that objective writes nothing and its last
     good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    raw = load_params(params)
-    env_p = section(raw, "env", EnvParams, params)
-    td3 = section(raw, "train_specialist", TrainSpecialistParams, params)
-    cfg = section(raw, "train_pderl", TrainPderlParams, params)
+    raw, env_p, cfg = read_params(params, "train_pderl", TrainPderlParams)
+    td3 = section(raw, "td3", TD3Params, params)
     objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
     if td3.learning_starts >= cfg.total_frames:
         raise ParamsError(
-            f"{params}: train_specialist.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
+            f"{params}: td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
             f"({cfg.total_frames}), or the RL agent is never trained"
         )
     probe = make_env(env_p.id, env_p.max_episode_steps)
@@ -123,7 +114,7 @@ def train_part(
     seed: int,
     spec: EnvSpec,
     env_p: EnvParams,
-    td3: TrainSpecialistParams,
+    td3: TD3Params,
     cfg: TrainPderlParams,
     device,
     threads: int,
@@ -140,13 +131,13 @@ def train_part(
 
 
 def run_config(
-    seed: int, objective: int, env_p: EnvParams, td3: TrainSpecialistParams, cfg: TrainPderlParams
+    seed: int, objective: int, env_p: EnvParams, td3: TD3Params, cfg: TrainPderlParams
 ) -> dict[str, Any]:
     """What a PDERL run depends on besides code, device and threads (pipeline.core.resume.
     run_fingerprint): the params it reads, seed and objective."""
     return {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
-        "train_specialist": td3.model_dump(exclude=_UNUSED_TD3_KEYS),
+        "td3": td3.model_dump(),
         "train_pderl": cfg.model_dump(exclude={"checkpoint_every", "device", "processes"}),
         "seed": seed,
         "objective": objective,
@@ -160,7 +151,7 @@ def train_one(
     seed: int,
     spec: EnvSpec,
     env_p: EnvParams,
-    td3: TrainSpecialistParams,
+    td3: TD3Params,
     cfg: TrainPderlParams,
     device: torch.device,
     send,
@@ -203,14 +194,14 @@ def save_pderl(
     result: PderlResult,
     spec: EnvSpec,
     env_p: EnvParams,
-    td3: TrainSpecialistParams,
+    td3: TD3Params,
     cfg: TrainPderlParams,
     device,
 ) -> None:
     """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
     those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
     k = result.objective
-    params = {"train_specialist": td3.model_dump(), "train_pderl": cfg.model_dump()}
+    params = {"td3": td3.model_dump(), "train_pderl": cfg.model_dump()}
     meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
     meta |= {"trainer": "pderl", "env_frames": result.frames}
     save_specialist(out, meta, k, result)

@@ -20,7 +20,8 @@ from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
+from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 from pipeline.specialists.td3_training import KeepBest, SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
@@ -39,9 +40,9 @@ def train_specialist(
 ) -> None:
     """Train the TD3 specialists of one seed, one per objective of a multi-objective env.
 
-    Params: sections `env`, `objectives` and `train_specialist`. Each specialist's primary
-    critic drives its actor while secondary critics for every other objective learn from the
-    same batches (train_specialist.secondary_critics). With train_specialist.batched (the
+    Params: sections `env`, `objectives`, `td3` (the agent) and `train_specialist` (the run).
+    Each specialist's primary critic drives its actor while secondary critics for every other
+    objective learn from the same batches (td3.secondary_critics). With train_specialist.batched (the
     default) all specialists train in lockstep in this one process, their networks stacked so
     one batched update serves all; each still has its own env, buffer, seeds and minibatches,
     exactly as if trained alone. batched: false trains them one after another.
@@ -71,6 +72,11 @@ def train_specialist(
     nothing and their last good checkpoint stays (docs/manual.md, "When training diverges").
     """
     raw, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
+    td3 = section(raw, "td3", TD3Params, params)
+    try:
+        check_against_td3(cfg, td3)
+    except ValueError as exc:
+        raise ParamsError(f"{params}: {exc}") from None
     objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
     probe = make_env(env_p.id, env_p.max_episode_steps)
     spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
@@ -89,7 +95,7 @@ def train_specialist(
     with bar:
         run_parts(
             train_part,
-            [(out, part, seed, spec, env_p, cfg, device, names) for part in parts],
+            [(out, part, seed, spec, env_p, td3, cfg, device, names) for part in parts],
             bar,
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
@@ -110,6 +116,7 @@ def train_part(
     seed: int,
     spec,
     env_p: EnvParams,
+    td3: TD3Params,
     cfg: TrainSpecialistParams,
     device,
     names: Sequence[str],
@@ -123,9 +130,9 @@ def train_part(
     with sigterm_deferred():  # SIGTERM: checkpoint after the current step and stop
         for group in groups:
             what = ", ".join(f"obj {k} ({names[k]})" for k in group)
-            results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
+            results = train_group(out, group, what, seed, spec, env_p, td3, cfg, device, send)
             for result in results:
-                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg, device)
                 if result.keep_best is not None:
                     send(
                         "say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result)
@@ -150,7 +157,9 @@ def remove_stale_checkpoints(out: Path, trained: Sequence[int]) -> None:
             path.unlink(missing_ok=True)
 
 
-def run_config(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpecialistParams) -> dict[str, Any]:
+def run_config(
+    seed: int, group: Sequence[int], env_p: EnvParams, td3: TD3Params, cfg: TrainSpecialistParams
+) -> dict[str, Any]:
     """What the run of specialists (seed, k) for k in `group`, stacked, depends on besides code,
     device and threads (pipeline.core.resume.run_fingerprint): the params it reads, seed and
     objectives. Not checkpoint_every (when to save changes nothing saved), device (the device
@@ -158,6 +167,7 @@ def run_config(seed: int, group: Sequence[int], env_p: EnvParams, cfg: TrainSpec
     the same in a worker process as in the stage's own)."""
     return {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "td3": td3.model_dump(),
         "train_specialist": cfg.model_dump(exclude={"checkpoint_every", "device", "batched", "processes"}),
         "seed": seed,
         "objectives": list(group),
@@ -171,6 +181,7 @@ def train_group(
     seed: int,
     spec,
     env_p: EnvParams,
+    td3: TD3Params,
     cfg: TrainSpecialistParams,
     device: torch.device,
     send,
@@ -179,11 +190,13 @@ def train_group(
     fits, checkpointing every cfg.checkpoint_every steps. Progress goes to `send` (see Relay),
     in batches of about PROGRESS_EVERY steps."""
     jobs = [(seed, k) for k in group]
-    fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, cfg), device)
+    fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, td3, cfg), device)
     ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
 
     def fresh() -> SpecialistsRun:
-        return SpecialistsRun([make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, cfg, jobs, device)
+        return SpecialistsRun(
+            [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device
+        )
 
     probe = make_env(env_p.id, env_p.max_episode_steps)
     problem = env_checkpoint_problem(probe)
@@ -218,10 +231,13 @@ def train_group(
         run.close()
 
 
-def save_td3_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
+def save_td3_specialist(
+    out: Path, result: SpecialistResult, spec, env_p, td3: TD3Params, cfg: TrainSpecialistParams, device
+) -> None:
     """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
     keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check)."""
-    meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()}, device)
+    params = {"td3": td3.model_dump(), "train_specialist": cfg.model_dump()}
+    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
     kb = result.keep_best
     policy_meta = None
     if kb is not None:

@@ -23,6 +23,7 @@ RUN_KEYS = tuple(RunParams.model_fields)  # the top-level lists, validated toget
 KNOWN_SECTIONS = (
     "env",
     *RUN_KEYS,
+    "td3",
     "train_specialist",
     "train_pderl",
     "import_specialists",
@@ -37,6 +38,31 @@ KNOWN_SECTIONS = (
     "morld",
 )
 
+# Keys that moved to another section: an old params file that still has one where it was gets a
+# line naming the key and its new home (instead of an "unknown key", or worse, a stage that
+# reads the new home and silently takes its default). The TD3 agent's settings moved from
+# train_specialist to td3 (pipeline/params/td3.py), which train_pderl and mopderl read too.
+MOVED_KEYS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "train_specialist": (
+        "td3",
+        (
+            "learning_starts",
+            "buffer_size",
+            "batch_size",
+            "hidden_sizes",
+            "actor_lr",
+            "critic_lr",
+            "gamma",
+            "tau",
+            "exploration_noise",
+            "policy_noise",
+            "noise_clip",
+            "policy_freq",
+            "secondary_critics",
+            "cuda_graphs",
+        ),
+    ),
+}
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -59,6 +85,12 @@ def load_params(path: str | Path) -> dict[str, Any]:
     unknown = sorted(set(raw) - set(KNOWN_SECTIONS))
     if unknown:
         raise ParamsError(f"{path}: unknown top-level key(s) {unknown}; expected some of {list(KNOWN_SECTIONS)}")
+    for old, (new, keys) in MOVED_KEYS.items():
+        body = raw.get(old)
+        moved = [k for k in keys if isinstance(body, dict) and k in body]
+        if moved:
+            where = ", ".join(f"{old}.{k} -> {new}.{k}" for k in moved)
+            raise ParamsError(f"{path}: key(s) moved to section `{new}` (read by every stage that uses them): {where}")
     return raw
 
 

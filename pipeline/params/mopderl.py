@@ -5,7 +5,7 @@ train_pderl. Phase 2, configured here, merges their populations and evolves them
 NSGA-II selection and multi-objective distillation crossover while both RL agents keep
 training. The RL agents are this project's TD3 with secondary critics, so their
 hyperparameters (learning rates, batch, replay capacity, noise, ...) are read from the
-`train_specialist` section, exactly as train_pderl reads them for phase 1.
+`td3` section, exactly as train_pderl reads them for phase 1.
 
 Defaults are the paper's where it gives a value (the frame budget, appendix table
 "Environment interaction budgets") and the authors' public MOPDERL code otherwise (see each

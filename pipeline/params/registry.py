@@ -24,12 +24,14 @@ def section_models() -> dict[str, type[BaseModel]]:
     from pipeline.params.morld import MorldParams
     from pipeline.params.report import ReportParams
     from pipeline.params.score import ScoreParams
+    from pipeline.params.td3 import TD3Params
     from pipeline.params.train_pderl import TrainPderlParams
     from pipeline.params.train_specialist import TrainSpecialistParams
 
     return {
         "env": EnvParams,
         "": RunParams,
+        "td3": TD3Params,
         "train_specialist": TrainSpecialistParams,
         "train_pderl": TrainPderlParams,
         "import_specialists": ImportSpecialistsParams,

@@ -6,10 +6,10 @@ agent that learns from every transition the population and itself collect.
 
 The RL agent is this project's TD3 with secondary critics, so its hyperparameters (network
 widths, learning rates, batch, replay capacity, start timesteps, noise, ...) are read from the
-`train_specialist` section, as the paper's table shares them between TD3 and PDERL. The
-values below are PDERL's own: the paper's table gives population 10 and mini buffer 50,000;
-the others are those of the public PDERL code, as the paper's authors ran it (see each
-description). `train_specialist.total_steps` is not used: PDERL's budget is `total_frames`.
+`td3` section, as the paper's table shares them between TD3 and PDERL. The values below are
+PDERL's own: the paper's table gives population 10 and mini buffer 50,000; the others are
+those of the public PDERL code, as the paper's authors ran it (see each description). Nothing
+of `train_specialist` is read: PDERL's budget is `total_frames`.
 """
 
 from __future__ import annotations

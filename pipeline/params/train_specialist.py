@@ -1,8 +1,9 @@
-"""Section `train_specialist`: TD3 specialists with secondary critics.
+"""Section `train_specialist`: the run of the TD3 specialists (one per objective, with secondary critics).
 
-Defaults are the paper's TD3 table (appendix, "PDERL and TD3 hyperparameters"); the paper
-trains each specialist for 2M env steps (1M on Swimmer). params.yaml overrides them with a
-small quickstart preset.
+The agent itself (networks, learning rates, noises, replay, start timesteps) is section `td3`
+(pipeline/params/td3.py), shared with PDERL and MOPDERL. This section holds what only the
+specialists' run reads: its length (the paper trains each specialist for 2M env steps, 1M on
+Swimmer), how the specialists share the machine, checkpoints and keep-best selection.
 """
 
 from __future__ import annotations
@@ -12,23 +13,11 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pipeline.params.common import Strict
+from pipeline.params.td3 import TD3Params
 
 
 class TrainSpecialistParams(Strict):
     total_steps: int = Field(2_000_000, gt=0, description="env steps per specialist (paper: 2M; Swimmer 1M)")
-    learning_starts: int = Field(25_000, ge=1, description="uniform-random action steps before updates begin")
-    buffer_size: int = Field(1_000_000, gt=0, description="replay capacity; older rows are overwritten")
-    batch_size: int = Field(256, gt=0, description="minibatch size for each update")
-    hidden_sizes: list[int] = Field([256, 256], min_length=1, description="hidden layer widths (actor and critics)")
-    actor_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the actor")
-    critic_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the critic ensemble")
-    gamma: float = Field(0.99, ge=0, lt=1, description="discount factor")
-    tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target networks")
-    exploration_noise: float = Field(0.1, ge=0, description="std of Gaussian action noise, times the action half-range")
-    policy_noise: float = Field(0.2, ge=0, description="std of the target-policy smoothing noise")
-    noise_clip: float = Field(0.5, ge=0, description="clip of the target-policy smoothing noise")
-    policy_freq: int = Field(2, ge=1, description="critic updates per actor/target update")
-    secondary_critics: bool = Field(True, description="also train critics for every other objective (joint MAPEX)")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
     batched: bool = Field(
         True,
@@ -42,7 +31,6 @@ class TrainSpecialistParams(Strict):
         "objective; each uses MAPEX_TORCH_THREADS threads); the specialists of a process stack as `batched` says. "
         "A specialist trained alone gives other bits than one stacked with another, so this changes the artifacts",
     )
-    cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
     checkpoint_every: int = Field(
         50_000,
         ge=0,
@@ -71,15 +59,17 @@ class TrainSpecialistParams(Strict):
 
     @model_validator(mode="after")
     def _consistent(self) -> "TrainSpecialistParams":
-        if any(h <= 0 for h in self.hidden_sizes):
-            raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
-        if self.learning_starts < self.batch_size:
-            raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
-        if self.learning_starts >= self.total_steps:
-            raise ValueError(f"learning_starts ({self.learning_starts}) must be < total_steps ({self.total_steps})")
         if self.keep_best_every > self.total_steps:
             raise ValueError(
                 f"keep_best_every ({self.keep_best_every}) must be <= total_steps ({self.total_steps}); 0 turns "
                 "keep-best off"
             )
         return self
+
+
+def check_against_td3(cfg: TrainSpecialistParams, td3: TD3Params) -> None:
+    """The checks across the two sections a specialist run reads; ValueError naming both keys."""
+    if td3.learning_starts >= cfg.total_steps:
+        raise ValueError(
+            f"td3.learning_starts ({td3.learning_starts}) must be < train_specialist.total_steps ({cfg.total_steps})"
+        )

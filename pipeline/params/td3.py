@@ -1,0 +1,46 @@
+"""Section `td3`: the TD3 agent, read by every stage that builds one.
+
+The paper's appendix gives one table, "PDERL and TD3 hyperparameters", shared by the TD3
+specialists (`train_specialist`), the RL agent inside PDERL (`train_pderl`) and the RL agents
+of MOPDERL's phase 2 (`mopderl`). Those three stages read this section; each keeps its own
+budget and run settings in its own section. So changing a specialist run's length
+(`train_specialist.total_steps`) or its keep-best schedule reruns the TD3 specialists only,
+while a change here reruns every stage that trains a TD3 agent, as it must.
+
+Defaults are the paper's table. Which stage reads which key: every key is read by
+`train_specialist` and `train_pderl`; `mopderl` reads all but `learning_starts`,
+`hidden_sizes` and `secondary_critics` (its agents start from PDERL's filled buffers and
+networks), which cannot change without PDERL's specialists, its inputs, changing too.
+"""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from pipeline.params.common import Strict
+
+
+class TD3Params(Strict):
+    learning_starts: int = Field(25_000, ge=1, description="uniform-random action steps before updates begin")
+    buffer_size: int = Field(1_000_000, gt=0, description="replay capacity; older rows are overwritten")
+    batch_size: int = Field(256, gt=0, description="minibatch size for each update")
+    hidden_sizes: list[int] = Field([256, 256], min_length=1, description="hidden layer widths (actor and critics)")
+    actor_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the actor")
+    critic_lr: float = Field(3e-4, gt=0, le=1, description="Adam learning rate of the critic ensemble")
+    gamma: float = Field(0.99, ge=0, lt=1, description="discount factor")
+    tau: float = Field(0.005, gt=0, le=1, description="Polyak rate of the target networks")
+    exploration_noise: float = Field(0.1, ge=0, description="std of Gaussian action noise, times the action half-range")
+    policy_noise: float = Field(0.2, ge=0, description="std of the target-policy smoothing noise")
+    noise_clip: float = Field(0.5, ge=0, description="clip of the target-policy smoothing noise")
+    policy_freq: int = Field(2, ge=1, description="critic updates per actor/target update")
+    secondary_critics: bool = Field(True, description="also train critics for every other objective (joint MAPEX)")
+    cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> "TD3Params":
+        if any(h <= 0 for h in self.hidden_sizes):
+            raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
+        if self.learning_starts < self.batch_size:
+            raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
+        return self
+
