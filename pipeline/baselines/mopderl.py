@@ -116,8 +116,8 @@ from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
+from pipeline.specialists.td3 import stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
-from pipeline.specialists.td3_training import stack_td3
 
 MOPDERL_TAG = 0x4D4F5044  # "MOPD": separates MOPDERL's streams from every other use of a seed
 STATE_FORMAT = "mapex.mopderl_state"

@@ -66,8 +66,8 @@ from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.td3 import covered_objectives, stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
-from pipeline.specialists.td3_training import covered_objectives, stack_td3
 
 PDERL_TAG = 0x50444552  # "PDER": separates PDERL's streams from every other use of (seed, objective)
 STATE_FORMAT = "mapex.pderl_state"
