@@ -15,7 +15,7 @@ computed with the specialist's own target policy (paper, section "Secondary Crit
 A truncated (time-limit) transition is not terminal, so the target bootstraps through it.
 
 Also here: the builders of a specialist's networks (`init_td3` unstacked, `init_stacked` and
-`stack_td3` stacked; `covered_objectives`, `run_seeds`), and `_Updater`, one update of a
+`stack_td3` stacked; `covered_objectives`, `run_seeds`), and `Updater`, one update of a
 training run (each specialist's minibatch rows and smoothing noise, then `stacked_update` or
 its graphs). The lockstep specialists (pipeline/specialists/td3_training.py) and the TD3 agent
 of PDERL and MOPDERL (pipeline/specialists/td3_learner.py) both build on them.
@@ -468,7 +468,7 @@ def unstack_actor(actor: StackedActor, s: int) -> Actor:
 # ---------------------------------------------------------------- one update of a training run
 
 
-class _Updater:
+class Updater:
     """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update."""
 
     def __init__(

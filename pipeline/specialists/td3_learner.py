@@ -16,7 +16,7 @@ from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import check_finite, due
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3 import StackedTD3, _Updater
+from pipeline.specialists.td3 import StackedTD3, Updater
 from pipeline.specialists.td3_state import (
     buffer_state,
     check_buffer_state,
@@ -32,7 +32,7 @@ class TD3Learner:
     agent inside PDERL and MOPDERL, whose episodes are run by the population's loop.
 
     It is the specialists' machinery with S = 1 (a stacked network set, a `StackedReplay` on
-    the training device and `_Updater`), so it gets the same device path: on CUDA the buffer
+    the training device and `Updater`), so it gets the same device path: on CUDA the buffer
     lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
     cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
     with no host sync but the finiteness check every CHECK_EVERY updates. On a CPU, rows are drawn with `rows_rng` (numpy).
@@ -53,7 +53,7 @@ class TD3Learner:
         self.cfg, self.state, self.device = cfg, state, torch.device(device)
         self.rows_rng = rows_rng
         self.buffer = StackedReplay(1, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = _Updater(
+        self.update = Updater(
             state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device
         )
         self.objectives: list[int] = state.reward_index[0].tolist()

@@ -12,7 +12,7 @@ import torch
 
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.finite import first_nonfinite, optimizer_state, weights
-from pipeline.specialists.td3 import StackedTD3, _Updater
+from pipeline.specialists.td3 import StackedTD3, Updater
 
 
 def _cpu(obj: Any) -> Any:
@@ -52,7 +52,7 @@ def nets_state(st: StackedTD3) -> dict[str, Any]:
     )
 
 
-def load_nets_state(update: "_Updater", nets: dict[str, Any], n_updates: int) -> None:
+def load_nets_state(update: Updater, nets: dict[str, Any], n_updates: int) -> None:
     """Restore `nets_state` into the networks `update` trains (fresh, never updated)."""
     st = update.state
     for name in ("actor", "actor_target", "critic", "critic_target"):
@@ -108,7 +108,7 @@ def load_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
     b.ptr, b.size = int(saved["ptr"]), size
 
 
-def finite_named(update: _Updater, full: bool) -> list[tuple[str, torch.Tensor]]:
+def finite_named(update: Updater, full: bool) -> list[tuple[str, torch.Tensor]]:
     """What `check_finite` looks at in stacked networks under training: the latest losses
     (eager updates; Q-values enter both, so a non-finite Q-value shows there) and the online
     weights; with `full` (before a checkpoint or the results) also the target networks, the
@@ -125,7 +125,7 @@ def finite_named(update: _Updater, full: bool) -> list[tuple[str, torch.Tensor]]
     return named
 
 
-def diverged_specialist(update: _Updater) -> int | None:
+def diverged_specialist(update: Updater) -> int | None:
     """The first specialist s of a stacked set whose networks, optimizer moments or replay
     buffer hold a non-finite value, else None (only called once a check has failed)."""
     st, b = update.state, update.buffer

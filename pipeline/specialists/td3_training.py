@@ -45,7 +45,7 @@ from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import KeepBest, keep_best_due, keep_best_score, keep_best_seeds
-from pipeline.specialists.td3 import _Updater, init_stacked, run_seeds, unstack_actor
+from pipeline.specialists.td3 import Updater, init_stacked, run_seeds, unstack_actor
 from pipeline.specialists.td3_state import (
     _cpu,
     buffer_state,
@@ -137,7 +137,7 @@ class SpecialistsRun:
         for env, x in zip(self.envs, self.seeds):
             env.action_space.seed(x["space"])
         self.buffer = StackedReplay(n, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = _Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
+        self.update = Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
         self.episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
         self.obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(self.envs, self.seeds)]).astype(np.float32)
         self.episode = np.zeros(n, np.int64)
