@@ -11,19 +11,9 @@ from typing import Any
 import torch
 
 from pipeline.core.buffer import StackedReplay
+from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.finite import first_nonfinite, optimizer_state, weights
 from pipeline.specialists.td3 import StackedTD3, Updater
-
-
-def _cpu(obj: Any) -> Any:
-    """A copy of a (nested) state dict with every tensor detached and cloned on the CPU."""
-    if torch.is_tensor(obj):
-        return obj.detach().to("cpu", copy=True)
-    if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(v) for v in obj)
-    return obj
 
 
 def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) -> None:
@@ -40,7 +30,7 @@ def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) ->
 
 def nets_state(st: StackedTD3) -> dict[str, Any]:
     """The networks and optimizers of a stacked set, as CPU tensors."""
-    return _cpu(
+    return cpu_copy(
         {
             "actor": st.actor.state_dict(),
             "actor_target": st.actor_target.state_dict(),

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from pipeline.core.buffer import StackedReplay
+from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
@@ -47,7 +48,6 @@ from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import KeepBest, keep_best_due, keep_best_score, keep_best_seeds
 from pipeline.specialists.td3 import Updater, init_stacked, run_seeds, unstack_actor
 from pipeline.specialists.td3_state import (
-    _cpu,
     buffer_state,
     check_buffer_state,
     diverged_specialist,
@@ -327,7 +327,7 @@ class SpecialistsRun:
                 {
                     "check_step": torch.tensor([t for t, _ in checks], dtype=torch.int64),
                     "check_score": torch.tensor([x for _, x in checks], dtype=torch.float64),
-                    "best": None if best is None else _cpu(best),
+                    "best": None if best is None else cpu_copy(best),
                 }
                 for checks, best in zip(self.checks, self.best)
             ],
@@ -408,7 +408,7 @@ class SpecialistsRun:
                 for name, stacked in (("actor", self.state.actor), ("actor_target", self.state.actor_target)):
                     unstack_actor(stacked, s).load_state_dict(b[name])
                 b = {"step": int(b["step"]), "score": float(b["score"])} | {
-                    name: _cpu(b[name])
+                    name: cpu_copy(b[name])
                     for name in ("actor", "actor_target")  # copies: the state may be memory-mapped
                 }
             best.append(b)
