@@ -22,7 +22,8 @@ from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
-from pipeline.specialists.td3_training import KeepBest, SpecialistResult, SpecialistsRun, continue_training
+from pipeline.specialists.keep_best import KeepBest
+from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together

@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 import torch
 
-import pipeline.specialists.td3_training as specialist_mod
+import pipeline.specialists.td3 as td3_mod
 from pipeline.core.buffer import Batch, StackedReplay, batch_at
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3 import TD3State, stacked_update, td3_update
+from pipeline.specialists.td3 import TD3State, init_stacked, init_td3, run_seeds, stack_td3, stacked_update, td3_update
 from pipeline.specialists.td3_learner import TD3Learner
-from pipeline.specialists.td3_training import init_stacked, init_td3, run_seeds, stack_td3, train_specialists
+from pipeline.specialists.td3_training import train_specialists
 
 ENV, CAP = "mo-swimmer-v5", 25
 CFG = TrainSpecialistParams(
@@ -83,7 +83,7 @@ def record_draws(monkeypatch):
     """Record every minibatch-row draw and smoothing-noise tensor the training loop makes."""
     rows, noises = [], []
     real_gather = StackedReplay.gather
-    real_update = specialist_mod.stacked_update
+    real_update = td3_mod.stacked_update
 
     def gather(self, idx):
         rows.append(idx.clone())
@@ -94,7 +94,7 @@ def record_draws(monkeypatch):
         return real_update(state, batch, noise, update_actor, **kw)
 
     monkeypatch.setattr(StackedReplay, "gather", gather)
-    monkeypatch.setattr(specialist_mod, "stacked_update", update)
+    monkeypatch.setattr(td3_mod, "stacked_update", update)
     return rows, noises
 
 

@@ -25,13 +25,8 @@ from pipeline.core.checkpoint import POLICY_FORMAT
 from pipeline.core.envs import env_spec, make_env
 from pipeline.params import ParamsError, section
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import (
-    SpecialistsRun,
-    continue_training,
-    keep_best_due,
-    keep_best_seeds,
-    keep_best_steps,
-)
+from pipeline.specialists.keep_best import keep_best_due, keep_best_score, keep_best_seeds, keep_best_steps
+from pipeline.specialists.td3_training import SpecialistsRun, continue_training
 
 ENV, CAP = "mo-hopper-2obj-v5", 40
 # learning from step 100; checks every 40 steps past it: 120, 160, 200, 240, 280 and the last, 300
@@ -181,7 +176,7 @@ def scripted(monkeypatch, script=SCRIPT) -> None:
         calls[objective] += 1
         return script[objective][i]
 
-    monkeypatch.setattr(td3_training, "keep_best_score", score)
+    monkeypatch.setattr(td3_training, "keep_best_score", score)  # the name SpecialistsRun calls
 
 
 def test_the_kept_actor_is_the_one_of_its_recorded_step(monkeypatch):
@@ -213,11 +208,11 @@ def test_no_finite_score_keeps_the_final_actor(monkeypatch):
 def test_a_non_finite_weight_scores_nan_without_stepping_the_env():
     env = make_env(ENV, CAP)
     actor = make_run(jobs=[(0, 0)]).state.actor.unstack(0)
-    assert math.isfinite(td3_training.keep_best_score(actor, env, 0, [1, 2]))
+    assert math.isfinite(keep_best_score(actor, env, 0, [1, 2]))
     with torch.no_grad():
         actor.net[0].weight[0, 0] = math.nan
     env.step = None  # any episode would fail
-    assert math.isnan(td3_training.keep_best_score(actor, env, 0, [1, 2]))
+    assert math.isnan(keep_best_score(actor, env, 0, [1, 2]))
 
 
 def episode_return(actor, objective: int, seed: int) -> float:

@@ -38,10 +38,10 @@ from pipeline.baselines.morld import (  # noqa: E402
     BaselinesMissing,
     MorldRun,
     actor_from_mosac,
-    hidden_sizes_of,
     require_morl_baselines,
 )
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
+from pipeline.core.nets import hidden_sizes_of  # noqa: E402
 from pipeline.core.population import Member, actor_state, load_population, member_actor  # noqa: E402
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy  # noqa: E402
 from pipeline.params.morld import MorldParams  # noqa: E402

@@ -19,13 +19,14 @@ from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3 import (
     actor_loss,
+    covered_objectives,
     critic_loss,
+    init_td3,
     polyak_update,
     smoothed_target_action,
     td3_targets,
     td3_update,
 )
-from pipeline.specialists.td3_training import covered_objectives, init_td3
 
 OBS, ACT = 5, 3
 

@@ -314,17 +314,17 @@ def test_missing_params_file_is_a_clear_error(tmp_path, cli):
 
 def test_update_schedule_and_episode_records(monkeypatch):
     """Updates start at learning_starts, one per step; every policy_freq-th one moves the actor."""
-    import pipeline.specialists.td3_training as specialist_mod
+    import pipeline.specialists.td3 as td3_mod
 
     calls: list[bool] = []
-    real_update = specialist_mod.stacked_update
+    real_update = td3_mod.stacked_update
 
     def counting_update(state, batch, noise, update_actor, **kw):
         calls.append(update_actor)
         assert batch.obs.shape == (1, 8, 8) and noise.shape == (1, 8, 2)
         return real_update(state, batch, noise, update_actor, **kw)
 
-    monkeypatch.setattr(specialist_mod, "stacked_update", counting_update)
+    monkeypatch.setattr(td3_mod, "stacked_update", counting_update)
     cfg = TrainSpecialistParams(
         total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3
     )

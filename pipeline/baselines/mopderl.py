@@ -106,9 +106,10 @@ from pipeline.baselines.nsga2 import (
 )
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import StackedReplay
+from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import TrainingDiverged, check_finite
-from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.nets import Actor, CriticEnsemble, hidden_sizes_of
 from pipeline.core.pareto import normalised_hypervolume
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds, torch_generator
@@ -116,8 +117,8 @@ from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
+from pipeline.specialists.td3 import stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
-from pipeline.specialists.td3_training import stack_td3
 
 MOPDERL_TAG = 0x4D4F5044  # "MOPD": separates MOPDERL's streams from every other use of a seed
 STATE_FORMAT = "mapex.mopderl_state"
@@ -256,20 +257,6 @@ class GenerationRecord:
     rl_returns: list[list[float]] = field(default_factory=list)  # this generation's exploration episodes
     # hypervolume of the archive's training-time fitness scaled to [0, 1] by its own range (reference 0)
     archive_hv_norm: float = 0.0
-
-
-def hidden_sizes_of(actor: Actor) -> list[int]:
-    return [layer.out_features for layer in actor.net if isinstance(layer, torch.nn.Linear)][:-1]
-
-
-def _cpu(obj: Any) -> Any:
-    if torch.is_tensor(obj):
-        return obj.detach().cpu().clone()
-    if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(v) for v in obj)
-    return obj
 
 
 # ---------------------------------------------------------------------------------- run
@@ -611,7 +598,7 @@ class MopderlRun:
         def ind_state(ind: Individual) -> dict[str, Any]:
             return {
                 "uid": ind.uid,
-                "actor": _cpu(ind.actor.state_dict()),
+                "actor": cpu_copy(ind.actor.state_dict()),
                 "ring": ind.ring.state_dict(),
                 "kind": ind.kind,
                 "parents": list(ind.parents),

@@ -60,7 +60,7 @@ from torch import nn
 
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.finite import check_finite, weights
-from pipeline.core.nets import Actor
+from pipeline.core.nets import Actor, hidden_sizes_of
 from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies
@@ -184,10 +184,6 @@ def actor_from_mosac(module: nn.Module) -> Actor:
     """`actor_from_mosac_state` of a live MOSAC actor, its structure checked first."""
     check_mosac_actor(module)
     return actor_from_mosac_state(mosac_state(module))
-
-
-def hidden_sizes_of(actor: Actor) -> list[int]:
-    return [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
 
 
 # -- the run --------------------------------------------------------------------------------

@@ -37,8 +37,20 @@ FORMAT_VERSION = 1
 _SPEC_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives")
 
 
+def cpu_copy(obj: Any) -> Any:
+    """A copy of a (nested) state dict with every tensor detached and cloned on the CPU (dicts,
+    lists and tuples are rebuilt, anything else is returned as it is)."""
+    if torch.is_tensor(obj):
+        return obj.detach().to("cpu", copy=True)
+    if isinstance(obj, dict):
+        return {k: cpu_copy(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(cpu_copy(v) for v in obj)
+    return obj
+
+
 def _cpu_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
-    return {k: v.detach().cpu().clone() for k, v in module.state_dict().items()}
+    return cpu_copy(module.state_dict())
 
 
 def save_policy(path: str | Path, actor: Actor, meta: dict[str, Any], actor_target: Actor | None = None) -> None:

@@ -40,6 +40,11 @@ class Actor(nn.Module):
         return self.centre + self.scale * torch.tanh(self.net(obs))
 
 
+def hidden_sizes_of(actor: Actor) -> list[int]:
+    """The hidden layer widths an `Actor` was built with (its `hidden_sizes`)."""
+    return [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+
+
 class ScriptedActor(nn.Module):
     """A deterministic policy brought in as TorchScript (`torch.jit.save` of a module mapping a
     batch of observations (B, obs_dim) to actions (B, act_dim) inside the env's bounds).

@@ -60,14 +60,15 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.td3 import covered_objectives, stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
-from pipeline.specialists.td3_training import covered_objectives, stack_td3
 
 PDERL_TAG = 0x50444552  # "PDER": separates PDERL's streams from every other use of (seed, objective)
 STATE_FORMAT = "mapex.pderl_state"
@@ -395,17 +396,6 @@ class PderlResult:
     updates: int
 
 
-def _cpu(obj: Any) -> Any:
-    """A copy of a (nested) state dict with every tensor detached on the CPU."""
-    if torch.is_tensor(obj):
-        return obj.detach().cpu().clone()
-    if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(v) for v in obj)
-    return obj
-
-
 class PderlRun:
     """The whole state of one PDERL run (seed, objective) and its generation loop."""
 
@@ -623,7 +613,7 @@ class PderlRun:
             "history": [asdict(r) for r in self.history],
             "td3": self.agent.state_dict(),
             "population": [
-                {"actor": _cpu(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "fitness": ind.fitness}
+                {"actor": cpu_copy(ind.actor.state_dict()), "ring": ind.ring.state_dict(), "fitness": ind.fitness}
                 for ind in self.population
             ],
             "rng": {

@@ -13,18 +13,30 @@ critic in the ensemble (primary and secondary) regresses onto the same TD3 targe
 y_m = r_m + gamma * (1 - terminated) * min_h Q'_{m,h}(s', clip(pi'(s') + clip(noise))),
 computed with the specialist's own target policy (paper, section "Secondary Critics").
 A truncated (time-limit) transition is not terminal, so the target bootstraps through it.
+
+Also here: the builders of a specialist's networks (`init_td3` unstacked, `init_stacked` and
+`stack_td3` stacked; `covered_objectives`, `run_seeds`), and `Updater`, one update of a
+training run (each specialist's minibatch rows and smoothing noise, then `stacked_update` or
+its graphs). The lockstep specialists (pipeline/specialists/td3_training.py) and the TD3 agent
+of PDERL and MOPDERL (pipeline/specialists/td3_learner.py) both build on them.
 """
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
+from typing import Sequence
 
+import numpy as np
 import torch
 import torch.optim.optimizer as torch_optimizer
 from torch import nn
 
-from pipeline.core.buffer import Batch
+from pipeline.core.buffer import Batch, StackedReplay
+from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.seeding import derive_seeds, torch_generator
+from pipeline.params.train_specialist import TrainSpecialistParams
 
 
 @dataclass
@@ -352,3 +364,157 @@ class GraphedUpdate:
         self.critic_graph.replay()
         if update_actor:
             self.actor_graph.replay()
+
+
+# ---------------------------------------------------------------- building the networks
+
+
+def covered_objectives(objective: int, n_objectives: int, secondary: bool) -> tuple[list[int], int]:
+    """Objectives the critic ensemble covers, in member order, and the index of the primary in that list.
+
+    With secondary critics the ensemble covers every objective 0..n-1; without, only `objective`.
+    """
+    if secondary:
+        return list(range(n_objectives)), objective
+    return [objective], 0
+
+
+def init_td3(spec: EnvSpec, cfg: TrainSpecialistParams, objective: int, device: torch.device) -> TD3State:
+    """One specialist's networks unstacked: the reference form that `td3.td3_update` trains
+    (the tests check the stacked update against it)."""
+    objectives, primary = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
+    actor = Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high).to(device)
+    critic = CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)).to(device)
+    return TD3State(
+        actor=actor,
+        actor_target=copy.deepcopy(actor).requires_grad_(False),
+        critic=critic,
+        critic_target=copy.deepcopy(critic).requires_grad_(False),
+        actor_opt=torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, fused=True),
+        critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr, fused=True),
+        objectives=objectives,
+        primary=primary,
+    )
+
+
+def run_seeds(seed: int, objective: int) -> dict[str, int]:
+    """The independent seeds of specialist (seed, objective): the same however many are stacked."""
+    names = ("torch", "env", "space", "numpy", "noise", "cuda_rows")
+    return dict(zip(names, derive_seeds(seed, objective, n=len(names))))
+
+
+def init_stacked(
+    spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device
+) -> StackedTD3:
+    """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
+    would be alone (torch seeded with its own seed, actor first, then its critics)."""
+    actors, critics, covered, primary = [], [], [], []
+    for seed, objective in jobs:
+        objectives, j = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
+        torch.manual_seed(run_seeds(seed, objective)["torch"])
+        actors.append(Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high))
+        critics.append(CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)))
+        covered.append(objectives)
+        primary.append(j)
+    return stack_td3(cfg, actors, critics, covered, primary, device)
+
+
+def stack_td3(
+    cfg: TrainSpecialistParams,
+    actors: Sequence[Actor],
+    critics: Sequence[CriticEnsemble],
+    covered: Sequence[Sequence[int]],
+    primary: Sequence[int],
+    device: torch.device,
+    actor_targets: Sequence[Actor] | None = None,
+    critic_targets: Sequence[CriticEnsemble] | None = None,
+) -> StackedTD3:
+    """S specialists' networks stacked (copies; targets copies of the online nets unless given)
+    with fresh optimizers. covered[s]: the objectives specialist s's ensemble covers, in member
+    order; primary[s]: the index of its own objective in that list."""
+    actor = StackedActor(actors).to(device)
+    critic = CriticEnsemble.stack(critics).to(device)
+    actor_target = copy.deepcopy(actor) if actor_targets is None else StackedActor(actor_targets).to(device)
+    critic_target = copy.deepcopy(critic) if critic_targets is None else CriticEnsemble.stack(critic_targets).to(device)
+    sizes = {2 * len(c) for c in covered}
+    if len(sizes) != 1 or [c.n_members for c in critics] != [2 * len(c) for c in covered]:
+        raise ValueError(
+            f"stacked specialists need critic ensembles of one size, 2 members per covered objective: {list(covered)}"
+        )
+    e = sizes.pop()
+    # fused Adam: one kernel per parameter tensor (same update as the plain one). Captured CUDA
+    # graphs need the optimizer's step counters on the device (capturable).
+    graphs = device.type == "cuda" and cfg.cuda_graphs
+    opt = dict(fused=True, capturable=True) if graphs else dict(fused=True)
+    return StackedTD3(
+        actor=actor,
+        actor_target=actor_target.requires_grad_(False),
+        critic=critic,
+        critic_target=critic_target.requires_grad_(False),
+        actor_opt=torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, **opt),
+        critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr, **opt),
+        reward_index=torch.tensor([list(c) for c in covered], dtype=torch.long, device=device),
+        primary_members=torch.tensor([s * e + 2 * j for s, j in enumerate(primary)], dtype=torch.long, device=device),
+    )
+
+
+def unstack_actor(actor: StackedActor, s: int) -> Actor:
+    """Actor s of a stacked set as a CPU `Actor`, leaving torch's global RNG as it was (building
+    an `Actor` draws its throwaway initial weights from it)."""
+    with torch.random.fork_rng(devices=[]):
+        return actor.unstack(s)
+
+
+# ---------------------------------------------------------------- one update of a training run
+
+
+class Updater:
+    """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update."""
+
+    def __init__(
+        self,
+        state: StackedTD3,
+        buffer: StackedReplay,
+        cfg: TrainSpecialistParams,
+        seeds: list[dict[str, int]],
+        rngs,
+        device,
+    ):
+        self.state, self.buffer, self.cfg, self.rngs = state, buffer, cfg, rngs
+        self.device = device
+        s, b, act = state.n, cfg.batch_size, state.actor.scale.shape[-1]
+        self.noise_gens = [torch_generator(x["noise"], device) for x in seeds]
+        self.noise = torch.zeros(s, b, act, device=device)
+        self.on_cuda = device.type == "cuda"
+        if self.on_cuda:
+            self.row_gens = [torch_generator(x["cuda_rows"], device) for x in seeds]
+            self.idx = torch.zeros(s, b, dtype=torch.long, device=device)
+        self.graphs = self.on_cuda and cfg.cuda_graphs
+        self.graphed: GraphedUpdate | None = None
+        self.args = dict(gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip)
+        # the latest critic and actor losses (eager updates only: a captured graph keeps its own)
+        self.metrics: dict[str, torch.Tensor] = {}
+
+    def graph(self) -> GraphedUpdate:
+        """The captured update (CUDA graphs), captured on first use: it needs fresh optimizers."""
+        if self.graphed is None:
+            self.graphed = GraphedUpdate(self.state, self.buffer.gather, self.idx, self.noise, **self.args)
+        return self.graphed
+
+    def __call__(self, update_actor: bool) -> None:
+        for s, g in enumerate(self.noise_gens):
+            self.noise[s].normal_(generator=g)
+        if self.on_cuda:
+            for s, g in enumerate(self.row_gens):
+                self.idx[s].random_(0, self.buffer.size, generator=g)
+            idx = self.idx
+        else:
+            idx = torch.from_numpy(
+                np.stack([rng.integers(0, self.buffer.size, size=self.cfg.batch_size) for rng in self.rngs])
+            )
+        if self.graphs:
+            self.graph()(update_actor)
+        else:
+            self.metrics.update(
+                stacked_update(self.state, self.buffer.gather(idx), self.noise, update_actor, **self.args)
+            )

@@ -1,7 +1,7 @@
 """TD3Learner: one TD3 agent with secondary critics that learns from transitions handed to it,
 the RL agent inside PDERL and MOPDERL. It is the stacked specialists' machinery of
-pipeline/specialists/td3_training.py with S = 1 (its updater and its state save/restore
-helpers), so it gets the same CPU and CUDA paths."""
+pipeline/specialists/td3_training.py with S = 1 (its updater, pipeline/specialists/td3.py, and its state
+save/restore helpers, pipeline/specialists/td3_state.py), so it gets the same CPU and CUDA paths."""
 
 from __future__ import annotations
 
@@ -16,9 +16,8 @@ from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import check_finite, due
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3 import StackedTD3
-from pipeline.specialists.td3_training import (
-    _Updater,
+from pipeline.specialists.td3 import StackedTD3, Updater
+from pipeline.specialists.td3_state import (
     buffer_state,
     check_buffer_state,
     finite_named,
@@ -33,7 +32,7 @@ class TD3Learner:
     agent inside PDERL and MOPDERL, whose episodes are run by the population's loop.
 
     It is the specialists' machinery with S = 1 (a stacked network set, a `StackedReplay` on
-    the training device and `_Updater`), so it gets the same device path: on CUDA the buffer
+    the training device and `Updater`), so it gets the same device path: on CUDA the buffer
     lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
     cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
     with no host sync but the finiteness check every CHECK_EVERY updates. On a CPU, rows are drawn with `rows_rng` (numpy).
@@ -54,7 +53,7 @@ class TD3Learner:
         self.cfg, self.state, self.device = cfg, state, torch.device(device)
         self.rows_rng = rows_rng
         self.buffer = StackedReplay(1, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = _Updater(
+        self.update = Updater(
             state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device
         )
         self.objectives: list[int] = state.reward_index[0].tolist()
@@ -86,7 +85,7 @@ class TD3Learner:
 
     def check_finite(self, full: bool = False) -> None:
         """Raise TrainingDiverged if the latest losses or a weight is not finite; with `full`
-        also the targets, the optimizer moments and the replay buffer (td3_training.finite_named).
+        also the targets, the optimizer moments and the replay buffer (td3_state.finite_named).
         The run that owns the learner adds its seed and objective."""
         check_finite(finite_named(self.update, full), self.updates, unit="update")
 

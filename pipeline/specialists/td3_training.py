@@ -23,17 +23,8 @@ uninterrupted one on a CPU. Only MuJoCo envs (behind gymnasium's standard wrappe
 saved mid-episode; `env_checkpoint_problem` says why another cannot. On CUDA the state is
 saved as CPU tensors and restored onto the device (untested here: no GPU).
 
-Keep-best (train_specialist.keep_best_every > 0; off by default, as in the paper and plain
-TD3): after every env step t that is a multiple of keep_best_every and past learning_starts,
-and after the last step (`keep_best_steps`), each specialist's actor is scored by
-keep_best_episodes deterministic episodes (no exploration noise) on an evaluation env of its
-own, reset with seeds derived from (seed, objective, check index) alone: the mean undiscounted
-return on its own objective. A CPU copy of the best-scoring actor and its target actor (the
-earlier on ties; never a non-finite score) is kept, and `results` returns them instead of the
-final ones; critics and buffer stay final. The checks draw from no training stream (the
-training envs, numpy generators, torch generators and torch's global RNG are untouched), so
-the training itself is bitwise the same with keep-best on or off; the snapshots and every
-check's (step, score) are part of `state_dict`.
+Keep-best (train_specialist.keep_best_every > 0) is described in
+pipeline/specialists/keep_best.py; `SpecialistsRun` runs its checks.
 """
 
 from __future__ import annotations
@@ -48,14 +39,23 @@ import numpy as np
 import torch
 
 from pipeline.core.buffer import StackedReplay
+from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
-from pipeline.core.finite import TrainingDiverged, due, first_nonfinite, optimizer_state, weights
+from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
-from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.evaluation.episodes import evaluate_policy
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3 import GraphedUpdate, StackedTD3, TD3State, stacked_update
+from pipeline.specialists.keep_best import KeepBest, keep_best_due, keep_best_score, keep_best_seeds
+from pipeline.specialists.td3 import Updater, init_stacked, run_seeds, unstack_actor
+from pipeline.specialists.td3_state import (
+    buffer_state,
+    check_buffer_state,
+    diverged_specialist,
+    finite_named,
+    load_buffer_state,
+    load_nets_state,
+    nets_state,
+)
 
 
 @dataclass
@@ -65,17 +65,6 @@ class EpisodeRecord:
     length: int
     returns: np.ndarray  # (n_objectives,) undiscounted
     terminated: bool
-
-
-@dataclass
-class KeepBest:
-    """What keep-best selection (train_specialist.keep_best_every > 0) did for one specialist."""
-
-    every: int  # keep_best_every
-    episodes: int  # keep_best_episodes
-    checks: list[tuple[int, float]]  # (env step, score) of every check, in order; the last is the final actor's
-    step: int | None  # env step of the kept actor; None: no check scored finite, the final actor is kept
-    score: float | None  # its score (mean deterministic return on the specialist's own objective)
 
 
 @dataclass
@@ -94,132 +83,6 @@ class SpecialistResult:
     keep_best: KeepBest | None = None  # None: keep-best off, `actor` is the final one
 
 
-def covered_objectives(objective: int, n_objectives: int, secondary: bool) -> tuple[list[int], int]:
-    """Objectives the critic ensemble covers, in member order, and the index of the primary in that list.
-
-    With secondary critics the ensemble covers every objective 0..n-1; without, only `objective`.
-    """
-    if secondary:
-        return list(range(n_objectives)), objective
-    return [objective], 0
-
-
-def init_td3(spec: EnvSpec, cfg: TrainSpecialistParams, objective: int, device: torch.device) -> TD3State:
-    """One specialist's networks unstacked: the reference form that `td3.td3_update` trains
-    (the tests check the stacked update against it)."""
-    objectives, primary = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
-    actor = Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high).to(device)
-    critic = CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)).to(device)
-    return TD3State(
-        actor=actor,
-        actor_target=copy.deepcopy(actor).requires_grad_(False),
-        critic=critic,
-        critic_target=copy.deepcopy(critic).requires_grad_(False),
-        actor_opt=torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, fused=True),
-        critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr, fused=True),
-        objectives=objectives,
-        primary=primary,
-    )
-
-
-def run_seeds(seed: int, objective: int) -> dict[str, int]:
-    """The independent seeds of specialist (seed, objective): the same however many are stacked."""
-    names = ("torch", "env", "space", "numpy", "noise", "cuda_rows")
-    return dict(zip(names, derive_seeds(seed, objective, n=len(names))))
-
-
-def init_stacked(
-    spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device
-) -> StackedTD3:
-    """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
-    would be alone (torch seeded with its own seed, actor first, then its critics)."""
-    actors, critics, covered, primary = [], [], [], []
-    for seed, objective in jobs:
-        objectives, j = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
-        torch.manual_seed(run_seeds(seed, objective)["torch"])
-        actors.append(Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high))
-        critics.append(CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)))
-        covered.append(objectives)
-        primary.append(j)
-    return stack_td3(cfg, actors, critics, covered, primary, device)
-
-
-def stack_td3(
-    cfg: TrainSpecialistParams,
-    actors: Sequence[Actor],
-    critics: Sequence[CriticEnsemble],
-    covered: Sequence[Sequence[int]],
-    primary: Sequence[int],
-    device: torch.device,
-    actor_targets: Sequence[Actor] | None = None,
-    critic_targets: Sequence[CriticEnsemble] | None = None,
-) -> StackedTD3:
-    """S specialists' networks stacked (copies; targets copies of the online nets unless given)
-    with fresh optimizers. covered[s]: the objectives specialist s's ensemble covers, in member
-    order; primary[s]: the index of its own objective in that list."""
-    actor = StackedActor(actors).to(device)
-    critic = CriticEnsemble.stack(critics).to(device)
-    actor_target = copy.deepcopy(actor) if actor_targets is None else StackedActor(actor_targets).to(device)
-    critic_target = copy.deepcopy(critic) if critic_targets is None else CriticEnsemble.stack(critic_targets).to(device)
-    sizes = {2 * len(c) for c in covered}
-    if len(sizes) != 1 or [c.n_members for c in critics] != [2 * len(c) for c in covered]:
-        raise ValueError(
-            f"stacked specialists need critic ensembles of one size, 2 members per covered objective: {list(covered)}"
-        )
-    e = sizes.pop()
-    # fused Adam: one kernel per parameter tensor (same update as the plain one). Captured CUDA
-    # graphs need the optimizer's step counters on the device (capturable).
-    graphs = device.type == "cuda" and cfg.cuda_graphs
-    opt = dict(fused=True, capturable=True) if graphs else dict(fused=True)
-    return StackedTD3(
-        actor=actor,
-        actor_target=actor_target.requires_grad_(False),
-        critic=critic,
-        critic_target=critic_target.requires_grad_(False),
-        actor_opt=torch.optim.Adam(actor.parameters(), lr=cfg.actor_lr, **opt),
-        critic_opt=torch.optim.Adam(critic.parameters(), lr=cfg.critic_lr, **opt),
-        reward_index=torch.tensor([list(c) for c in covered], dtype=torch.long, device=device),
-        primary_members=torch.tensor([s * e + 2 * j for s, j in enumerate(primary)], dtype=torch.long, device=device),
-    )
-
-
-KEEP_BEST_TAG = 0x6B33_B357  # separates keep-best evaluation seeds from a specialist's training streams
-
-
-def keep_best_due(cfg: TrainSpecialistParams, t: int) -> bool:
-    """Whether a keep-best check follows env step t (t steps taken): t a multiple of
-    keep_best_every past learning_starts, or the last step; never when keep-best is off."""
-    every = cfg.keep_best_every
-    return every > 0 and cfg.learning_starts < t <= cfg.total_steps and (t % every == 0 or t == cfg.total_steps)
-
-
-def keep_best_steps(cfg: TrainSpecialistParams) -> list[int]:
-    """Every env step a keep-best check follows, in order ([] when keep-best is off)."""
-    return [t for t in range(cfg.learning_starts + 1, cfg.total_steps + 1) if keep_best_due(cfg, t)]
-
-
-def keep_best_seeds(seed: int, objective: int, check: int, episodes: int) -> list[int]:
-    """Env reset seeds of keep-best check number `check` (0-based) of specialist (seed, objective)."""
-    return derive_seeds(seed, objective, KEEP_BEST_TAG, check, n=episodes)
-
-
-def keep_best_score(actor: Actor, env: gym.Env, objective: int, seeds: Sequence[int]) -> float:
-    """Mean undiscounted return on `objective` of deterministic episodes of `actor` (CPU), one
-    per seed, one after another on `env`. NaN, without running any episode, if a weight is not
-    finite (MuJoCo would be stepped with NaN actions)."""
-    if not all(bool(torch.isfinite(v).all()) for v in actor.state_dict().values()):
-        return math.nan
-    returns = [evaluate_policy(actor, [env], [int(s)]).returns[0, objective] for s in seeds]
-    return float(np.mean(returns))
-
-
-def unstack_actor(actor: StackedActor, s: int) -> Actor:
-    """Actor s of a stacked set as a CPU `Actor`, leaving torch's global RNG as it was (building
-    an `Actor` draws its throwaway initial weights from it)."""
-    with torch.random.fork_rng(devices=[]):
-        return actor.unstack(s)
-
-
 def exploration_actions(
     actor: StackedActor, obs: np.ndarray, noise_std: float, rngs: Sequence[np.random.Generator]
 ) -> np.ndarray:
@@ -235,190 +98,8 @@ def exploration_actions(
     return np.clip(a, centre - scale, centre + scale).astype(np.float32)
 
 
-class _Updater:
-    """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update."""
-
-    def __init__(
-        self,
-        state: StackedTD3,
-        buffer: StackedReplay,
-        cfg: TrainSpecialistParams,
-        seeds: list[dict[str, int]],
-        rngs,
-        device,
-    ):
-        self.state, self.buffer, self.cfg, self.rngs = state, buffer, cfg, rngs
-        self.device = device
-        s, b, act = state.n, cfg.batch_size, state.actor.scale.shape[-1]
-        self.noise_gens = [torch_generator(x["noise"], device) for x in seeds]
-        self.noise = torch.zeros(s, b, act, device=device)
-        self.on_cuda = device.type == "cuda"
-        if self.on_cuda:
-            self.row_gens = [torch_generator(x["cuda_rows"], device) for x in seeds]
-            self.idx = torch.zeros(s, b, dtype=torch.long, device=device)
-        self.graphs = self.on_cuda and cfg.cuda_graphs
-        self.graphed: GraphedUpdate | None = None
-        self.args = dict(gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip)
-        # the latest critic and actor losses (eager updates only: a captured graph keeps its own)
-        self.metrics: dict[str, torch.Tensor] = {}
-
-    def graph(self) -> GraphedUpdate:
-        """The captured update (CUDA graphs), captured on first use: it needs fresh optimizers."""
-        if self.graphed is None:
-            self.graphed = GraphedUpdate(self.state, self.buffer.gather, self.idx, self.noise, **self.args)
-        return self.graphed
-
-    def __call__(self, update_actor: bool) -> None:
-        for s, g in enumerate(self.noise_gens):
-            self.noise[s].normal_(generator=g)
-        if self.on_cuda:
-            for s, g in enumerate(self.row_gens):
-                self.idx[s].random_(0, self.buffer.size, generator=g)
-            idx = self.idx
-        else:
-            idx = torch.from_numpy(
-                np.stack([rng.integers(0, self.buffer.size, size=self.cfg.batch_size) for rng in self.rngs])
-            )
-        if self.graphs:
-            self.graph()(update_actor)
-        else:
-            self.metrics.update(
-                stacked_update(self.state, self.buffer.gather(idx), self.noise, update_actor, **self.args)
-            )
-
-
 STATE_FORMAT = "mapex.specialists_state"
 STATE_VERSION = 2  # 2: keep-best checks and snapshots
-
-
-def _cpu(obj: Any) -> Any:
-    """A copy of a (nested) state dict with every tensor detached and cloned on the CPU."""
-    if torch.is_tensor(obj):
-        return obj.detach().to("cpu", copy=True)
-    if isinstance(obj, dict):
-        return {k: _cpu(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_cpu(v) for v in obj)
-    return obj
-
-
-def _copy_optimizer_state_(opt: torch.optim.Optimizer, saved: dict[str, Any]) -> None:
-    """Copy a saved optimizer state into `opt`'s existing state tensors, in place (captured
-    CUDA graphs read those very tensors, so load_state_dict, which replaces them, cannot be used)."""
-    params = [p for group in opt.param_groups for p in group["params"]]
-    if sorted(saved["state"]) != list(range(len(params))):
-        raise ValueError(f"optimizer state for {len(saved['state'])} parameters, the optimizer has {len(params)}")
-    with torch.no_grad():
-        for i, p in enumerate(params):
-            for key, value in saved["state"][i].items():
-                opt.state[p][key].copy_(value)
-
-
-def nets_state(st: StackedTD3) -> dict[str, Any]:
-    """The networks and optimizers of a stacked set, as CPU tensors."""
-    return _cpu(
-        {
-            "actor": st.actor.state_dict(),
-            "actor_target": st.actor_target.state_dict(),
-            "critic": st.critic.state_dict(),
-            "critic_target": st.critic_target.state_dict(),
-            "actor_opt": st.actor_opt.state_dict(),
-            "critic_opt": st.critic_opt.state_dict(),
-        }
-    )
-
-
-def load_nets_state(update: "_Updater", nets: dict[str, Any], n_updates: int) -> None:
-    """Restore `nets_state` into the networks `update` trains (fresh, never updated)."""
-    st = update.state
-    for name in ("actor", "actor_target", "critic", "critic_target"):
-        getattr(st, name).load_state_dict(nets[name])
-    if update.graphs and n_updates > 0:
-        # The captured graphs read the optimizers' own state tensors: capture them now (on
-        # fresh optimizers, with the restored networks and buffer), then fill those tensors in
-        # place.
-        update.graph()
-        _copy_optimizer_state_(st.actor_opt, nets["actor_opt"])
-        _copy_optimizer_state_(st.critic_opt, nets["critic_opt"])
-    else:
-        for opt, saved in ((st.actor_opt, nets["actor_opt"]), (st.critic_opt, nets["critic_opt"])):
-            # load_state_dict also takes the saved param-group flags: keep this optimizer's
-            # capturable/fused (a state saved eagerly may be resumed under CUDA graphs)
-            flags = [{k: g[k] for k in ("capturable", "fused") if k in g} for g in opt.param_groups]
-            opt.load_state_dict(saved)
-            for g, f in zip(opt.param_groups, flags):
-                g.update(f)
-
-
-def buffer_state(b: StackedReplay) -> dict[str, Any]:
-    """A StackedReplay's rows and pointers as CPU tensors. The rows are not copied when a full
-    ring already lies on the CPU: they are the live ring, so save (or copy) the state before
-    the next row is added."""
-    size = b.size
-    if size == b.capacity and b.rows.device.type == "cpu":
-        rows, host = b.rows.detach(), {k: torch.from_numpy(v) for k, v in b.host.items()}
-    else:  # the rows written so far, copied to the CPU
-        rows = b.rows[:, :size].to("cpu", copy=True)
-        host = {k: torch.from_numpy(v[:, :size].copy()) for k, v in b.host.items()}
-    return {"capacity": b.capacity, "ptr": b.ptr, "size": size, "rows": rows, **host}
-
-
-def check_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
-    """ValueError unless `saved` (a `buffer_state`) fits buffer `b`."""
-    if saved["capacity"] != b.capacity:
-        raise ValueError(f"state's buffer capacity {saved['capacity']} != {b.capacity}")
-    size = saved["size"]
-    if tuple(saved["rows"].shape) != (b.n, size, b.rows.shape[2]) or not 0 <= saved["ptr"] < b.capacity:
-        raise ValueError(
-            f"state's buffer rows {tuple(saved['rows'].shape)} do not fit ({b.n}, {size}, {b.rows.shape[2]})"
-        )
-
-
-def load_buffer_state(b: StackedReplay, saved: dict[str, Any]) -> None:
-    """Restore a `buffer_state` (checked by `check_buffer_state`) into `b`."""
-    size = int(saved["size"])
-    with torch.no_grad():
-        b.rows[:, :size].copy_(saved["rows"])
-    for k, v in b.host.items():
-        v[:, :size] = saved[k].numpy()
-    b.ptr, b.size = int(saved["ptr"]), size
-
-
-def finite_named(update: _Updater, full: bool) -> list[tuple[str, torch.Tensor]]:
-    """What `check_finite` looks at in stacked networks under training: the latest losses
-    (eager updates; Q-values enter both, so a non-finite Q-value shows there) and the online
-    weights; with `full` (before a checkpoint or the results) also the target networks, the
-    optimizers' moments and the replay buffer rows."""
-    st, b = update.state, update.buffer
-    named = [(name.replace("_", " "), v) for name, v in update.metrics.items()]  # "critic loss", "actor loss"
-    named += weights("a critic weight", st.critic) + weights("an actor weight", st.actor)
-    if full:
-        named += weights("a target critic weight", st.critic_target)
-        named += weights("a target actor weight", st.actor_target)
-        named += optimizer_state("a critic optimizer moment", st.critic_opt)
-        named += optimizer_state("an actor optimizer moment", st.actor_opt)
-        named.append(("a replay buffer value", b.rows[:, : b.size]))
-    return named
-
-
-def diverged_specialist(update: _Updater) -> int | None:
-    """The first specialist s of a stacked set whose networks, optimizer moments or replay
-    buffer hold a non-finite value, else None (only called once a check has failed)."""
-    st, b = update.state, update.buffer
-    e = st.critic.n_members // st.n
-
-    def moments(opt) -> list[torch.Tensor]:
-        return [v for state in opt.state.values() for v in state.values() if torch.is_tensor(v) and v.dim() > 0]
-
-    for s in range(st.n):
-        parts = [p[s * e : (s + 1) * e] for m in (st.critic, st.critic_target) for p in m.parameters()]
-        parts += [v[s * e : (s + 1) * e] for v in moments(st.critic_opt)]
-        parts += [p[s] for m in (st.actor, st.actor_target) for p in m.parameters()]
-        parts += [v[s] for v in moments(st.actor_opt)]
-        parts.append(b.rows[s, : b.size])
-        if first_nonfinite([("", t) for t in parts]) is not None:
-            return s
-    return None
 
 
 class SpecialistsRun:
@@ -456,7 +137,7 @@ class SpecialistsRun:
         for env, x in zip(self.envs, self.seeds):
             env.action_space.seed(x["space"])
         self.buffer = StackedReplay(n, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = _Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
+        self.update = Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
         self.episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
         self.obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(self.envs, self.seeds)]).astype(np.float32)
         self.episode = np.zeros(n, np.int64)
@@ -646,7 +327,7 @@ class SpecialistsRun:
                 {
                     "check_step": torch.tensor([t for t, _ in checks], dtype=torch.int64),
                     "check_score": torch.tensor([x for _, x in checks], dtype=torch.float64),
-                    "best": None if best is None else _cpu(best),
+                    "best": None if best is None else cpu_copy(best),
                 }
                 for checks, best in zip(self.checks, self.best)
             ],
@@ -727,7 +408,7 @@ class SpecialistsRun:
                 for name, stacked in (("actor", self.state.actor), ("actor_target", self.state.actor_target)):
                     unstack_actor(stacked, s).load_state_dict(b[name])
                 b = {"step": int(b["step"]), "score": float(b["score"])} | {
-                    name: _cpu(b[name])
+                    name: cpu_copy(b[name])
                     for name in ("actor", "actor_target")  # copies: the state may be memory-mapped
                 }
             best.append(b)
