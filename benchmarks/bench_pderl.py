@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import pipeline.specialists.pderl as pderl  # noqa: E402
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
 from pipeline.params.train_pderl import TrainPderlParams  # noqa: E402
+from pipeline.params.td3 import TD3Params  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
 from pipeline.specialists.td3_training import train_specialist  # noqa: E402
 
@@ -58,14 +59,12 @@ class Timer:
         return out
 
 
-def td3_cfg(args: argparse.Namespace) -> TrainSpecialistParams:
-    return TrainSpecialistParams(
-        total_steps=args.frames,
+def td3_cfg(args: argparse.Namespace) -> TD3Params:
+    return TD3Params(
         learning_starts=args.learning_starts,
         buffer_size=max(args.frames * 2, 1000),
         batch_size=args.batch,
         hidden_sizes=args.hidden,
-        device=args.device,
         cuda_graphs=not args.eager,
     )
 
@@ -76,7 +75,8 @@ def bench_td3(args: argparse.Namespace) -> dict:
     spec = env_spec(env, args.env, args.cap)
     sync(args.device)
     t = time.perf_counter()
-    result = train_specialist(env, spec, cfg, args.objective, args.seed, torch.device(args.device))
+    run = TrainSpecialistParams(total_steps=args.frames, device=args.device)
+    result = train_specialist(env, spec, cfg, run, args.objective, args.seed, torch.device(args.device))
     sync(args.device)
     wall = time.perf_counter() - t
     env.close()

@@ -38,6 +38,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
+from pipeline.params.td3 import TD3Params  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
 from pipeline.specialists.td3_training import train_specialists  # noqa: E402
 
@@ -54,15 +55,14 @@ def clocks() -> tuple[float, float]:
 def bench_ours(args: argparse.Namespace, stack: int, first: int = 0) -> tuple[tuple[float, float], int]:
     """`stack` specialists (objectives alternating, seeds counting up, from the first-th) trained
     together; returns ((wall s, CPU s) of the timed steps, Q-networks trained per specialist)."""
-    cfg = TrainSpecialistParams(
-        total_steps=args.warmup + args.steps,
+    td3 = TD3Params(
         learning_starts=args.warmup,
         buffer_size=args.warmup + args.steps,
         batch_size=args.batch,
         hidden_sizes=args.hidden,
         secondary_critics=not args.no_secondary,
-        device=args.device,
     )
+    cfg = TrainSpecialistParams(total_steps=args.warmup + args.steps, device=args.device)
     envs = [make_env(args.env, args.cap) for _ in range(stack)]
     spec = env_spec(envs[0], args.env, args.cap)
     jobs = [(args.seed + s // spec.n_objectives, s % spec.n_objectives) for s in range(first, first + stack)]
@@ -72,7 +72,7 @@ def bench_ours(args: argparse.Namespace, stack: int, first: int = 0) -> tuple[tu
         if t == args.warmup:  # the last warm-up step is done; updates start with the next one
             start.append(clocks())
 
-    results = train_specialists(envs, spec, cfg, jobs, torch.device(args.device), on_step=on_step)
+    results = train_specialists(envs, spec, td3, cfg, jobs, torch.device(args.device), on_step=on_step)
     if args.device == "cuda":
         torch.cuda.synchronize()
     end = clocks()

@@ -25,6 +25,8 @@ from pipeline.specialists.pderl import EpisodeResult
 from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
+
+
 def history_csv(records: list[GenerationRecord]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")

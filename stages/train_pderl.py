@@ -130,9 +130,7 @@ def train_part(
             train_one(out, k, names[k], seed, spec, env_p, td3, cfg, device, send)
 
 
-def run_config(
-    seed: int, objective: int, env_p: EnvParams, td3: TD3Params, cfg: TrainPderlParams
-) -> dict[str, Any]:
+def run_config(seed: int, objective: int, env_p: EnvParams, td3: TD3Params, cfg: TrainPderlParams) -> dict[str, Any]:
     """What a PDERL run depends on besides code, device and threads (pipeline.core.resume.
     run_fingerprint): the params it reads, seed and objective."""
     return {

@@ -195,9 +195,7 @@ def train_group(
     ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
 
     def fresh() -> SpecialistsRun:
-        return SpecialistsRun(
-            [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device
-        )
+        return SpecialistsRun([make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device)
 
     probe = make_env(env_p.id, env_p.max_episode_steps)
     problem = env_checkpoint_problem(probe)

@@ -48,7 +48,7 @@ Choices where MOPDERL (paper, the authors' public code) is ambiguous, or where w
 - The RL agents are our TD3 (with secondary critics), not the public code's DDPG. They are
   restored from the specialists' artifacts (actor and target actor, critic ensemble and its
   target, replay buffer) with fresh Adam optimizers: the artifacts hold no optimizer state.
-  Their hyperparameters are train_specialist's. TD3's start timesteps do not apply here (the
+  Their hyperparameters are the td3 section's. TD3's start timesteps do not apply here (the
   buffers are full). Each is a `TD3Learner` (pipeline/specialists/td3_learner.py), as
   PDERL's agent: on CUDA its buffer lives on the GPU and its updates replay as CUDA graphs.
 - The critic of a crossover (`crossover_critic`) follows the authors' code: when the parents'
@@ -115,7 +115,7 @@ from pipeline.core.population import Member, actor_state
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
 from pipeline.specialists.td3 import stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
@@ -274,7 +274,7 @@ class MopderlRun:
     def __init__(
         self,
         spec: EnvSpec,
-        td3_cfg: TrainSpecialistParams,
+        td3_cfg: TD3Params,
         cfg: MopderlParams,
         seed: int,
         starts: Sequence[StartingActor],

@@ -43,4 +43,3 @@ class TD3Params(Strict):
         if self.learning_starts < self.batch_size:
             raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
         return self
-

@@ -44,16 +44,17 @@ class KeepBest:
 KEEP_BEST_TAG = 0x6B33_B357  # separates keep-best evaluation seeds from a specialist's training streams
 
 
-def keep_best_due(cfg: TrainSpecialistParams, t: int) -> bool:
+def keep_best_due(cfg: TrainSpecialistParams, learning_starts: int, t: int) -> bool:
     """Whether a keep-best check follows env step t (t steps taken): t a multiple of
-    keep_best_every past learning_starts, or the last step; never when keep-best is off."""
+    keep_best_every past learning_starts (td3.learning_starts), or the last step; never when
+    keep-best is off."""
     every = cfg.keep_best_every
-    return every > 0 and cfg.learning_starts < t <= cfg.total_steps and (t % every == 0 or t == cfg.total_steps)
+    return every > 0 and learning_starts < t <= cfg.total_steps and (t % every == 0 or t == cfg.total_steps)
 
 
-def keep_best_steps(cfg: TrainSpecialistParams) -> list[int]:
+def keep_best_steps(cfg: TrainSpecialistParams, learning_starts: int) -> list[int]:
     """Every env step a keep-best check follows, in order ([] when keep-best is off)."""
-    return [t for t in range(cfg.learning_starts + 1, cfg.total_steps + 1) if keep_best_due(cfg, t)]
+    return [t for t in range(learning_starts + 1, cfg.total_steps + 1) if keep_best_due(cfg, learning_starts, t)]
 
 
 def keep_best_seeds(seed: int, objective: int, check: int, episodes: int) -> list[int]:

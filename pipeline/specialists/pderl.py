@@ -43,7 +43,7 @@ resumed ends bitwise as an uninterrupted one on a CPU (same thread count and lib
 
 The RL agent is a `TD3Learner`: the specialists' stacked TD3 path with one specialist, so on
 CUDA its replay buffer lives on the GPU and a generation's updates replay as captured CUDA
-graphs with no host sync but the finiteness check every 100 updates (train_specialist.cuda_graphs). Earlier versions used the plain
+graphs with no host sync but the finiteness check every 100 updates (td3.cuda_graphs). Earlier versions used the plain
 `td3_update` with a numpy buffer. On a CPU the two gave bitwise-identical runs: a small run
 hashed before and after, and the PDERL-vs-TD3 comparison of docs/results.md, re-run, reproduced
 every figure. The tests check agreement up to float rounding only.
@@ -66,7 +66,7 @@ from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.td3 import covered_objectives, stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
 
@@ -402,7 +402,7 @@ class PderlRun:
     def __init__(
         self,
         spec: EnvSpec,
-        td3_cfg: TrainSpecialistParams,
+        td3_cfg: TD3Params,
         cfg: TrainPderlParams,
         objective: int,
         seed: int,
@@ -655,7 +655,7 @@ class PderlRun:
 def train_pderl(
     env: gym.Env,
     spec: EnvSpec,
-    td3_cfg: TrainSpecialistParams,
+    td3_cfg: TD3Params,
     cfg: TrainPderlParams,
     objective: int,
     seed: int,

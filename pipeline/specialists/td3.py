@@ -36,7 +36,7 @@ from pipeline.core.buffer import Batch, StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 
 
 @dataclass
@@ -379,7 +379,7 @@ def covered_objectives(objective: int, n_objectives: int, secondary: bool) -> tu
     return [objective], 0
 
 
-def init_td3(spec: EnvSpec, cfg: TrainSpecialistParams, objective: int, device: torch.device) -> TD3State:
+def init_td3(spec: EnvSpec, cfg: TD3Params, objective: int, device: torch.device) -> TD3State:
     """One specialist's networks unstacked: the reference form that `td3.td3_update` trains
     (the tests check the stacked update against it)."""
     objectives, primary = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
@@ -403,9 +403,7 @@ def run_seeds(seed: int, objective: int) -> dict[str, int]:
     return dict(zip(names, derive_seeds(seed, objective, n=len(names))))
 
 
-def init_stacked(
-    spec: EnvSpec, cfg: TrainSpecialistParams, jobs: Sequence[tuple[int, int]], device: torch.device
-) -> StackedTD3:
+def init_stacked(spec: EnvSpec, cfg: TD3Params, jobs: Sequence[tuple[int, int]], device: torch.device) -> StackedTD3:
     """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
     would be alone (torch seeded with its own seed, actor first, then its critics)."""
     actors, critics, covered, primary = [], [], [], []
@@ -420,7 +418,7 @@ def init_stacked(
 
 
 def stack_td3(
-    cfg: TrainSpecialistParams,
+    cfg: TD3Params,
     actors: Sequence[Actor],
     critics: Sequence[CriticEnsemble],
     covered: Sequence[Sequence[int]],
@@ -475,7 +473,7 @@ class Updater:
         self,
         state: StackedTD3,
         buffer: StackedReplay,
-        cfg: TrainSpecialistParams,
+        cfg: TD3Params,
         seeds: list[dict[str, int]],
         rngs,
         device,

@@ -15,7 +15,7 @@ from pipeline.core.buffer import StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import check_finite, due
 from pipeline.core.nets import Actor, CriticEnsemble
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.td3 import StackedTD3, Updater
 from pipeline.specialists.td3_state import (
     buffer_state,
@@ -41,7 +41,7 @@ class TD3Learner:
     def __init__(
         self,
         spec: EnvSpec,
-        cfg: TrainSpecialistParams,
+        cfg: TD3Params,
         state: StackedTD3,
         rows_rng: np.random.Generator,
         noise_seed: int,

@@ -44,6 +44,7 @@ from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import KeepBest, keep_best_due, keep_best_score, keep_best_seeds
 from pipeline.specialists.td3 import Updater, init_stacked, run_seeds, unstack_actor
@@ -116,6 +117,7 @@ class SpecialistsRun:
         self,
         envs: Sequence[gym.Env],
         spec: EnvSpec,
+        td3: TD3Params,
         cfg: TrainSpecialistParams,
         jobs: Sequence[tuple[int, int]],
         device: torch.device,
@@ -127,17 +129,17 @@ class SpecialistsRun:
                 )
         if len(envs) != len(jobs):
             raise ValueError(f"{len(jobs)} specialists need as many envs, got {len(envs)}")
-        self.envs, self.spec, self.cfg = list(envs), spec, cfg
+        self.envs, self.spec, self.td3, self.cfg = list(envs), spec, td3, cfg
         self.jobs = [(int(seed), int(objective)) for seed, objective in jobs]
         self.device = torch.device(device)
         n = len(jobs)
         self.seeds = [run_seeds(seed, objective) for seed, objective in self.jobs]
-        self.state = init_stacked(spec, cfg, self.jobs, self.device)
+        self.state = init_stacked(spec, td3, self.jobs, self.device)
         self.rngs = [np.random.default_rng(x["numpy"]) for x in self.seeds]
         for env, x in zip(self.envs, self.seeds):
             env.action_space.seed(x["space"])
-        self.buffer = StackedReplay(n, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = Updater(self.state, self.buffer, cfg, self.seeds, self.rngs, self.device)
+        self.buffer = StackedReplay(n, td3.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
+        self.update = Updater(self.state, self.buffer, td3, self.seeds, self.rngs, self.device)
         self.episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
         self.obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(self.envs, self.seeds)]).astype(np.float32)
         self.episode = np.zeros(n, np.int64)
@@ -164,11 +166,11 @@ class SpecialistsRun:
         """One env step of every specialist (and one update once learning has started, and a
         keep-best check where `keep_best_due`); returns, per specialist, the record of the
         episode this step ended, else None."""
-        cfg, envs, t = self.cfg, self.envs, self.t
-        if t < cfg.learning_starts:
+        td3, envs, t = self.td3, self.envs, self.t
+        if t < td3.learning_starts:
             actions = np.stack([np.asarray(env.action_space.sample(), dtype=np.float32) for env in envs])
         else:
-            actions = exploration_actions(self.state.actor, self.obs, cfg.exploration_noise, self.rngs)
+            actions = exploration_actions(self.state.actor, self.obs, td3.exploration_noise, self.rngs)
         next_obs, reward, terminated, truncated = self._next_obs, self._reward, self._terminated, self._truncated
         for s, env in enumerate(envs):
             o, r, terminated[s], truncated[s], _ = env.step(actions[s])
@@ -187,13 +189,13 @@ class SpecialistsRun:
             self.episode[s] += 1
             self.ep_step[s] = 0
             self.ep_return[s] = 0.0
-        if t >= cfg.learning_starts:
+        if t >= td3.learning_starts:
             self.n_updates += 1
-            self.update(update_actor=self.n_updates % cfg.policy_freq == 0)
+            self.update(update_actor=self.n_updates % td3.policy_freq == 0)
         self.t = t + 1
-        if t >= cfg.learning_starts and due(self.n_updates):
+        if t >= td3.learning_starts and due(self.n_updates):
             self.check_finite()
-        if keep_best_due(cfg, self.t):
+        if keep_best_due(self.cfg, td3.learning_starts, self.t):
             self.keep_best_check()
         return records
 
@@ -444,6 +446,7 @@ def continue_training(
 def train_specialists(
     envs: Sequence[gym.Env],
     spec: EnvSpec,
+    td3: TD3Params,
     cfg: TrainSpecialistParams,
     jobs: Sequence[tuple[int, int]],
     device: torch.device,
@@ -461,7 +464,7 @@ def train_specialists(
     specialist draws the same whatever else is stacked with it, and the same inputs give
     bitwise-identical results on a CPU (same thread count and library versions).
     """
-    run = SpecialistsRun(envs, spec, cfg, jobs, device)
+    run = SpecialistsRun(envs, spec, td3, cfg, jobs, device)
     if state is not None:
         run.load_state_dict(state)
     return continue_training(run, on_step, on_checkpoint)
@@ -470,6 +473,7 @@ def train_specialists(
 def train_specialist(
     env: gym.Env,
     spec: EnvSpec,
+    td3: TD3Params,
     cfg: TrainSpecialistParams,
     objective: int,
     seed: int,
@@ -478,4 +482,4 @@ def train_specialist(
 ) -> SpecialistResult:
     """One specialist alone: `train_specialists` with S = 1."""
     step = None if on_step is None else (lambda t, records: on_step(t, records[0]))
-    return train_specialists([env], spec, cfg, [(seed, objective)], device, step)[0]
+    return train_specialists([env], spec, td3, cfg, [(seed, objective)], device, step)[0]
