@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import pipeline.specialists.pderl as pderl  # noqa: E402
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
-from pipeline.params.train_pderl import TrainPderlParams  # noqa: E402
 from pipeline.params.td3 import TD3Params  # noqa: E402
+from pipeline.params.train_pderl import TrainPderlParams  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
 from pipeline.specialists.td3_training import train_specialist  # noqa: E402
 

@@ -20,8 +20,8 @@ from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
-from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.td3 import TD3Params
+from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
 

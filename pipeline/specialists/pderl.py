@@ -65,8 +65,8 @@ from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
-from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.params.td3 import TD3Params
+from pipeline.params.train_pderl import TrainPderlParams, n_elites
 from pipeline.specialists.td3 import covered_objectives, stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
 
