@@ -26,7 +26,8 @@ from pipeline.core.envs import make_env
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policies
-from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
+from pipeline.extraction.children import make_children
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds
 
 OBS, ACT = 17, 6
 PAPER_EPOCHS = 20  # mo-halfcheetah-v5, appendix table

@@ -11,6 +11,7 @@ from pipeline.core.envs import make_env
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.evaluation import episodes as ex_eval
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
+from pipeline.extraction import children as children_mod
 from pipeline.extraction import mapex as ex
 
 OBS, ACT = 17, 6  # mo-halfcheetah-v5's dims, so children can be evaluated in the real env
@@ -106,7 +107,9 @@ def test_one_child_is_bitwise_what_it_was_before_batching(config, one_thread):
     thread count, so the comparison holds on any machine (no recorded digest)."""
     cfg = child_config(config)
     buffers, critics, actors = fixture_inputs()
-    [(child, rec)] = ex.make_children(RETURNS, actors, buffers, critics, cfg, [ex.ChildSeeds(111, 222, 333)], "cpu")
+    [(child, rec)] = children_mod.make_children(
+        RETURNS, actors, buffers, critics, cfg, [ex.ChildSeeds(111, 222, 333)], "cpu"
+    )
     ref, parents, weight, counts, stats = reference(cfg, 111, 222)
     assert state_equal(child, ref)
     assert rec.parents == parents and rec.counts.tolist() == counts.tolist()
@@ -140,7 +143,7 @@ def test_each_child_of_a_stack_is_the_child_trained_alone(config, one_thread):
     (e.g. one gradient-norm clip over all) shows up as differences of ~1e-3."""
     buffers, critics, actors = fixture_inputs()
     cfg = uneven_config(config)
-    together = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
+    together = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
     alone = [ex.make_child(RETURNS, actors, buffers, critics, cfg, s, "cpu") for s in SEEDS]
     assert sorted({int(rec.counts.sum()) for _, rec in alone}) == [615, 900]  # uneven lengths are covered
     for (child, rec), (ref, ref_rec) in zip(together, alone):
@@ -157,7 +160,7 @@ def test_each_child_of_a_stack_is_the_child_trained_alone(config, one_thread):
 def test_make_children_with_one_seed_on_cpu_is_make_child():
     buffers, critics, actors = fixture_inputs()
     cfg = child_config("paper")
-    [(child, _)] = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:1], "cpu")
+    [(child, _)] = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:1], "cpu")
     ref, _ = ex.make_child(RETURNS, actors, buffers, critics, cfg, SEEDS[0], "cpu")
     assert max_abs_diff(child, ref) == 0.0
 
@@ -202,13 +205,13 @@ def test_stacked_rows_are_weighted_by_their_own_advantage_and_come_from_their_ow
         seen.append((obs.clone(), target.clone(), mask.clone(), weight.clone(), pred.detach().clone()))
         return torch.zeros(len(obs))
 
-    monkeypatch.setattr(ex, "start_child", spy_start)
-    monkeypatch.setattr(ex, "stacked_regression_step", spy_step)
+    monkeypatch.setattr(children_mod, "start_child", spy_start)  # the name make_children calls
+    monkeypatch.setattr(children_mod, "stacked_regression_step", spy_step)
     adv = ex.AdvantageConfig(
         epochs=2, beta=0.5, omega_max=1e6, lr=1e-3, batch_size=64, max_grad_norm=None, recompute="every_step", norm=norm
     )
     cfg = ex.ChildConfig((8,), 400, "l2", 0, 1e-3, 64, adv)
-    ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
+    children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
     weights = torch.tensor(np.stack([s.weight for s in starts]), dtype=torch.float32)
     for j, start in enumerate(starts):
         rows = []
@@ -244,7 +247,7 @@ def test_clip_per_child_is_torch_clip_on_each_child_alone():
     for j, params in enumerate(alone):
         for p, s in zip(params, stacked):
             p.grad = s.grad[j].clone()
-    norms = ex.clip_grad_norm_per_child_(stacked, 1.0)
+    norms = children_mod.clip_grad_norm_per_child_(stacked, 1.0)
     for j, params in enumerate(alone):
         norm = torch.nn.utils.clip_grad_norm_(params, 1.0)
         assert float(norms[j]) == pytest.approx(float(norm), rel=1e-6)
@@ -255,23 +258,23 @@ def test_clip_per_child_is_torch_clip_on_each_child_alone():
 
 def test_schedules_host_rows_are_make_childs_draws_and_device_rows_are_permutations():
     n, b = 150, 64
-    idx, mask = ex.epoch_schedule(n, 2, b, np.random.default_rng(5))
+    idx, mask = children_mod.epoch_schedule(n, 2, b, np.random.default_rng(5))
     rng = np.random.default_rng(5)
     for e in range(2):
         perm = rng.permutation(n)  # what advantage_weighted_regression draws for epoch e
         np.testing.assert_array_equal(idx[3 * e : 3 * e + 3].flatten()[:n].numpy(), perm)
     assert mask.shape == (6, b) and mask.sum(dim=1).tolist() == [64, 64, 22] * 2
     gen = torch.Generator().manual_seed(1)
-    idx_d, mask_d = ex.epoch_schedule(n, 2, b, None, gen)
+    idx_d, mask_d = children_mod.epoch_schedule(n, 2, b, None, gen)
     for e in range(2):
         rows = idx_d[3 * e : 3 * e + 3][mask_d[3 * e : 3 * e + 3] > 0]
         assert sorted(rows.tolist()) == list(range(n))
-    again, _ = ex.epoch_schedule(n, 2, b, None, torch.Generator().manual_seed(1))
+    again, _ = children_mod.epoch_schedule(n, 2, b, None, torch.Generator().manual_seed(1))
     assert torch.equal(idx_d, again)
-    warm = ex.warmup_schedule(40, 7, 64, None, torch.Generator().manual_seed(2))
+    warm = children_mod.warmup_schedule(40, 7, 64, None, torch.Generator().manual_seed(2))
     assert warm.shape == (7, 40) and int(warm.min()) >= 0 and int(warm.max()) < 40
     rng = np.random.default_rng(9)
-    host = ex.warmup_schedule(500, 3, 64, np.random.default_rng(9))
+    host = children_mod.warmup_schedule(500, 3, 64, np.random.default_rng(9))
     np.testing.assert_array_equal(host.numpy(), np.stack([rng.integers(0, 500, size=64) for _ in range(3)]))
 
 
@@ -283,10 +286,12 @@ def test_device_rows_and_gather_paths_run_on_cpu_reproducibly():
     cfg = uneven_config("precursor")
 
     def run():
-        return ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True)
+        return children_mod.make_children(
+            RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True
+        )
 
     a, b = run(), run()
-    host = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu")
+    host = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cpu")
     for (ca, ra), (cb, _), (ch, rh) in zip(a, b, host):
         assert max_abs_diff(ca, cb) == 0.0
         assert ra.parents == rh.parents and ra.counts.tolist() == rh.counts.tolist()
@@ -354,10 +359,10 @@ def test_cuda_children_are_reproducible_and_close_to_the_cpu_path():
     buffers, critics, actors = fixture_inputs()
     critics, actors = _on_cuda(critics, actors)
     cfg = uneven_config("precursor")
-    a = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
-    b = ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
+    a = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
+    b = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
     cpu_actors, cpu_critics = fixture_inputs()[2], fixture_inputs()[1]
-    cpu = ex.make_children(
+    cpu = children_mod.make_children(
         RETURNS, cpu_actors, buffers, cpu_critics, cfg, SEEDS[:2], "cpu", device_rows=True, gather=True
     )
     for (ca, ra), (cb, _), (cc, rc) in zip(a, b, cpu):
@@ -386,7 +391,7 @@ def test_cuda_step_loops_do_not_synchronise_per_step():
             warnings.simplefilter("always")
             torch.cuda.set_sync_debug_mode("warn")
             try:
-                ex.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
+                children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS[:2], "cuda")
             finally:
                 torch.cuda.set_sync_debug_mode("default")
         return sum("synchroniz" in str(w.message) for w in caught)

@@ -2,13 +2,13 @@
 
 `ExtractionRun` holds the population Pi (its members: every starting policy, then every
 child), the specialists' buffers D_k and critics Q^(k)_m, and the history of the run.
-`start()` evaluates the starting policies; each `step()` is one iteration of Algorithm 1's
-while loop: the whole population's returns choose parents and target weights, each of
-`children_per_iteration` children is trained on its own hybrid buffer (pipeline.extraction.
-mapex.make_children) and evaluated, and joins the population. `state_dict()` /
-`load_state_dict()` save and restore the run between iterations (the members as an
-append-only log, see pipeline.core.resume), so a resumed run ends bitwise as an
-uninterrupted one on the same machine.
+`start()` evaluates the starting policies; each `step()` is one iteration of Algorithm 1's while
+loop: the whole population's returns choose parents and target weights, each of
+`children_per_iteration` children is trained on its own hybrid buffer
+(pipeline.extraction.children.make_children) and evaluated, and joins the population.
+`state_dict()` / `load_state_dict()` save and restore the run between iterations (the members as
+an append-only log, see pipeline.core.resume), so a resumed run ends bitwise as an uninterrupted
+one on the same machine.
 
 Random streams: member i is evaluated on evaluation stream i (seed, EVAL_STREAM, i); child c
 (counted from 1 over the run) draws from derive_seeds(seed, EXTRACT_TAG, c), so with one
@@ -33,7 +33,8 @@ from pipeline.core.population import Member, actor_state, member_actor
 from pipeline.core.seeding import derive_seeds
 from pipeline.core.specialist import Slot, StartingPolicy
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies, evaluate_policy
-from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds, make_children
+from pipeline.extraction.children import make_children
+from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds
 from pipeline.params.extract import ExtractParams
 
 EXTRACT_TAG = 0xE87AC7
