@@ -18,6 +18,7 @@ PACKAGES = ("pipeline", "stages")
 # other stage runs stages/<its name>.py.
 STAGE_MODULES = {
     "extract_posthoc": "extract",
+    "warmup_only": "extract",
     "critic_fidelity_posthoc": "critic_fidelity",
     "import_specialist_buffered": "import_specialist",
 }

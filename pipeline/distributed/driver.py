@@ -17,7 +17,7 @@ from pipeline.distributed.task import StageResult, StageTask, run_stage_task
 from pipeline.distributed.workspace import StageItem, _git, prepare_workspace, stage_items, write_lock
 
 # Stages that get a GPU when the cluster has one (resources gpus: auto); the others run on CPU.
-GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract", "extract_posthoc")
+GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract", "warmup_only", "extract_posthoc")
 SWEEP_EXTRA = 'pip install -e ".[sweep]"'
 
 

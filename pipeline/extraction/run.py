@@ -35,7 +35,7 @@ from pipeline.core.specialist import Slot, StartingPolicy
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies, evaluate_policy
 from pipeline.extraction.children import make_children
 from pipeline.extraction.mapex import AdvantageConfig, ChildConfig, ChildSeeds
-from pipeline.params.extract import ExtractParams
+from pipeline.params.extract import AWR_KEYS, ExtractParams
 
 EXTRACT_TAG = 0xE87AC7
 EVAL_STREAM = 0  # evaluation seeds of extraction; the evaluate stage uses fresh streams
@@ -241,6 +241,11 @@ class ExtractionRun:
 
 def variant_config(cfg: ExtractParams, variant: str) -> ExtractParams:
     """The `extract` params as variant `variant` runs them: warmup_only is Algorithm 1 with
-    epochs = 0 (regression onto the mean parent action only); mapex and mapex_posthoc change
-    nothing here (they differ in the critics they read)."""
-    return cfg.model_copy(update={"epochs": 0}) if variant == "warmup_only" else cfg
+    epochs = 0 (regression onto the mean parent action only), its advantage-weighted keys
+    (AWR_KEYS) set to their defaults, so that nothing it records or fingerprints depends on
+    keys it does not read; mapex and mapex_posthoc change nothing here (they differ in the
+    critics they read)."""
+    if variant != "warmup_only":
+        return cfg
+    fields = ExtractParams.model_fields
+    return cfg.model_copy(update={k: fields[k].default for k in AWR_KEYS} | {"epochs": 0})

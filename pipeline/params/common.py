@@ -68,9 +68,12 @@ class RunParams(Strict):
     extract_from: list[Literal["td3", "pderl"]] = Field(
         ["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"
     )
-    extract_variants: list[Literal["mapex", "warmup_only"]] = Field(
-        ["mapex", "warmup_only"],
+    extract_variants: list[Literal["mapex"]] = Field(
+        ["mapex"],
         description="derived: variants stage extract runs from each kind, with the joint critics",
+    )
+    warmup_from: list[Literal["td3", "pderl"]] = Field(
+        ["td3"], description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from"
     )
     posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
@@ -92,7 +95,7 @@ class RunParams(Strict):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
 
-    @field_validator("extract_from", "extract_variants", "posthoc_from", "methods")
+    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "methods")
     @classmethod
     def _unique(cls, v: list[str]) -> list[str]:
         if len(set(v)) != len(v):

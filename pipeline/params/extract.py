@@ -86,3 +86,10 @@ class ExtractParams(Strict):
             )
         fill = dict(zip(("epochs", "beta", "omega_max"), defaults or (None, None, None)))
         return self.model_copy(update={k: fill[k] for k in missing})
+
+
+# The advantage-weighted phase's keys. The warm-up-only ablation (epochs = 0) reads none of them,
+# so its dvc.yaml stage (warmup_only) lists only WARMUP_ONLY_KEYS: changing extract.beta, say,
+# leaves every warm-up-only front up to date. A test checks dvc.yaml against this list.
+AWR_KEYS = ("epochs", "beta", "omega_max", "lr", "batch_size", "max_grad_norm", "advantage_recompute", "advantage_norm")
+WARMUP_ONLY_KEYS = tuple(k for k in ExtractParams.model_fields if k not in AWR_KEYS)

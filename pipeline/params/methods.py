@@ -28,10 +28,10 @@ METHODS: dict[str, Method] = {
     for m in (
         Method("mapex_pderl", "mapex", "pderl", "MAPEX", "tab:blue", "extract"),
         Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "MAPEX-PostHoc", "tab:cyan", "extract_posthoc"),
-        Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "extract"),
+        Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "warmup_only"),
         Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
         Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
-        Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "extract"),
+        Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "warmup_only"),
         Method(
             "mapex_posthoc_imported",
             "mapex_posthoc",
@@ -47,10 +47,12 @@ METHODS: dict[str, Method] = {
 
 # Extraction variants (stage extract --variant): what each changes in section `extract`.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
-# The variants that read the critics trained jointly with the specialists (stage extract).
-# mapex_posthoc reads critics fitted post hoc and has its own stage (extract_posthoc), so that
-# extraction with joint critics does not depend on post-hoc critics: DVC deps cannot depend
-# on a matrix value.
+# The variants run from the specialists' own directories (stages extract and warmup_only), in
+# one product with the kinds of extract_from. mapex_posthoc reads critics fitted post hoc and
+# has its own stage (extract_posthoc), so that extraction with joint critics does not depend on
+# post-hoc critics: DVC deps cannot depend on a matrix value. warmup_only has its own stage too,
+# whose params are only the extract keys it reads (pipeline.params.extract.WARMUP_ONLY_KEYS):
+# DVC params cannot depend on a matrix value either.
 JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
 # train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
@@ -94,13 +96,13 @@ def derived_lists(
 ) -> dict[str, list]:
     """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
     `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
-    imported_seeds, import_collect, import_buffered, extract_from, extract_variants,
-    posthoc_from, mopderl_seeds, morld_seeds, and export_methods from `export` (section
+    imported_seeds, import_collect, import_buffered, extract_from, extract_variants (stage
+    extract's), warmup_from (stage warmup_only's kinds), posthoc_from, mopderl_seeds, morld_seeds, and export_methods from `export` (section
     export's methods, each of which must be in `methods`). DVC cannot filter a matrix, so each
     producing stage needs a list of its own.
 
-    extract runs every joint variant of `extract_variants` from every kind of `extract_from`
-    (a matrix), so the methods of stage extract must form that whole product; raises
+    extract and warmup_only run every joint variant from every kind of `extract_from` (a
+    matrix), so their methods must form that whole product; raises
     ValueError naming the missing method otherwise. Unknown methods raise ValueError too, and
     so does an imported method without import_specialists.policies. extract_from also drives
     critic_fidelity (the joint critics' scores): with no joint-critic method it names the
@@ -111,7 +113,7 @@ def derived_lists(
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
     chosen = [METHODS[m] for m in methods]
-    extract = [m for m in chosen if m.stage == "extract"]
+    extract = [m for m in chosen if m.stage in ("extract", "warmup_only")]
     kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in extract)]
     variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
     missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
@@ -155,7 +157,8 @@ def derived_lists(
         if uses_imported
         else [],
         "extract_from": kinds,
-        "extract_variants": variants,
+        "extract_variants": [v for v in variants if v != "warmup_only"],
+        "warmup_from": kinds if "warmup_only" in variants else [],
         "posthoc_from": posthoc,
         "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
         "morld_seeds": list(seeds) if "morld" in methods else [],
