@@ -59,8 +59,25 @@ def train_seconds(k: int, rows: int, epochs: int, warmup: int, inputs, device: t
     """Wall seconds to make K children (warm-up + `epochs` AWR epochs) and the children."""
     buffers, critics, actors = inputs
     returns = np.array([[100.0, -3000.0], [-5.0, -10.0]])
-    adv = AdvantageConfig(epochs, 1.0, 1.0, 3e-4, 256, None, "every_step", "none")
-    cfg = ChildConfig(tuple(HIDDEN), rows, "l2", warmup, 3e-4, 256, adv)
+    adv = AdvantageConfig(
+        epochs=epochs,
+        beta=1.0,
+        omega_max=1.0,
+        lr=3e-4,
+        batch_size=256,
+        max_grad_norm=None,
+        recompute="every_step",
+        norm="none",
+    )
+    cfg = ChildConfig(
+        hidden_sizes=tuple(HIDDEN),
+        child_buffer_size=rows,
+        weight_norm="l2",
+        warmup_steps=warmup,
+        warmup_lr=3e-4,
+        warmup_batch_size=256,
+        adv=adv,
+    )
     seeds = [ChildSeeds(*derive_seeds(0, c, n=3)) for c in range(k)]
     sync(device)
     t0 = time.perf_counter()

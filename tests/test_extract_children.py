@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import reference_child
@@ -128,7 +130,7 @@ def uneven_config(config: str) -> ex.ChildConfig:
     """Hybrid buffers of 615 and 900 rows for SEEDS (10 and 15 steps an epoch at batch 64, short
     last batches of 39 and 4 rows) and warm-up batches of 615 and 640: every padding path."""
     c = child_config(config)
-    return ex.ChildConfig(c.hidden_sizes, 900, c.weight_norm, c.warmup_steps, c.warmup_lr, 640, c.adv)
+    return replace(c, child_buffer_size=900, warmup_batch_size=640)
 
 
 def max_abs_diff(a: Actor, b: Actor) -> float:
@@ -210,7 +212,15 @@ def test_stacked_rows_are_weighted_by_their_own_advantage_and_come_from_their_ow
     adv = ex.AdvantageConfig(
         epochs=2, beta=0.5, omega_max=1e6, lr=1e-3, batch_size=64, max_grad_norm=None, recompute="every_step", norm=norm
     )
-    cfg = ex.ChildConfig((8,), 400, "l2", 0, 1e-3, 64, adv)
+    cfg = ex.ChildConfig(
+        hidden_sizes=(8,),
+        child_buffer_size=400,
+        weight_norm="l2",
+        warmup_steps=0,
+        warmup_lr=1e-3,
+        warmup_batch_size=64,
+        adv=adv,
+    )
     children_mod.make_children(RETURNS, actors, buffers, critics, cfg, SEEDS, "cpu")
     weights = torch.tensor(np.stack([s.weight for s in starts]), dtype=torch.float32)
     for j, start in enumerate(starts):
@@ -384,8 +394,8 @@ def test_cuda_step_loops_do_not_synchronise_per_step():
 
     def syncs(warmup_steps: int, batch_size: int) -> int:
         c = child_config("precursor")
-        adv = ex.AdvantageConfig(**{**c.adv.__dict__, "batch_size": batch_size, "recompute": "every_step"})
-        cfg = ex.ChildConfig(c.hidden_sizes, 900, c.weight_norm, warmup_steps, c.warmup_lr, 64, adv)
+        adv = replace(c.adv, batch_size=batch_size, recompute="every_step")
+        cfg = replace(c, child_buffer_size=900, warmup_steps=warmup_steps, warmup_batch_size=64, adv=adv)
         torch.cuda.synchronize()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")

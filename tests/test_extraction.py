@@ -167,6 +167,17 @@ def test_awr_weight_positive_clipped_and_monotone(adv, beta, omega_max):
     np.testing.assert_allclose(w[small].numpy(), torch.exp(a[small] / beta).numpy(), rtol=1e-9)
 
 
+def test_child_configs_are_keyword_only():
+    """Four of AdvantageConfig's fields are floats: built by position they could silently swap."""
+    fields = dict(epochs=2, beta=0.5, omega_max=20.0, lr=1e-3, batch_size=64, max_grad_norm=None)
+    with pytest.raises(TypeError):
+        ex.AdvantageConfig(2, 0.5, 20.0, 1e-3, 64, None, "every_step", "none")
+    adv = ex.AdvantageConfig(**fields, recompute="every_step", norm="none")
+    assert (adv.beta, adv.omega_max, adv.lr) == (0.5, 20.0, 1e-3)
+    with pytest.raises(TypeError):
+        ex.ChildConfig((8,), 400, "l2", 0, 1e-3, 64, adv)
+
+
 def test_each_advantage_weights_exactly_its_own_row(monkeypatch):
     """The omega used in every loss term is the one computed from that same row's (s, a)."""
     bufs = _buffers([300, 300])
@@ -230,7 +241,16 @@ def _toy_child(weight, norm="none", beta=0.2, epochs=30, seed=0):
     torch.manual_seed(seed)
     actor = Actor(3, 1, [32, 32], [-1], [1])
     ex.warm_up(actor, h.obs, torch.zeros(len(h.obs), 1), 200, 3e-3, 128, rng)  # start at the mean action 0
-    cfg = ex.AdvantageConfig(epochs, beta, 100.0, 3e-3, 128, None, "every_step", norm)
+    cfg = ex.AdvantageConfig(
+        epochs=epochs,
+        beta=beta,
+        omega_max=100.0,
+        lr=3e-3,
+        batch_size=128,
+        max_grad_norm=None,
+        recompute="every_step",
+        norm=norm,
+    )
     ex.advantage_weighted_regression(actor, h, [critic, critic], torch.tensor(weight), torch.ones(2), cfg, rng)
     with torch.no_grad():
         return float(actor(torch.as_tensor(states)).mean())

@@ -244,8 +244,12 @@ def awr_weight(mixed: torch.Tensor, beta: float, omega_max: float) -> torch.Tens
     return torch.exp(torch.clamp(mixed / beta, max=float(np.log(omega_max))))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class AdvantageConfig:
+    """How a child's advantage-weighted regression runs (paper Step 3): the `extract` params
+    epochs, beta, omega_max, lr, batch_size, max_grad_norm, advantage_recompute and
+    advantage_norm. Keyword-only: four of its fields are floats, easy to swap by position."""
+
     epochs: int
     beta: float
     omega_max: float
@@ -316,9 +320,9 @@ def advantage_weighted_regression(
 # ---------------------------------------------------------------- one child: the reference
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ChildConfig:
-    """How a child is made: the `extract` params that shape one child's training."""
+    """How a child is made: the `extract` params that shape one child's training (keyword-only)."""
 
     hidden_sizes: tuple[int, ...]
     child_buffer_size: int  # target rows of the hybrid buffer

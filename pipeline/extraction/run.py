@@ -51,21 +51,21 @@ def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
 def child_config(cfg: ExtractParams) -> ChildConfig:
     """The `extract` params that shape one child's training."""
     return ChildConfig(
-        tuple(cfg.hidden_sizes),
-        cfg.child_buffer_size,
-        cfg.weight_norm,
-        cfg.warmup_steps,
-        cfg.warmup_lr,
-        cfg.warmup_batch_size,
-        AdvantageConfig(
-            cfg.epochs,
-            cfg.beta,
-            cfg.omega_max,
-            cfg.lr,
-            cfg.batch_size,
-            cfg.max_grad_norm,
-            cfg.advantage_recompute,
-            cfg.advantage_norm,
+        hidden_sizes=tuple(cfg.hidden_sizes),
+        child_buffer_size=cfg.child_buffer_size,
+        weight_norm=cfg.weight_norm,
+        warmup_steps=cfg.warmup_steps,
+        warmup_lr=cfg.warmup_lr,
+        warmup_batch_size=cfg.warmup_batch_size,
+        adv=AdvantageConfig(
+            epochs=cfg.epochs,
+            beta=cfg.beta,
+            omega_max=cfg.omega_max,
+            lr=cfg.lr,
+            batch_size=cfg.batch_size,
+            max_grad_norm=cfg.max_grad_norm,
+            recompute=cfg.advantage_recompute,
+            norm=cfg.advantage_norm,
         ),
     )
 
