@@ -10,8 +10,8 @@ import os
 import subprocess
 
 import pytest
-from dvc_repo import BIN, make_repo, ran, run
-from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
+from support.dvc_repo import BIN, make_repo, ran, run
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
 
 
 # Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the

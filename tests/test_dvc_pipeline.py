@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from dvc_repo import BIN, make_repo, ran, run
-from tiny_params import TINY
+from support.dvc_repo import BIN, make_repo, ran, run
+from support.tiny_params import TINY
 
 
 @pytest.fixture(scope="module")
