@@ -11,7 +11,8 @@ import subprocess
 
 import pytest
 from support.dvc_repo import BIN, make_repo, ran, run
-from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY
+from support.tiny_params import TINY_CHAIN as TINY
 
 
 # Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
-from support.tiny_params import TINY
+from support.tiny_params import TINY_CHAIN as TINY
 
 
 @pytest.fixture(scope="module")

@@ -466,7 +466,8 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     import shutil
 
     import yaml
-    from support.tiny_params import TINY, with_lists
+    from support.tiny_params import TINY_CHAIN as TINY
+    from support.tiny_params import with_lists
 
     root = Path(__file__).resolve().parents[1]
     bin_dir = Path(sys.executable).parent

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 import yaml
-from support.tiny_params import TINY as TINY_BASE
+from support.tiny_params import TINY_CHAIN as TINY_BASE
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

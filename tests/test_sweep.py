@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import typer
 import yaml
-from support.tiny_params import TINY
+from support.tiny_params import TINY_CHAIN as TINY
 from typer.testing import CliRunner
 
 from pipeline.distributed.driver import _resources, stage_processes
