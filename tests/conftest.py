@@ -106,7 +106,7 @@ SLOWEST_FILES = (
     "test_dvc_pipeline.py",
     "test_train_specialist.py",
     "test_extract_stage.py",
-    "test_policy_sets.py",
+    "test_extract_policy_sets.py",
     "test_payoff_scripts.py",
     "test_extract_inputs.py",
 )
