@@ -95,9 +95,10 @@ def mapex() -> Callable[..., subprocess.CompletedProcess]:
 
 
 # The test files that take longest (about 40 s to 3 min each on the 2-core machine), longest
-# first. `make test` runs the suite in two pytest-xdist workers, each file whole in one worker
-# (--dist loadfile), handed out in collection order; starting with these keeps one worker from
-# being left with a long file at the end while the other idles.
+# first, then the longest of the fast tier. `make test` and `make test-fast` run the suite in two
+# pytest-xdist workers, each file whole in one worker (--dist loadfile), handed out in collection
+# order; starting with these keeps one worker from being left with a long file at the end while
+# the other idles.
 SLOWEST_FILES = (
     "test_sweep.py",
     "test_dvc_methods.py",
@@ -109,6 +110,11 @@ SLOWEST_FILES = (
     "test_extract_policy_sets.py",
     "test_payoff_scripts.py",
     "test_extract_inputs.py",
+    # the slowest of the fast tier (`make test-fast`, about 10 to 25 s each on one core)
+    "test_presets.py",
+    "test_morld.py",
+    "test_pderl.py",
+    "test_batched_specialists.py",
 )
 
 

@@ -17,6 +17,9 @@ import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
 from support.tiny_params import TINY_CHAIN as TINY
 
+# The whole DVC pipeline, reproduced and edited: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 
 @pytest.fixture(scope="module")
 def repo(tmp_path_factory) -> Path:

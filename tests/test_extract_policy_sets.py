@@ -23,6 +23,9 @@ from pipeline.core.policyset import load_policy_set, save_policy_set
 from pipeline.core.population import load_population
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 
+# Specialists, then extract/evaluate/score/report in subprocesses: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 EXTRACT = {
     "iterations": 2,
     "child_buffer_size": 200,

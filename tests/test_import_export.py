@@ -28,6 +28,9 @@ from pipeline.core.population import Member, load_population, member_actor, save
 from pipeline.interop.collect import COLLECT_STREAM, CollectionRun
 from pipeline.interop.readers import read_policy
 
+# SB3 training and `dvc repro` from imported specialists: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 sb3 = pytest.importorskip("stable_baselines3")
 
 ENV = "mo-halfcheetah-v5"

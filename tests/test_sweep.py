@@ -31,6 +31,9 @@ from pipeline.distributed.task import DIE_ONCE_ENV, StageTask, task_resume_dir
 from pipeline.distributed.workspace import checkout_cell, stage_items
 from stages.sweep import sweep
 
+# Sweeps through Ray and DVC in a temporary repository: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
 
