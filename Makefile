@@ -3,6 +3,14 @@
 #   make test    install into .venv, then run the test suite
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #
+# The tests come in three tiers, chosen by pytest markers (registered in pyproject.toml):
+#   make test-fast  the library-level tests, about 1.5 min: everything but the files marked
+#                   `integration` (a module-level pytestmark: DVC chains, stage commands in
+#                   subprocesses one after another, long training) and the tests marked `slow`
+#   make test       everything not marked slow (the integration files too), about 6.5 min
+#   make test-slow  the tests marked slow (sweeps on a Ray cluster, the every-method DVC chain)
+# CI (.ci/run) runs lint, test and test-slow. An unmarked new test file lands in the fast tier.
+#
 # torch: the CPU build is installed first, so nothing later pulls the multi-GB CUDA build.
 # TORCH_SPEC and TORCH_INDEX choose another build, e.g. for a CUDA 12.8 machine:
 #   make install TORCH_SPEC=torch==2.13.0 TORCH_INDEX=https://download.pytorch.org/whl/cu128
@@ -15,7 +23,7 @@ BIN := $(VENV)/bin
 # each test file runs whole in one worker (--dist loadfile), so module fixtures are built once.
 TEST_WORKERS ?= 2
 
-.PHONY: install repro test test-slow lint format bench clean-venv
+.PHONY: install repro test test-fast test-slow lint format bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -43,6 +51,12 @@ test: install
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+
+# The fast tier: the same suite less the files marked integration (pyproject.toml's markers).
+test-fast: install
+	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
+	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow and not integration"
 
 # The tests marked slow (sweeps on a Ray cluster, every method's stages through one DVC chain:
 # about 4 minutes more), which `make test` leaves out to stay within 8 minutes; CI runs both.

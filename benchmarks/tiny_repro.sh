@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Run `dvc repro` on the every-method tiny preset (tests/tiny_params.py: TINY_ALL) in a fresh
+# Run `dvc repro` on the every-method tiny preset (tests/support/tiny_params.py: TINY_ALL) in a fresh
 # git + DVC copy of a commit, then print the digests of its data/ (benchmarks/artifact_digest.py).
 # Compare two commits' digests to show a refactor changed no artifact:
 #   bash benchmarks/tiny_repro.sh HEAD~5 > before.txt; bash benchmarks/tiny_repro.sh HEAD > after.txt
@@ -16,7 +16,7 @@ git -C "$here" archive "$ref" pipeline stages dvc.yaml | tar -x -C "$work"
 python - "$work/params.yaml" <<PY
 import sys, yaml
 sys.path.insert(0, "$here/tests")
-from tiny_params import TINY_ALL
+from support.tiny_params import TINY_ALL
 open(sys.argv[1], "w").write(yaml.safe_dump(TINY_ALL, sort_keys=False))
 PY
 cd "$work"

@@ -1,7 +1,7 @@
 """Fixtures shared by the whole test suite.
 
-- `write_params(directory, overrides)`: writes a params.yaml built from TINY_PARAMS (a preset
-  small enough that a specialist trains in a few seconds) with `overrides` merged in.
+- `write_params(directory, overrides)`: writes a params.yaml built from the toy preset TINY
+  (tests/support/tiny_params.py: a specialist trains in a few seconds) with `overrides` merged in.
 - `tiny_params`: that file, unmodified, in the test's tmp_path.
 - `mapex(*args, cwd=...)`: runs the real `mapex` console command in a subprocess and returns
   the CompletedProcess (returncode, stdout, stderr as text).
@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import copy
 import os
 import subprocess
 import sys
@@ -23,6 +22,7 @@ from typing import Any, Callable
 import pytest
 import yaml
 from hypothesis import settings
+from support.tiny_params import TINY, merge
 
 # No per-example deadline: this machine is shared, and a loaded moment would fail an example
 # that is merely slow, not wrong.
@@ -31,45 +31,12 @@ settings.load_profile("mapex")
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Tiny preset. HalfCheetah never terminates, so with a 100-step cap every episode is cut by
-# the cap: 350 steps = 3 truncated episodes + 1 still running. Updates start at step 260
-# (90 updates, 45 actor updates), so a run takes a few seconds.
-TINY_PARAMS: dict[str, Any] = {
-    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 100},
-    "seeds": [0],
-    "objectives": [0, 1],
-    "train_specialist": {
-        "total_steps": 350,
-        "learning_starts": 260,
-        "buffer_size": 1000,
-        "batch_size": 64,
-        "hidden_sizes": [32, 32],
-        "secondary_critics": True,
-        "device": "cpu",
-    },
-}
-
-DELETE = object()  # an override value that removes the key from the preset
-
-
-def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
-    """A deep copy of `base` with `overrides` merged in, section by section (DELETE removes a key)."""
-    out = copy.deepcopy(base)
-    for key, value in (overrides or {}).items():
-        if value is DELETE:
-            out.pop(key, None)
-        elif isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = merge(out[key], value)
-        else:
-            out[key] = copy.deepcopy(value)
-    return out
-
 
 def _write_params(directory: Path, overrides: dict[str, Any] | None = None, name: str = "params.yaml") -> Path:
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / name
-    path.write_text(yaml.safe_dump(merge(TINY_PARAMS, overrides), sort_keys=False))
+    path.write_text(yaml.safe_dump(merge(TINY, overrides), sort_keys=False))
     return path
 
 
@@ -128,9 +95,10 @@ def mapex() -> Callable[..., subprocess.CompletedProcess]:
 
 
 # The test files that take longest (about 40 s to 3 min each on the 2-core machine), longest
-# first. `make test` runs the suite in two pytest-xdist workers, each file whole in one worker
-# (--dist loadfile), handed out in collection order; starting with these keeps one worker from
-# being left with a long file at the end while the other idles.
+# first, then the longest of the fast tier. `make test` and `make test-fast` run the suite in two
+# pytest-xdist workers, each file whole in one worker (--dist loadfile), handed out in collection
+# order; starting with these keeps one worker from being left with a long file at the end while
+# the other idles.
 SLOWEST_FILES = (
     "test_sweep.py",
     "test_dvc_methods.py",
@@ -139,9 +107,14 @@ SLOWEST_FILES = (
     "test_dvc_pipeline.py",
     "test_train_specialist.py",
     "test_extract_stage.py",
-    "test_policy_sets.py",
+    "test_extract_policy_sets.py",
     "test_payoff_scripts.py",
     "test_extract_inputs.py",
+    # the slowest of the fast tier (`make test-fast`, about 10 to 25 s each on one core)
+    "test_presets.py",
+    "test_morld.py",
+    "test_pderl.py",
+    "test_batched_specialists.py",
 )
 
 

@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pytest
 
+# Two `dvc repro` at once: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 BIN = Path(sys.executable).parent
 
 DVC_YAML = """stages:

@@ -10,8 +10,12 @@ import os
 import subprocess
 
 import pytest
-from dvc_repo import BIN, make_repo, ran, run
-from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY
+from support.dvc_repo import BIN, make_repo, ran, run
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY
+from support.tiny_params import TINY_CHAIN as TINY
+
+# Every method's stages through one DVC chain: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
 
 
 # Every method through one evaluate -> score -> report chain: TD3 and PDERL specialists, the

@@ -14,8 +14,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from dvc_repo import BIN, make_repo, ran, run
-from tiny_params import TINY
+from support.dvc_repo import BIN, make_repo, ran, run
+from support.tiny_params import TINY_CHAIN as TINY
+
+# The whole DVC pipeline, reproduced and edited: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,5 @@
-"""Children of one iteration: K = 1 against the pre-batching code (tests/reference_child.py), and the stacked path."""
+"""Children of one iteration: K = 1 against the pre-batching code (tests/support/reference_child.py),
+and the stacked path."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-import reference_child
 import torch
+from support import reference_child
 
 from pipeline.core.envs import make_env
 from pipeline.core.nets import Actor, CriticEnsemble
@@ -104,7 +105,7 @@ def reference(cfg: ex.ChildConfig, numpy_seed: int, torch_seed: int):
 @pytest.mark.parametrize("config", sorted(CONFIGS))
 def test_one_child_is_bitwise_what_it_was_before_batching(config, one_thread):
     """What the stage runs for K = 1 on a CPU makes, bit for bit, the child that the code from
-    before batching (frozen in tests/reference_child.py) makes: weights, parents, target weight,
+    before batching (frozen in tests/support/reference_child.py) makes: weights, parents, target weight,
     hybrid counts and omega statistics. Both run in this process, on this CPU's kernels and
     thread count, so the comparison holds on any machine (no recorded digest)."""
     cfg = child_config(config)

@@ -15,6 +15,9 @@ from pipeline.core.checkpoint import load_critics, save_critics
 from pipeline.core.nets import CriticEnsemble
 from pipeline.core.population import load_population
 
+# Specialists, then `mapex extract` in subprocesses: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 EXTRACT = {
     "iterations": 2,
     "child_buffer_size": 200,

@@ -18,6 +18,9 @@ from pipeline.core.population import load_population
 from pipeline.core.resume import FORMAT as RESUME_FORMAT
 from pipeline.core.resume import Checkpoint
 
+# Stage commands in subprocesses, kill and resume: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 ROOT = Path(__file__).resolve().parents[1]
 
 TINY = {

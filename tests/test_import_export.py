@@ -28,6 +28,9 @@ from pipeline.core.population import Member, load_population, member_actor, save
 from pipeline.interop.collect import COLLECT_STREAM, CollectionRun
 from pipeline.interop.readers import read_policy
 
+# SB3 training and `dvc repro` from imported specialists: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 sb3 = pytest.importorskip("stable_baselines3")
 
 ENV = "mo-halfcheetah-v5"
@@ -466,7 +469,8 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     import shutil
 
     import yaml
-    from tiny_params import TINY, with_lists
+    from support.tiny_params import TINY_CHAIN as TINY
+    from support.tiny_params import with_lists
 
     root = Path(__file__).resolve().parents[1]
     bin_dir = Path(sys.executable).parent

@@ -17,8 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from dvc_repo import DVC, make_repo, ran, run
-from tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, TINY, with_lists
+from support.dvc_repo import DVC, make_repo, ran, run
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, with_lists
+from support.tiny_params import TINY_CHAIN as TINY
+
+# The whole DVC pipeline on three objectives: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
 
 HOPPER_REF = [-100.0, -3390.0, -1510.0]  # presets/reference_points.yaml
 

@@ -12,9 +12,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 import yaml
-from tiny_params import TINY as TINY_BASE
+from support.tiny_params import TINY_CHAIN as TINY_BASE
+
+# The payoff scripts' whole stage chain: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

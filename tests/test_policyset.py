@@ -1,4 +1,5 @@
-"""Policy-set artifacts round-trip, and bad ones are refused naming the file."""
+"""Policy-set files (policies.pt, pipeline/core/policyset.py) round-trip, and bad ones are refused
+naming the file. Extraction from policy sets through the stages: tests/test_extract_policy_sets.py."""
 
 from __future__ import annotations
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 import typer
 import yaml
-from tiny_params import TINY
+from support.tiny_params import TINY_CHAIN as TINY
 from typer.testing import CliRunner
 
 from pipeline.distributed.driver import _resources, stage_processes
@@ -30,6 +30,9 @@ from pipeline.distributed.grid import Grid, load_grid, plan_cells
 from pipeline.distributed.task import DIE_ONCE_ENV, StageTask, task_resume_dir
 from pipeline.distributed.workspace import checkout_cell, stage_items
 from stages.sweep import sweep
+
+# Sweeps through Ray and DVC in a temporary repository: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent

@@ -33,6 +33,9 @@ from pipeline.core.resume import Checkpoint
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3_training import SpecialistsRun, continue_training, train_specialist
 
+# The stage command end to end, often in subprocesses: `make test-fast` leaves this file out.
+pytestmark = pytest.mark.integration
+
 CAP = 100  # the tiny preset's episode cap
 TOTAL = 350  # its total_steps
 

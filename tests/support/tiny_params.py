@@ -1,0 +1,165 @@
+"""The tests' one toy preset, TINY, and the variants the tests build from it by overrides.
+
+- `TINY`: params small enough that a specialist trains in a few seconds (the `write_params` and
+  `tiny_params` fixtures of tests/conftest.py write it, with a test's overrides merged in).
+- `merge(base, overrides)`: a deep copy of `base` with `overrides` merged in, section by section
+  (`DELETE` as a value removes that key).
+- `TINY_CHAIN`: TINY with the overrides of the tests that run real stage chains (DVC, sweeps, the
+  payoff scripts, `dvc repro` from imported specialists): every stage's section at toy size
+  (40-step episodes, 16-unit networks, 300-step specialists, 2 children) and the run lists
+  derived as `mapex sync-params` writes them (`with_lists`).
+- `PDERL_TINY`, `MOPDERL_TINY`, `MORLD_TINY`: those methods' sections at toy size, and `TINY_ALL`:
+  TINY_CHAIN with every method of the pipeline at once.
+
+Each test copies a preset (merge, or a dict literal) before changing anything.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+from pipeline.params.methods import derived_lists
+
+# HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
+# = 3 truncated episodes + 1 still running. Updates start at step 260 (90 updates, 45 actor
+# updates), so a run takes a few seconds.
+TINY: dict[str, Any] = {
+    "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 100},
+    "seeds": [0],
+    "objectives": [0, 1],
+    "train_specialist": {
+        "total_steps": 350,
+        "learning_starts": 260,
+        "buffer_size": 1000,
+        "batch_size": 64,
+        "hidden_sizes": [32, 32],
+        "secondary_critics": True,
+        "device": "cpu",
+    },
+}
+
+DELETE = object()  # an override value that removes the key from the preset
+
+
+def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """A deep copy of `base` with `overrides` merged in, section by section (DELETE removes a key)."""
+    out = copy.deepcopy(base)
+    for key, value in (overrides or {}).items():
+        if value is DELETE:
+            out.pop(key, None)
+        elif isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def with_lists(params: dict) -> dict:
+    """`params` with the run lists derived from its methods, seeds, imports and export methods."""
+    imports = (params.get("import_specialists") or {}).get("policies", [])
+    export = (params.get("export") or {}).get("methods", [])
+    return {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+
+
+# A chain runs every stage on two specialists, so its episodes and networks are smaller still.
+# Its specialists keep the library's defaults for the replay capacity, secondary critics and
+# device (TINY pins them), as these tests always have.
+TINY_CHAIN = merge(
+    TINY,
+    {
+        "env": {
+            "max_episode_steps": 40,
+            "reference_point": [-100.0, -4500.0],
+            "objective_names": None,
+        },
+        "methods": ["mapex_td3", "warmup_only_td3"],
+        "train_specialist": {
+            "total_steps": 300,
+            "learning_starts": 200,
+            "buffer_size": DELETE,
+            "batch_size": 32,
+            "hidden_sizes": [16, 16],
+            "secondary_critics": DELETE,
+            "device": DELETE,
+        },
+        "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
+        "critic_fidelity": {"episodes": 2},
+        "extract": {
+            "iterations": 2,
+            "child_buffer_size": 200,
+            "eval_episodes": 2,
+            "warmup_steps": 10,
+            "warmup_batch_size": 32,
+            "epochs": 1,
+            "beta": 1.0,
+            "omega_max": 1.0,
+            "batch_size": 32,
+            "hidden_sizes": [16, 16],
+        },
+        "evaluate": {"episodes": 2},
+        "score": {"distinct_tol": 0.02},
+        "report": {"dpi": 60},
+    },
+)
+TINY_CHAIN = with_lists(TINY_CHAIN)
+
+# The tiny sizes of the PDERL specialists and the two baselines, and TINY_ALL: every method of
+# the pipeline at once (TD3 and PDERL specialists, post-hoc critics from both, MOPDERL, MORL/D),
+# used by the one-chain test and by benchmarks/tiny_repro.sh (artifacts before/after a refactor).
+PDERL_TINY = {
+    "total_frames": 240,
+    "population_size": 3,
+    "mini_buffer_size": 200,
+    "crossover_transitions": 64,
+    "crossover_batch_size": 32,
+    "crossover_epochs": 2,
+    "mutation_states": 32,
+    "device": "cpu",
+}
+MOPDERL_TINY = {
+    "total_frames": 400,
+    "population_size": 4,
+    "children": 3,
+    "eval_episodes": 1,
+    "mini_buffer_size": 200,
+    "crossover_transitions": 64,
+    "crossover_batch_size": 32,
+    "crossover_epochs": 2,
+    "mutation_states": 32,
+    "rl_updates_per_frame": 0.1,
+    "device": "cpu",
+}
+MORLD_TINY = {
+    "total_frames": 160,
+    "exchange_every": 80,
+    "pop_size": 2,
+    "hidden_sizes": [16, 16],
+    "batch_size": 32,
+    "learning_starts": 40,
+    "buffer_size": 1000,
+    "update_passes": 1,
+    "front_eval_episodes": 1,
+    "eval_episodes": 1,
+    "device": "cpu",
+}
+TINY_ALL = {
+    **TINY_CHAIN,
+    "methods": [
+        "mapex_td3",
+        "warmup_only_td3",
+        "mapex_pderl",
+        "warmup_only_pderl",
+        "mapex_posthoc_td3",
+        "mapex_posthoc_pderl",
+        "mopderl",
+        "morld",
+    ],
+    "train_specialist": {**TINY_CHAIN["train_specialist"], "buffer_size": 2000},
+    "train_pderl": PDERL_TINY,
+    "mopderl": MOPDERL_TINY,
+    "morld": MORLD_TINY,
+    "extract": {**TINY_CHAIN["extract"], "iterations": 1},
+    "evaluate": {"episodes": 1},
+}
+TINY_ALL = with_lists(TINY_ALL)
