@@ -30,7 +30,8 @@ def generated_block(
 
 
 def synced_text(text: str, where: str = "params.yaml") -> str:
-    """`text` (a params file) with its generated block rewritten from its `methods` and `seeds`.
+    """`text` (a params file) with its generated block rewritten from its `methods` and `seeds`,
+    and the extract keys stage warmup_only tracks filled in (`with_tracked_keys`).
 
     Raises ValueError naming `where` if the file is not a mapping, lists an unknown method or a
     set of methods that dvc.yaml's matrices cannot run, or writes a derived key over several
@@ -54,7 +55,7 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
         end = next((i for i in range(start, len(lines)) if lines[i].rstrip("\n") == GENERATED_END), None)
         if end is None:
             raise ValueError(f"{where}: the generated block has no end line ({GENERATED_END!r})")
-        return "".join(lines[:start]) + block + "".join(lines[end + 1 :])
+        return with_tracked_keys("".join(lines[:start]) + block + "".join(lines[end + 1 :]))
     kept = []
     key_line = re.compile(r"^(%s)\s*:(.*)$" % "|".join(DERIVED_KEYS))
     for line in lines:
@@ -72,4 +73,44 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
         at = next((i for i, line in enumerate(kept) if re.match(r"^seeds\s*:", line)), -1)
     while at >= 0 and at + 1 < len(kept) and kept[at + 1].startswith((" ", "\t", "-")):
         at += 1  # a methods list over several lines
-    return "".join(kept[: at + 1]) + block + "".join(kept[at + 1 :])
+    return with_tracked_keys("".join(kept[: at + 1]) + block + "".join(kept[at + 1 :]))
+
+
+TRACKED_NOTE = "  # named for DVC by `mapex sync-params` (stage warmup_only tracks each key it reads); edit freely\n"
+
+
+def with_tracked_keys(text: str) -> str:
+    """`text` with every extract key of WARMUP_ONLY_KEYS present, at its default where missing.
+
+    Stage warmup_only lists those keys one by one in dvc.yaml (so that changing an
+    advantage-weighted key, which it does not read, leaves it up to date), and DVC refuses to
+    run a stage whose listed params are missing from the file. Missing keys are appended to the
+    extract section (created if absent) under TRACKED_NOTE; nothing else changes, and a file
+    without warm-up-only methods is returned as it is."""
+    from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+
+    raw = yaml.safe_load(text) or {}
+    if not any(str(m).startswith("warmup_only_") for m in raw.get("methods") or []):
+        return text
+    section = raw.get("extract")
+    if section is not None and not isinstance(section, dict):
+        return text  # not a mapping: the stage's validation names the problem
+    missing = [k for k in WARMUP_ONLY_KEYS if k not in (section or {})]
+    if not missing:
+        return text
+    fields = ExtractParams.model_fields
+    added = [TRACKED_NOTE] + [f"  {k}: {json.dumps(fields[k].default)}\n" for k in missing]
+    lines = text.splitlines(keepends=True)
+    if lines and not lines[-1].endswith("\n"):
+        lines[-1] += "\n"
+    start = next((i for i, line in enumerate(lines) if re.match(r"^extract\s*:", line)), None)
+    if start is None:
+        return "".join(lines) + "\nextract:\n" + "".join(added)
+    if lines[start].split(":", 1)[1].split("#", 1)[0].strip():  # `extract: {...}` in flow style
+        return text
+    end = start + 1
+    while end < len(lines) and (lines[end].startswith((" ", "\t")) or not lines[end].strip()):
+        end += 1
+    while end > start + 1 and not lines[end - 1].strip():
+        end -= 1
+    return "".join(lines[:end] + added + lines[end:])
