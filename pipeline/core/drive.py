@@ -42,6 +42,9 @@ A run (`Run`) has these verbs and nothing else is asked of it:
 - `state_dict()` / `load_state_dict(state)`: the whole state, as pipeline.core.resume saves it;
 - `close()`: release what the run holds (envs);
 - `on_progress`: an attribute, None or the callable `drive` sets (see above).
+
+`run_to_end` is the same loop bare (no checkpoint, no SIGTERM, no progress), for library
+callers and tests that step a run themselves.
 """
 
 from __future__ import annotations
@@ -171,4 +174,18 @@ def drive(
     finally:
         run.on_progress = None
         run.close()
+    return run
+
+
+def run_to_end(run: R, hooks: Sequence[Callable[[R], None]] = (), fresh: bool = True) -> R:
+    """Step `run` to its end as `drive` does, without checkpoints, SIGTERM safe points or
+    progress: `start()` if `fresh` (False: a restored run), then `step()` and the `hooks` until
+    `done`, then `finish()`. Returns the run (not closed)."""
+    if fresh:
+        run.start()
+    while not run.done:
+        run.step()
+        for hook in hooks:
+            hook(run)
+    run.finish()
     return run

@@ -61,6 +61,7 @@ import numpy as np
 import torch
 
 from pipeline.core.checkpoint import cpu_copy
+from pipeline.core.drive import run_to_end
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
@@ -725,9 +726,5 @@ def train_pderl(
     run = PderlRun(spec, td3_cfg, cfg, objective, seed, device, env)
     if state is not None:
         run.load_state_dict(state)
-    while not run.done:
-        rec = run.step()
-        if on_generation is not None:
-            on_generation(run, rec)
-    run.finish()
-    return run.result()
+    hooks = [] if on_generation is None else [lambda run: on_generation(run, run.history[-1])]
+    return run_to_end(run, hooks, fresh=state is None).result()

@@ -41,7 +41,7 @@ import torch
 
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.checkpoint import cpu_copy
-from pipeline.core.drive import fmt_vec
+from pipeline.core.drive import fmt_vec, run_to_end
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
@@ -476,14 +476,10 @@ def train_specialists(
     run = SpecialistsRun(envs, spec, td3, cfg, jobs, device)
     if state is not None:
         run.load_state_dict(state)
-    while not run.done:
-        records = run.step()
-        if on_step is not None:
-            on_step(run.t, records)
-        if on_checkpoint is not None and run.checkpoint_due():
-            on_checkpoint(run)
-    run.finish()
-    return run.results()
+    hooks = [] if on_step is None else [lambda run: on_step(run.t, run.last)]
+    if on_checkpoint is not None:
+        hooks.append(lambda run: on_checkpoint(run) if run.checkpoint_due() else None)
+    return run_to_end(run, hooks, fresh=state is None).results()
 
 
 def train_specialist(
