@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import functools
 import sys
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
 import torch
 import typer
@@ -13,6 +14,7 @@ from pydantic import BaseModel
 from tqdm import tqdm
 
 from pipeline.core.artifacts import ArtifactError, disk_full_error
+from pipeline.core.drive import fmt_vec  # noqa: F401  (re-exported: the stages' progress lines)
 from pipeline.core.envs import EnvError
 from pipeline.core.finite import TrainingDiverged
 from pipeline.core.signals import EXIT_CODE as STOPPED_EXIT_CODE
@@ -149,5 +151,11 @@ def progress(total: int, desc: str, unit: str = "step") -> tqdm:
     return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, dynamic_ncols=True, mininterval=0.5)
 
 
-def fmt_vec(v) -> str:
-    return "[" + ", ".join(f"{x:.1f}" for x in v) + "]"
+@contextmanager
+def progress_send(total: int, desc: str, unit: str = "step") -> Iterator[Callable[[str, Any], None]]:
+    """A progress bar (`progress`) as the `send` of pipeline.core.drive.drive (Relay's channel);
+    its total grows to the units counted when a run overshoots its budget (a last generation
+    that runs to its end)."""
+    with progress(total, desc, unit) as bar:
+        yield Relay(bar, prefix="").message
+        bar.total = max(bar.total, bar.n)

@@ -7,19 +7,18 @@ from pathlib import Path
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.drive import drive
 from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
-from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
+from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import load_slots
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
+from stages.common import PARAMS_OPTION, progress_send, read_params, reports_errors, require_every_objective
 
 
 def variant_params(
@@ -131,28 +130,8 @@ def extract(
         run_fingerprint("extract", config, device, [f for s in slots for f in s.files]),
         lambda line: typer.echo(line, err=True),
     )
-    run, resumed = resume(ckpt, lambda: ExtractionRun.from_slots(slots, cfg, meta, seed, envs, device))
-    who = f"extract {method} seed {seed}"
-    if resumed:
-        typer.echo(f"resuming from iteration {run.iteration} of {cfg.iterations} ({ckpt.path.parent})", err=True)
-    with sigterm_deferred(), progress(cfg.iterations * run.k, who, unit="child") as bar:
-        if not resumed:
-            run.start()
-            ckpt.safe_point(run, who, "the start (the specialists' policies evaluated)", due=True)
-        bar.update(run.iteration * run.k)
-        while not run.done:
-            try:
-                run.step()
-            except TrainingDiverged as exc:
-                raise exc.within(f"extract {method}", ckpt.path, ckpt.good) from None
-            ckpt.safe_point(run, who, f"iteration {run.iteration}", due=True)
-            bar.set_postfix_str(
-                f"front {run.history[-1]['front_size']} HV(norm) {run.normalised_hypervolume():.3f} "
-                f"child {fmt_vec(run.last[-1].mean)}",
-                refresh=False,
-            )
-            bar.update(run.k)
-        # still deferred: a SIGTERM after the last iteration lets the outputs be written
+
+    def save(run: ExtractionRun) -> None:
         save_population(
             out / "population.pt",
             run.members,
@@ -167,4 +146,15 @@ def extract(
             },
         )
         write_text_atomic(out / "history.csv", history_csv(run.history))
-        ckpt.clear()
+
+    who = f"extract {method} seed {seed}"
+    with progress_send(cfg.iterations * cfg.children_per_iteration, who, unit="child") as send:
+        drive(
+            lambda: ExtractionRun.from_slots(slots, cfg, meta, seed, envs, device),
+            ckpt,
+            who=who,
+            stage=f"extract {method}",
+            resumed=lambda run: f"resuming from iteration {run.iteration} of {cfg.iterations} ({ckpt.path.parent})",
+            save=save,
+            send=send,
+        )

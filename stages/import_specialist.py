@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import typer
@@ -12,16 +13,16 @@ import typer
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.buffer import load_buffer, save_buffer
 from pipeline.core.checkpoint import save_policy
+from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, spec_meta
 from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
-from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
+from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.interop.collect import CollectionRun
 from pipeline.interop.readers import FORMATS, read_policy
 from pipeline.params import EnvParams, ParamsError
 from pipeline.params.import_specialists import ImportSpecialistsParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, fmt_vec, progress_send, read_params, reports_errors
 
 CHECKPOINT_NAME = "collect.ckpt.pt"
 
@@ -81,8 +82,9 @@ def collect(
     seed: int,
     objective: int,
     policy_file: Path,
-) -> CollectionRun:
-    """Roll the imported policy out (resuming from OUT's checkpoint when one fits)."""
+    save: Callable[[CollectionRun], None],
+) -> None:
+    """Roll the imported policy out (resuming from OUT's checkpoint when one fits), then `save(run)`."""
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "import_specialists": cfg.model_dump(include={"collect_rows", "exploration_noise"}),
@@ -97,33 +99,22 @@ def collect(
 
     def fresh() -> CollectionRun:
         env = make_env(env_p.id, env_p.max_episode_steps)
-        return CollectionRun(actor, env, spec, cfg.collect_rows, cfg.exploration_noise, seed, objective)
+        return CollectionRun(
+            actor, env, spec, cfg.collect_rows, cfg.exploration_noise, seed, objective, cfg.checkpoint_every
+        )
 
-    run, resumed = resume(ckpt, fresh) if problem is None else (fresh(), False)
-    if resumed:
-        typer.echo(f"import_specialist seed {seed} obj {objective}: resuming from row {run.t} of {ckpt.path}", err=True)
-    with progress(cfg.collect_rows, f"collect obj {objective} seed {seed}", unit="row") as bar, sigterm_deferred():
-        bar.update(run.t)
-        while not run.done:
-            ended = run.step()
-            bar.update(1)
-            if ended is not None:
-                bar.set_postfix_str(f"return {fmt_vec(ended)}", refresh=False)
-            every = cfg.checkpoint_every
-            if problem is None:
-                ckpt.safe_point(
-                    run,
-                    f"import_specialist seed {seed} obj {objective}",
-                    f"row {run.t}",
-                    bool(every) and run.t % every == 0 and not run.done,
-                )
-            elif stop_requested():
-                raise Stopped(
-                    f"import_specialist seed {seed} obj {objective}: SIGTERM at row {run.t}: no checkpoint ({problem})"
-                )
-    run.env.close()
-    run.ckpt = ckpt  # cleared once the artifacts are written
-    return run
+    who = f"import_specialist seed {seed} obj {objective}"
+    with progress_send(cfg.collect_rows, f"collect obj {objective} seed {seed}", unit="row") as send:
+        drive(
+            fresh,
+            ckpt,
+            who=who,
+            stage="import_specialist",
+            resumed=lambda run: f"{who}: resuming from row {run.t} of {ckpt.path}",
+            save=save,
+            send=send,
+            problem=problem,
+        )
 
 
 @reports_errors
@@ -161,44 +152,41 @@ def import_specialist(
     if not 0 <= objective < spec.n_objectives:
         raise ParamsError(f"--objective {objective}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
     imported = read_policy(file, format, spec)
-    source = imported.source
+
+    def write(data: dict[str, np.ndarray], origin: dict, collected: int, returns: list[list[float]] | None) -> None:
+        """The slot's artifacts; `returns`: the collected episodes' (None: the buffer was given)."""
+        meta = spec_meta(spec) | {
+            "max_episode_steps": spec.max_episode_steps,
+            "hidden_sizes": imported.hidden_sizes,
+            "architecture": imported.architecture,
+            "seed": seed,
+            "objective": objective,
+            "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
+            "source": imported.source | origin,
+            "collection_frames": collected,
+            "provenance": provenance("cpu"),
+        }
+        keys = ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
+        buf_attrs = {k: meta[k] for k in keys}
+        save_buffer(
+            out / "buffer.zarr",
+            data,
+            buf_attrs | {"objective": objective, "source": origin["buffer"], "collection_frames": collected},
+        )
+        save_policy(out / "policy.pt", imported.actor, meta)
+        write_text_atomic(out / "collect.csv", episodes_csv(returns or [], spec.n_objectives))
+        if returns is not None:
+            mean = np.mean(returns, axis=0).tolist() if returns else None
+            typer.echo(
+                f"import_specialist obj {objective} seed {seed}: {collected} rows, {len(returns)} whole episodes"
+                + (f", mean return {fmt_vec(mean)}" if mean else ""),
+                err=True,
+            )
+
     if buffer is not None:
         data, battrs = check_user_buffer(buffer, spec)
         origin = {"buffer": "given", "buffer_file": buffer.name, "buffer_checksums": dict(battrs.get("checksums", {}))}
-        collected, run = 0, None
+        write(data, origin, 0, None)
     else:
-        run = collect(out, imported.actor, spec, env_p, cfg, seed, objective, file)
-        data = run.data()
-        origin = {"buffer": "collected"}
-        collected = run.t
-    meta = spec_meta(spec) | {
-        "max_episode_steps": spec.max_episode_steps,
-        "hidden_sizes": imported.hidden_sizes,
-        "architecture": imported.architecture,
-        "seed": seed,
-        "objective": objective,
-        "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
-        "source": source | origin,
-        "collection_frames": collected,
-        "provenance": provenance("cpu"),
-    }
-    buf_attrs = {
-        k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
-    }
-    save_buffer(
-        out / "buffer.zarr",
-        data,
-        buf_attrs | {"objective": objective, "source": origin["buffer"], "collection_frames": collected},
-    )
-    save_policy(out / "policy.pt", imported.actor, meta)
-    if run is not None:
-        write_text_atomic(out / "collect.csv", episodes_csv(run.returns, spec.n_objectives))
-        run.ckpt.clear()
-        mean = np.mean(run.returns, axis=0).tolist() if run.returns else None
-        typer.echo(
-            f"import_specialist obj {objective} seed {seed}: {collected} rows, {len(run.returns)} whole episodes"
-            + (f", mean return {fmt_vec(mean)}" if mean else ""),
-            err=True,
-        )
-    else:
-        write_text_atomic(out / "collect.csv", episodes_csv([], spec.n_objectives))
+        save = lambda run: write(run.data(), {"buffer": "collected"}, run.t, run.returns)  # noqa: E731
+        collect(out, imported.actor, spec, env_p, cfg, seed, objective, file, save)

@@ -10,19 +10,17 @@ import typer
 
 from pipeline.baselines.mopderl import GenerationRecord, MopderlRun, starts_from_slots
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
-from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import Checkpoint, resume, resume_root, run_fingerprint
+from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import load_slots
 from pipeline.params import RunParams, section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.td3 import TD3Params
-from pipeline.specialists.pderl import EpisodeResult
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, require_every_objective
+from stages.common import PARAMS_OPTION, progress_send, read_params, reports_errors, require_every_objective
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
 
@@ -127,41 +125,23 @@ def mopderl(
             run_fingerprint("mopderl", config, device, files),
             lambda line: typer.echo(line, err=True),
         )
-        run, resumed = resume(ckpt, lambda: MopderlRun(spec, td3, cfg, seed, population, agents, device))
-        if resumed:
-            typer.echo(
-                f"resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path.parent}", err=True
-            )
 
-        bar = progress(cfg.total_frames, f"MOPDERL seed {seed}", unit="frame")
-        who = f"mopderl seed {seed}"
-
-        def on_episode(ep: EpisodeResult) -> None:
-            bar.update(ep.length)
-
-        with sigterm_deferred(), bar:
-            bar.update(run.frames)
-            if not resumed:
-                run.initialize(env, on_episode)
-                ckpt.safe_point(run, who, "generation 0 (the starting actors evaluated)", due=True)
-            while not run.budget_spent:
-                try:
-                    rec = run.step_generation(env, on_episode)
-                except TrainingDiverged as exc:
-                    raise exc.within("mopderl", ckpt.path, ckpt.good) from None
-                due = rec.generation % cfg.checkpoint_every == 0
-                ckpt.safe_point(run, who, f"generation {rec.generation}", due)
-                best = run.archive_returns().max(axis=0)
-                bar.set_postfix_str(
-                    f"gen {rec.generation} archive {rec.archive_size} HV(norm) {rec.archive_hv_norm:.6g} "
-                    f"best {fmt_vec(best)}",
-                    refresh=False,
-                )
-            bar.total = run.frames
-            # still deferred: a SIGTERM after the last generation lets the outputs be written
-            meta |= {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
-            save_population(out / "population.pt", run.members, meta)
+        def save(run: MopderlRun) -> None:
+            run_meta = meta | {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
+            save_population(out / "population.pt", run.members, run_meta)
             write_text_atomic(out / "history.csv", history_csv(run.history))
-            ckpt.clear()
+
+        with progress_send(cfg.total_frames, f"MOPDERL seed {seed}", unit="frame") as send:
+            drive(
+                lambda: MopderlRun(spec, td3, cfg, seed, population, agents, device, env),
+                ckpt,
+                who=f"mopderl seed {seed}",
+                stage="mopderl",
+                resumed=lambda run: (
+                    f"resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path.parent}"
+                ),
+                save=save,
+                send=send,
+            )
     finally:
         env.close()

@@ -17,16 +17,15 @@ from pipeline.baselines.morld import (
     require_morl_baselines,
 )
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
-from pipeline.core.finite import TrainingDiverged
 from pipeline.core.population import save_population
 from pipeline.core.provenance import provenance
-from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
+from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.signals import sigterm_deferred
 from pipeline.params import ParamsError
 from pipeline.params.morld import MorldParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, fmt_vec, progress_send, read_params, reports_errors
 
 CHECKPOINT = "morld_state.pt"
 HISTORY_COLUMNS = ("exchange", "frames", "front_eval_frames", "trained_policy", "archive_size")
@@ -104,54 +103,34 @@ def morld(
     out.mkdir(parents=True, exist_ok=True)
     # beside the outputs, or on shared storage in a sweep
     ckpt = Checkpoint(checkpoint_dir(out) / CHECKPOINT, fp, lambda line: typer.echo(line, err=True))
-    run, resumed = resume(ckpt, lambda: MorldRun(spec, cfg, seed, device))
-    if resumed:
-        typer.echo(
-            f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt.path}",
-            err=True,
-        )
 
-    bar = progress(cfg.frames(), f"MORL/D seed {seed}", unit="frame")
-    bar.update(run.frames)
-    run.env.on_step = lambda: bar.update(1)
-
-    def on_exchange(run: MorldRun, rec: ExchangeRecord) -> None:
-        bar.set_postfix_str(
-            f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}", refresh=False
-        )
-        # the last exchange too: a run killed while its actors are evaluated need not train again
-        due = rec.exchange % cfg.checkpoint_every == 0 or run.done
-        ckpt.safe_point(run, f"morld seed {seed}", f"exchange {rec.exchange}", due)
-
-    # SIGTERM: checkpoint after the current exchange and stop; during the export below it ends
-    # the process at once (the last exchange is checkpointed: a rerun only exports again)
-    try:
-        with sigterm_deferred(), bar:
-            run.train(on_exchange)
-        run.env.on_step = None
+    def save(run: MorldRun) -> None:
         typer.echo(
             f"morld seed {seed}: {run.frames} frames, {run.exchange} exchanges; evaluating the exported actors",
             err=True,
         )
         members, extra = export_members(run, cfg.eval_episodes)
-    except TrainingDiverged as exc:
-        raise exc.within("morld", ckpt.path, ckpt.good) from None
-    meta = {
-        **spec_meta(spec),
-        "seed": seed,
-        "method": "morld",
-        "params": config,
-        "provenance": provenance(device),
-        **extra,
-    }
-    save_population(out / "population.pt", members, meta)
-    write_text_atomic(out / "history.csv", history_csv(run.history))
-    ckpt.clear()
-    best = max(members, key=lambda m: m.returns[0])
-    typer.echo(
-        f"morld seed {seed}: {len(members)} actors; best on objective 0: {best.policy_name} {fmt_vec(best.returns)}",
-        err=True,
-    )
+        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config, "provenance": provenance(device)}
+        save_population(out / "population.pt", members, meta | extra)
+        write_text_atomic(out / "history.csv", history_csv(run.history))
+        best = max(members, key=lambda m: m.returns[0])
+        typer.echo(
+            f"morld seed {seed}: {len(members)} actors; best on objective 0: {best.policy_name} {fmt_vec(best.returns)}",
+            err=True,
+        )
+
+    with progress_send(cfg.frames(), f"MORL/D seed {seed}", unit="frame") as send:
+        drive(
+            lambda: MorldRun(spec, cfg, seed, device),
+            ckpt,
+            who=f"morld seed {seed}",
+            stage="morld",
+            resumed=lambda run: (
+                f"morld seed {seed}: resuming after exchange {run.exchange} ({run.frames} frames) from {ckpt.path}"
+            ),
+            save=save,
+            send=send,
+        )
 
 
 def _library_version() -> str | None:

@@ -11,10 +11,10 @@ import torch
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
-from pipeline.core.finite import TrainingDiverged
 from pipeline.core.policyset import save_policy_set
-from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
+from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
@@ -22,7 +22,7 @@ from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.specialists.pderl import EpisodeResult, GenerationRecord, PderlResult, PderlRun, continue_run
+from pipeline.specialists.pderl import PderlResult, PderlRun
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
@@ -159,32 +159,22 @@ def train_one(
     fp = run_fingerprint("train_pderl", run_config(seed, k, env_p, td3, cfg), device)
     # beside OUT (DVC's out, deleted before a rerun), or on shared storage in a sweep
     ckpt = Checkpoint(checkpoint_path(out, k), fp, lambda line: send("say", line))
-    run, resumed = resume(ckpt, lambda: PderlRun(spec, td3, cfg, k, seed, device))
-    if resumed:
-        send("say", f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path}")
-    env = make_env(env_p.id, env_p.max_episode_steps)
-    send("steps", run.frames)
+    label = f"obj {k} ({name})"
 
-    def on_episode(ep: EpisodeResult) -> None:
-        send("steps", ep.length)
+    def save(run: PderlRun) -> None:
+        result = run.result()
+        send("returns", f"{label} final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
+        save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg, device)
 
-    def on_generation(run: PderlRun, rec: GenerationRecord) -> None:
-        send(
-            "returns",
-            f"obj {k} ({name}) gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}",
-        )
-        due = rec.generation % cfg.checkpoint_every == 0
-        ckpt.safe_point(run, f"train_pderl seed {seed}, obj {k} ({name})", f"generation {rec.generation}", due)
-
-    try:
-        result = continue_run(run, env, on_generation=on_generation, on_episode=on_episode)
-        send("returns", f"obj {k} ({name}) final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
-    except TrainingDiverged as exc:
-        raise exc.within("train_pderl", ckpt.path, ckpt.good) from None
-    finally:
-        env.close()
-    save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg, device)
-    ckpt.clear()
+    drive(
+        lambda: PderlRun(spec, td3, cfg, k, seed, device),  # on an env of its own
+        ckpt,
+        who=f"train_pderl seed {seed}, {label}",
+        stage="train_pderl",
+        resumed=lambda run: f"obj {k}: resuming from generation {run.generation} ({run.frames} frames) of {ckpt.path}",
+        save=save,
+        send=lambda kind, value: send(kind, f"{label} {value}" if kind == "returns" else value),
+    )
 
 
 def save_pderl(

@@ -11,20 +11,20 @@ import torch
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
-from pipeline.core.finite import TrainingDiverged
-from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
+from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
+from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 from pipeline.specialists.keep_best import KeepBest
-from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun, continue_training
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
+from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
+from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 PROGRESS_EVERY = 250  # env steps (of all specialists of a group) between progress messages
@@ -130,15 +130,7 @@ def train_part(
     torch.set_num_threads(threads)
     with sigterm_deferred():  # SIGTERM: checkpoint after the current step and stop
         for group in groups:
-            what = ", ".join(f"obj {k} ({names[k]})" for k in group)
-            results = train_group(out, group, what, seed, spec, env_p, td3, cfg, device, send)
-            for result in results:
-                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg, device)
-                if result.keep_best is not None:
-                    send(
-                        "say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result)
-                    )
-            Checkpoint(checkpoint_path(out, group), "", print).clear()  # and one a kill cut short
+            train_group(out, group, seed, spec, env_p, td3, cfg, device, names, send)
 
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
@@ -178,56 +170,48 @@ def run_config(
 def train_group(
     out: Path,
     group: list[int],
-    what: str,
     seed: int,
     spec,
     env_p: EnvParams,
     td3: TD3Params,
     cfg: TrainSpecialistParams,
     device: torch.device,
+    names: Sequence[str],
     send,
-) -> list[SpecialistResult]:
-    """Train the specialists (seed, k), k in `group`, together: from their checkpoint if one
-    fits, checkpointing every cfg.checkpoint_every steps. Progress goes to `send` (see Relay),
-    in batches of about PROGRESS_EVERY steps."""
+) -> None:
+    """Train and save the specialists (seed, k), k in `group`, together: from their checkpoint
+    if one fits, checkpointing every cfg.checkpoint_every steps (pipeline.core.drive). Progress
+    goes to `send` (see Relay), in batches of about PROGRESS_EVERY steps."""
     jobs = [(seed, k) for k in group]
+    what = ", ".join(f"obj {k} ({names[k]})" for k in group)
     fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, td3, cfg), device)
     ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
-
-    def fresh() -> SpecialistsRun:
-        return SpecialistsRun([make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device)
-
     probe = make_env(env_p.id, env_p.max_episode_steps)
     problem = env_checkpoint_problem(probe)
     probe.close()
     if cfg.checkpoint_every and problem is not None:
         send("say", f"train_specialist.checkpoint_every: checkpoints off for env {env_p.id} ({problem})")
-    run, resumed = resume(ckpt, fresh) if problem is None else (fresh(), False)
-    if resumed:
-        send("say", f"{what}: resuming from step {run.t} of {ckpt.path}")
-    send("steps", run.t * len(jobs))
-    pending = [0]
 
-    def on_step(t: int, records) -> None:
-        pending[0] += len(records)
-        ended = [f"obj {k} {fmt_vec(r.returns)}" for k, r in zip(group, records) if r is not None]
-        if ended or pending[0] >= PROGRESS_EVERY or run.done:
-            send("steps", pending[0])
-            pending[0] = 0
-        if ended:
-            send("returns", "; ".join(ended))
-        if problem is None:
-            ckpt.safe_point(run, f"train_specialist seed {seed}, {what}", f"step {t}")
-        elif stop_requested():
-            raise Stopped(f"train_specialist seed {seed}, {what}: SIGTERM at step {t}: no checkpoint ({problem})")
+    def save(run: SpecialistsRun) -> None:
+        for result in run.results():
+            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg, device)
+            if result.keep_best is not None:
+                send("say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result))
 
-    try:
-        return continue_training(run, on_step, (lambda run: ckpt.save(run.state_dict())) if problem is None else None)
-    except TrainingDiverged as exc:
-        checkpoints = problem is None and (cfg.checkpoint_every > 0 or ckpt.good)
-        raise exc.within("train_specialist", ckpt.path if checkpoints else None, ckpt.good) from None
-    finally:
-        run.close()
+    drive(
+        lambda: SpecialistsRun(
+            [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device
+        ),
+        ckpt,
+        who=f"train_specialist seed {seed}, {what}",
+        stage="train_specialist",
+        resumed=lambda run: f"{what}: resuming from step {run.t} of {ckpt.path}",
+        save=save,
+        send=send,
+        problem=problem,
+        periodic=cfg.checkpoint_every > 0,
+        every=PROGRESS_EVERY,
+    )
 
 
 def save_td3_specialist(

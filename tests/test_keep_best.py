@@ -22,11 +22,12 @@ import pipeline.specialists.td3_training as td3_training
 from pipeline.core.artifacts import torch_load_checked
 from pipeline.core.buffer import FIELDS
 from pipeline.core.checkpoint import POLICY_FORMAT
+from pipeline.core.drive import run_to_end
 from pipeline.core.envs import env_spec, make_env
 from pipeline.params import ParamsError, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import keep_best_due, keep_best_score, keep_best_seeds, keep_best_steps
-from pipeline.specialists.td3_training import SpecialistsRun, continue_training
+from pipeline.specialists.td3_training import SpecialistsRun
 
 ENV, CAP = "mo-hopper-2obj-v5", 40
 # learning from step 100; checks every 40 steps past it: 120, 160, 200, 240, 280 and the last, 300
@@ -59,10 +60,17 @@ def make_run(cfg: TrainSpecialistParams = CFG, jobs=JOBS) -> SpecialistsRun:
     return SpecialistsRun(envs, env_spec(envs[0], ENV, CAP), cfg, jobs, torch.device("cpu"))
 
 
+def to_the_end(run: SpecialistsRun, on_checkpoint=None, fresh: bool = True):
+    """Step `run` to its end (pipeline.core.drive.run_to_end), `on_checkpoint(run)` where a
+    checkpoint is due; its results."""
+    hooks = [] if on_checkpoint is None else [lambda run: on_checkpoint(run) if run.checkpoint_due() else None]
+    return run_to_end(run, hooks, fresh).results()
+
+
 def train(cfg: TrainSpecialistParams = CFG, jobs=JOBS, on_checkpoint=None):
     """(the finished run, its results)."""
     run = make_run(cfg, jobs)
-    results = continue_training(run, on_checkpoint=on_checkpoint)
+    results = to_the_end(run, on_checkpoint)
     run.close()
     return run, results
 
@@ -134,10 +142,10 @@ def test_keep_best_leaves_training_bitwise_as_without_it():
     """Buffers, critics, the final actors, the episode history and every RNG stream (torch's
     global one included) end the same with keep-best on as off; only the returned actor may differ."""
     on_run = make_run()
-    on = continue_training(on_run)
+    on = to_the_end(on_run)
     sa = on_run.state_dict()  # now: torch's RNG is global, and the next run seeds it again
     off_run = make_run(CFG.model_copy(update={"keep_best_every": 0}))
-    off = continue_training(off_run)
+    off = to_the_end(off_run)
     sb = off_run.state_dict()
     for s, (x, y) in enumerate(zip(on, off, strict=True)):
         for name in FIELDS:
@@ -287,7 +295,7 @@ def test_a_resumed_run_keeps_the_same_actor_and_checks():
         assert all((x["best"] is None) == (n_checks == 0) for x in state["keep_best"])
         run = make_run()
         run.load_state_dict(state)
-        results = continue_training(run)
+        results = to_the_end(run, fresh=False)
         run.close()
         assert_same_results(results, reference)
 

@@ -40,6 +40,7 @@ from pipeline.baselines.morld import (  # noqa: E402
     actor_from_mosac,
     require_morl_baselines,
 )
+from pipeline.core.drive import run_to_end  # noqa: E402
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
 from pipeline.core.nets import hidden_sizes_of  # noqa: E402
 from pipeline.core.population import Member, actor_state, load_population, member_actor  # noqa: E402
@@ -155,7 +156,7 @@ def test_episodes_capped_and_exported_actors_match_agents():
     spec = env_spec(env, ENV, CAP)
     env.close()
     run = MorldRun(spec, MorldParams(**MORLD), seed=0)
-    run.train()
+    run_to_end(run)
     assert run.frames == run.env.frames == 400 and run.exchange == 4
     # 100-frame turns of 30-step episodes: 30, 30, 30, 10 (each turn starts a new episode)
     assert run.env.longest_episode == CAP

@@ -257,7 +257,7 @@ def test_generation_keeps_elites_and_counts_every_frame(hopper):
         assert any(run.population[i].fitness == rec.best for i in kept)  # the elite kept its evaluation
         for i in kept:  # and whatever kept its fitness kept its weights
             assert all(torch.equal(x, y) for x, y in zip(run.population[i].actor.parameters(), before[i].parameters()))
-    rl_fitness = run.finish(env, lambda ep: lengths.append(ep.length))
+    rl_fitness = run.evaluate_final(env, lambda ep: lengths.append(ep.length))
     # hopper falls: episodes of many lengths, each counted in full
     assert len(set(lengths)) > 1 and max(lengths) <= CAP
     per_gen = cfg.population_size * cfg.eval_episodes + 1

@@ -25,13 +25,14 @@ import torch
 from pipeline.core.artifacts import torch_load_checked
 from pipeline.core.buffer import FIELDS, FORMAT, FORMAT_VERSION, load_buffer
 from pipeline.core.checkpoint import CRITICS_FORMAT, POLICY_FORMAT, load_critics, load_policy
+from pipeline.core.drive import run_to_end
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.resume import FORMAT as CHECKPOINT_FORMAT
 from pipeline.core.resume import FORMAT_VERSION as CHECKPOINT_VERSION
 from pipeline.core.resume import Checkpoint
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.td3_training import SpecialistsRun, continue_training, train_specialist
+from pipeline.specialists.td3_training import SpecialistsRun, train_specialist
 
 # The stage command end to end, often in subprocesses: `make test-fast` leaves this file out.
 pytestmark = pytest.mark.integration
@@ -504,13 +505,16 @@ def test_a_run_restored_from_a_checkpoint_ends_as_the_uninterrupted_one(device, 
         torch.save(run.state_dict(), buf)
         saved[run.t] = buf.getvalue()
 
-    reference = continue_training(hopper_run(jobs, device, graphs), on_checkpoint=keep)
+    due = [lambda run: keep(run) if run.checkpoint_due() else None]
+    reference = run_to_end(hopper_run(jobs, device, graphs), due).results()
     assert sorted(saved) == [70, 140, 210, 280]
     for t in (70, 210):
         run = hopper_run(jobs, device, graphs)
         run.load_state_dict(torch.load(io.BytesIO(saved[t]), weights_only=True))
         assert run.t == t
-        (assert_same_results if device == "cpu" else assert_close_results)(continue_training(run), reference)
+        (assert_same_results if device == "cpu" else assert_close_results)(
+            run_to_end(run, fresh=False).results(), reference
+        )
     # a state never fits a run of other specialists
     with pytest.raises(ValueError, match="specialists"):
         hopper_run([(1, 0), (1, 1)]).load_state_dict(torch.load(io.BytesIO(saved[70]), weights_only=True))

@@ -107,6 +107,7 @@ from pipeline.baselines.nsga2 import (
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.checkpoint import cpu_copy
+from pipeline.core.drive import fmt_vec
 from pipeline.core.envs import EnvSpec
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble, hidden_sizes_of
@@ -267,8 +268,9 @@ class MopderlRun:
 
     `members` is the run's output so far (pipeline.core.population.Member): the starting actors
     (ids 0..n-1, in the order given), then every new individual that entered the archive, in
-    order of entry. Call `initialize` once (generation 0), then `step_generation` until
-    `budget_spent`; or `load_state_dict` a checkpoint instead of `initialize`.
+    order of entry. It is a pipeline.core.drive.Run on `env` (the env its episodes run in):
+    `start` (generation 0: `initialize`), then `step` (`step_generation`) until `done` (the
+    frame budget spent); or `load_state_dict` a checkpoint instead of `start`.
     """
 
     def __init__(
@@ -280,6 +282,7 @@ class MopderlRun:
         starts: Sequence[StartingActor],
         agents: Sequence[AgentInit],
         device: torch.device | str = "cpu",
+        env: gym.Env | None = None,
     ):
         if cfg.total_frames is None or cfg.eval_episodes is None:
             raise ValueError("MopderlParams must be resolved (total_frames, eval_episodes set) before a run")
@@ -309,6 +312,8 @@ class MopderlRun:
         self.frames = 0
         self.episodes = 0
         self.history: list[GenerationRecord] = []
+        self.env = env  # where `start` and `step` run their episodes (the caller's: it closes it)
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run
 
     def _ring(self) -> StateRing:
         return StateRing(self.cfg.mini_buffer_size, self.spec.obs_dim)
@@ -341,7 +346,8 @@ class MopderlRun:
     # -- acting ---------------------------------------------------------------------------
 
     @property
-    def budget_spent(self) -> bool:
+    def done(self) -> bool:
+        """Whether the frame budget is spent (the last generation runs to its end)."""
         return self.frames >= self.cfg.total_frames
 
     @torch.no_grad()
@@ -586,6 +592,42 @@ class MopderlRun:
         self.history.append(rec)
         self.check_agents()  # so before every checkpoint and the members' export
         return rec
+
+    # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
+
+    def _episode(self, ep: EpisodeResult) -> None:
+        if self.on_progress is not None:
+            self.on_progress()
+
+    def start(self) -> None:
+        """Generation 0 on `env` (`initialize`)."""
+        self.initialize(self.env, self._episode)
+
+    def step(self) -> GenerationRecord:
+        """One generation on `env` (`step_generation`)."""
+        return self.step_generation(self.env, self._episode)
+
+    def finish(self) -> None:
+        """Nothing follows the last generation: the members are the output."""
+
+    def progress(self) -> tuple[int, str]:
+        """Frames spent; the generation, the archive, its normalised hypervolume and each objective's best."""
+        if self.generation < 1:
+            return self.frames, ""
+        rec, best = self.history[-1], self.archive_returns().max(axis=0)
+        return self.frames, (
+            f"gen {rec.generation} archive {rec.archive_size} HV(norm) {rec.archive_hv_norm:.6g} best {fmt_vec(best)}"
+        )
+
+    def checkpoint_due(self) -> bool:
+        """Every mopderl.checkpoint_every generations, generation 0 (the start) included."""
+        return self.generation % self.cfg.checkpoint_every == 0
+
+    def where(self) -> str:
+        return f"generation {self.generation}" + (" (the starting actors evaluated)" if self.generation == 0 else "")
+
+    def close(self) -> None:
+        """The env belongs to the caller."""
 
     # -- checkpoints ----------------------------------------------------------------------
 

@@ -295,9 +295,10 @@ def _json_state(state: Any) -> str:
 class MorldRun:
     """One MORL/D run of seed `seed` with params `cfg` on the env `spec` describes.
 
-    `begin` seeds the envs and makes MORL/D's first archive evaluation; `step` does one
-    exchange; `train` steps until cfg.total_frames training frames are spent. Building a run
-    seeds torch's and numpy's global RNGs (MORLD draws from them).
+    A pipeline.core.drive.Run: `start` seeds the envs and makes MORL/D's first archive
+    evaluation (exchange 0); `step` does one exchange; `done` once cfg.total_frames training
+    frames are spent (whole exchanges). Building a run seeds torch's and numpy's global RNGs
+    (MORLD draws from them).
     """
 
     def __init__(
@@ -306,7 +307,6 @@ class MorldRun:
         cfg: MorldParams,
         seed: int,
         device: torch.device | str = "cpu",
-        on_step: Callable[[], None] | None = None,
     ):
         MORLD, filter_fn = require_morl_baselines()
         self.spec, self.cfg, self.seed = spec, cfg, seed
@@ -314,7 +314,8 @@ class MorldRun:
         self.seeds = morld_seeds(seed)
         torch.manual_seed(self.seeds["torch"])
         np.random.seed(self.seeds["numpy"])
-        self.env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps), on_step)
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run: after every training frame
+        self.env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps), self._frame)
         self.eval_env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps))
         policy_args = {
             "net_arch": list(cfg.hidden_sizes),
@@ -385,7 +386,11 @@ class MorldRun:
         self.history.append(rec)
         return rec
 
-    def begin(self) -> None:
+    def _frame(self) -> None:
+        if self.on_progress is not None:
+            self.on_progress()
+
+    def start(self) -> None:
         """Seed the envs (MORLD resets them unseeded) and evaluate the untrained agents (exchange 0)."""
         if self.started:
             return
@@ -399,7 +404,7 @@ class MorldRun:
 
     def step(self) -> ExchangeRecord:
         """One exchange: the body of MORLD.train's loop (morl-baselines 1.3.0), in its order."""
-        self.begin()
+        self.start()
         algo = self.algo
         with _quiet():
             policy = self._private("select_candidate")()
@@ -434,13 +439,31 @@ class MorldRun:
                 named.append(("a replay buffer value", torch.from_numpy(np.asarray(getattr(b, k)[: b.size]))))
         check_finite(named, self.exchange, "exchange", seed=self.seed)
 
-    def train(self, on_exchange: Callable[["MorldRun", ExchangeRecord], None] | None = None) -> None:
-        """Step until the frame budget is spent (whole exchanges; resumes where the run is)."""
-        self.begin()
-        while not self.done:
-            rec = self.step()
-            if on_exchange is not None:
-                on_exchange(self, rec)
+    # -- the rest of pipeline.core.drive.Run ----------------------------------------------
+
+    def finish(self) -> None:
+        """Nothing follows the last exchange here (the export is `export_members`)."""
+
+    def progress(self) -> tuple[int, str]:
+        """Training frames so far (counted frame by frame, mid-exchange too); the exchange, its
+        agent and the archive's size."""
+        if not self.history or self.exchange == 0:
+            return int(self.env.frames), ""
+        rec = self.history[-1]
+        return int(self.env.frames), f"exchange {rec.exchange} agent {rec.trained_policy} archive {rec.archive_size}"
+
+    def checkpoint_due(self) -> bool:
+        """Every morld.checkpoint_every exchanges, and the last one (a run killed while its
+        actors are exported need not train again)."""
+        return self.exchange > 0 and (self.exchange % self.cfg.checkpoint_every == 0 or self.done)
+
+    def where(self) -> str:
+        return f"exchange {self.exchange}"
+
+    def close(self) -> None:
+        """Close the training and evaluation envs."""
+        self.env.close()
+        self.eval_env.close()
 
     # -- export -----------------------------------------------------------------------------
 
@@ -500,7 +523,7 @@ class MorldRun:
     def state_dict(self) -> dict[str, Any]:
         """Everything the run continues from (at an exchange boundary), weights_only-loadable."""
         if not self.started:
-            raise ValueError("state_dict before begin(): nothing to save")
+            raise ValueError("state_dict before start(): nothing to save")
         algo = self.algo
         buffers, index = self._buffers()
         agents = []

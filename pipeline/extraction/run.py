@@ -26,6 +26,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.drive import fmt_vec
 from pipeline.core.finite import TrainingDiverged
 from pipeline.core.nets import CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume, pareto_mask
@@ -117,6 +118,7 @@ class ExtractionRun:
         self.members: list[Member] = []
         self.history: list[dict[str, int]] = []
         self.last: list[EvalResult] = []  # the last iteration's children's evaluations
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run
 
     @classmethod
     def from_slots(
@@ -220,6 +222,30 @@ class ExtractionRun:
 
     def normalised_hypervolume(self) -> float:
         return normalised_hypervolume(np.array([m.returns for m in self.members]))
+
+    # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
+
+    def finish(self) -> None:
+        """Nothing follows the last iteration: the members are the output."""
+
+    def progress(self) -> tuple[int, str]:
+        """Children made so far; the front, its normalised hypervolume and the last child's returns."""
+        if not self.last:
+            return self.iteration * self.k, ""
+        return self.iteration * self.k, (
+            f"front {self.history[-1]['front_size']} HV(norm) {self.normalised_hypervolume():.3f} "
+            f"child {fmt_vec(self.last[-1].mean)}"
+        )
+
+    def checkpoint_due(self) -> bool:
+        """Every iteration (and the start) is checkpointed."""
+        return True
+
+    def where(self) -> str:
+        return f"iteration {self.iteration}" if self.iteration else "the start (the specialists' policies evaluated)"
+
+    def close(self) -> None:
+        """The envs belong to the caller."""
 
     def state_dict(self) -> dict[str, Any]:
         """The members (as an append-only log) and the history: everything the run continues from."""

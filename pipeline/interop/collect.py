@@ -12,20 +12,21 @@ Deviation from the paper: its buffers are the specialists' own training buffers 
 transitions of training). A collected buffer is on-policy for the final pi_k plus noise
 instead, narrower than a training buffer; documented in docs/import_export.md.
 
-Like every long run, it has `state_dict`/`load_state_dict` (rows so far, the env's mid-episode
-state, RNG states), so a killed collection resumes to the same rows.
+Like every long run it is a pipeline.core.drive.Run, with `state_dict`/`load_state_dict` (rows
+so far, the env's mid-episode state, RNG states), so a killed collection resumes to the same rows.
 """
 
 from __future__ import annotations
 
 import copy
-from typing import Any
+from typing import Any, Callable
 
 import gymnasium as gym
 import numpy as np
 import torch
 
 from pipeline.core.buffer import ReplayBuffer
+from pipeline.core.drive import fmt_vec
 from pipeline.core.envs import EnvSpec
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.seeding import derive_seeds
@@ -38,7 +39,18 @@ COLLECT_STREAM = 0xC011  # seed key: collection draws apart from training's and 
 class CollectionRun:
     """`rows` transitions of `actor` (objective k's imported policy) in `env`, one `step` at a time."""
 
-    def __init__(self, actor, env: gym.Env, spec: EnvSpec, rows: int, noise: float, seed: int, objective: int):
+    def __init__(
+        self,
+        actor,
+        env: gym.Env,
+        spec: EnvSpec,
+        rows: int,
+        noise: float,
+        seed: int,
+        objective: int,
+        checkpoint_every: int = 0,
+    ):
+        """checkpoint_every: rows between two periodic checkpoints (0: none; `checkpoint_due`)."""
         self.actor, self.env, self.spec = actor.eval(), env, spec
         self.rows, self.noise = int(rows), float(noise)
         s_np, s_env, s_space = derive_seeds(seed, objective, COLLECT_STREAM, n=3)
@@ -53,10 +65,36 @@ class CollectionRun:
         self.ep_return = np.zeros(spec.n_objectives)
         self.returns: list[list[float]] = []  # per finished episode: its undiscounted return vector
         self.t = 0
+        self.checkpoint_every = int(checkpoint_every)
+        self.ended: list[float] | None = None  # the return vector of the episode the last step ended
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run (a step is short: unused)
 
     @property
     def done(self) -> bool:
         return self.t >= self.rows
+
+    # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
+
+    def start(self) -> None:
+        """Nothing before the first row (the env was reset when the run was made)."""
+
+    def finish(self) -> None:
+        """Nothing follows the last row: the rows are the output (`data`)."""
+
+    def progress(self) -> tuple[int, str]:
+        """Rows collected; the return of the episode the last row ended ("" if it ended none)."""
+        return self.t, "" if self.ended is None else f"return {fmt_vec(self.ended)}"
+
+    def checkpoint_due(self) -> bool:
+        """Every checkpoint_every rows but the last (none when it is 0)."""
+        every = self.checkpoint_every
+        return bool(every) and self.t > 0 and self.t % every == 0 and not self.done
+
+    def where(self) -> str:
+        return f"row {self.t}"
+
+    def close(self) -> None:
+        self.env.close()
 
     def action(self) -> np.ndarray:
         with torch.no_grad():
@@ -68,6 +106,10 @@ class CollectionRun:
 
     def step(self) -> list[float] | None:
         """One env step; returns the return vector of the episode it ended, else None."""
+        self.ended = self._step()
+        return self.ended
+
+    def _step(self) -> list[float] | None:
         a = self.action()
         next_obs, reward, terminated, truncated, _ = self.env.step(a)
         reward = np.asarray(reward, np.float32)

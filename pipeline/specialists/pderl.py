@@ -61,7 +61,8 @@ import numpy as np
 import torch
 
 from pipeline.core.checkpoint import cpu_copy
-from pipeline.core.envs import EnvSpec
+from pipeline.core.drive import run_to_end
+from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.seeding import derive_seeds, torch_generator
@@ -397,7 +398,10 @@ class PderlResult:
 
 
 class PderlRun:
-    """The whole state of one PDERL run (seed, objective) and its generation loop."""
+    """The whole state of one PDERL run (seed, objective) and its generation loop: a
+    pipeline.core.drive.Run on `env` (the env its episodes run in; default: one of its own,
+    closed by `close`), one generation a `step` until `done`, then `finish` (the final
+    evaluation) and `result`."""
 
     def __init__(
         self,
@@ -407,6 +411,7 @@ class PderlRun:
         objective: int,
         seed: int,
         device: torch.device | str = "cpu",
+        env: gym.Env | None = None,
     ):
         if not 0 <= objective < spec.n_objectives:
             raise ValueError(
@@ -444,6 +449,10 @@ class PderlRun:
         self.frames = 0
         self.episodes = 0
         self.history: list[GenerationRecord] = []
+        self.own_env = env is None
+        self.env = make_env(spec.env_id, spec.max_episode_steps) if env is None else env
+        self.rl_fitness: float | None = None  # the RL actor's final-evaluation fitness, once finished
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run
 
     @property
     def updates(self) -> int:
@@ -506,7 +515,8 @@ class PderlRun:
     # -- the loop -------------------------------------------------------------------------
 
     @property
-    def budget_spent(self) -> bool:
+    def done(self) -> bool:
+        """Whether the frame budget is spent (the last generation runs to its end)."""
         return self.frames >= self.cfg.total_frames
 
     def step_generation(
@@ -572,14 +582,56 @@ class PderlRun:
         ind.fitness = None
         return worst
 
-    def finish(self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None) -> float:
+    def evaluate_final(self, env: gym.Env, on_episode: Callable[[EpisodeResult], None] | None = None) -> float:
         """Final evaluation of every population actor and of the RL actor, as they end (their
         frames count too). Returns the RL actor's fitness."""
         for ind in self.population:
             ind.fitness = self.evaluate(env, ind.actor, ind.ring, on_episode)
         return self.evaluate(env, self.agent.actor(), None, on_episode)
 
-    def result(self, rl_fitness: float) -> PderlResult:
+    # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
+
+    def _episode(self, ep: EpisodeResult) -> None:
+        if self.on_progress is not None:
+            self.on_progress()
+
+    def start(self) -> None:
+        """Nothing before the first generation (it evaluates the population first)."""
+
+    def step(self) -> GenerationRecord:
+        """One generation on `env` (`step_generation`)."""
+        return self.step_generation(self.env, self._episode)
+
+    def finish(self) -> None:
+        """The final evaluation (`evaluate_final`), then `check_finite`: the result holds no
+        diverged network."""
+        self.rl_fitness = self.evaluate_final(self.env, self._episode)
+        self.check_finite()
+
+    def progress(self) -> tuple[int, str]:
+        """Frames spent; the generation's best and mean fitness and its RL episode's return."""
+        if not self.history:
+            return self.frames, ""
+        rec = self.history[-1]
+        return self.frames, f"gen {rec.generation} best {rec.best:.1f} mean {rec.mean:.1f} rl {rec.rl_fitness:.1f}"
+
+    def checkpoint_due(self) -> bool:
+        """Every train_pderl.checkpoint_every generations (not before the first)."""
+        return self.generation > 0 and self.generation % self.cfg.checkpoint_every == 0
+
+    def where(self) -> str:
+        return f"generation {self.generation}"
+
+    def close(self) -> None:
+        """Close the env if the run made it."""
+        if self.own_env:
+            self.env.close()
+
+    def result(self) -> PderlResult:
+        """The finished run's networks, population, buffer and history (after `finish`)."""
+        if self.rl_fitness is None:
+            raise RuntimeError("finish the run first")
+        rl_fitness = self.rl_fitness
         actor, actor_target, critic, critic_target = self.agent.networks()
         return PderlResult(
             seed=self.seed,
@@ -662,35 +714,17 @@ def train_pderl(
     device: torch.device | str = "cpu",
     state: dict[str, Any] | None = None,
     on_generation: Callable[[PderlRun, GenerationRecord], None] | None = None,
-    on_episode: Callable[[EpisodeResult], None] | None = None,
 ) -> PderlResult:
-    """Run PDERL for objective `objective` until `cfg.total_frames` frames, then evaluate the
-    final actors; resume from `state` (a `PderlRun.state_dict()`) if given (ValueError if it
-    does not fit).
+    """Run PDERL for objective `objective` on `env` until `cfg.total_frames` frames, then
+    evaluate the final actors; resume from `state` (a `PderlRun.state_dict()`) if given
+    (ValueError if it does not fit). No checkpoints, no progress: the stage drives its runs
+    with pipeline.core.drive.
 
-    `on_generation(run, record)` is called after every generation (checkpoint there with
-    `run.state_dict()`; an exception raised in it stops the run), `on_episode(result)` after
-    every episode.
-    """
-    run = PderlRun(spec, td3_cfg, cfg, objective, seed, device)
+    `on_generation(run, record)` is called after every generation (an exception raised in
+    it stops the run). Raises TrainingDiverged when a generation ends with a loss or weight
+    that is not finite (`PderlRun.check_finite`)."""
+    run = PderlRun(spec, td3_cfg, cfg, objective, seed, device, env)
     if state is not None:
         run.load_state_dict(state)
-    return continue_run(run, env, on_generation, on_episode)
-
-
-def continue_run(
-    run: PderlRun,
-    env: gym.Env,
-    on_generation: Callable[[PderlRun, GenerationRecord], None] | None = None,
-    on_episode: Callable[[EpisodeResult], None] | None = None,
-) -> PderlResult:
-    """Run generations of `run` (fresh or restored) until its frame budget is spent, then the
-    final evaluation; the callbacks are those of `train_pderl`. Raises TrainingDiverged when
-    a generation ends with a loss or weight that is not finite (`PderlRun.check_finite`)."""
-    while not run.budget_spent:
-        rec = run.step_generation(env, on_episode)
-        if on_generation is not None:
-            on_generation(run, rec)
-    rl_fitness = run.finish(env, on_episode)
-    run.check_finite()
-    return run.result(rl_fitness)
+    hooks = [] if on_generation is None else [lambda run: on_generation(run, run.history[-1])]
+    return run_to_end(run, hooks, fresh=state is None).result()

@@ -6,7 +6,8 @@ and minibatch draws, so each is exactly the TD3 specialist it would be alone; on
 networks are stacked, so one batched update serves all of them (see pipeline/specialists/td3.py). S = 1
 is one specialist on its own (`train_specialist`).
 
-The loop prints nothing; progress goes through the `on_step` callback.
+`SpecialistsRun` is a pipeline.core.drive.Run (the stage drives it: checkpoints, SIGTERM,
+progress); the run prints nothing.
 
 Devices: on a CPU the buffers are CPU tensors and minibatch rows are drawn with each
 specialist's numpy generator (the same stream as its exploration noise). On CUDA the buffers
@@ -40,6 +41,7 @@ import torch
 
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.checkpoint import cpu_copy
+from pipeline.core.drive import fmt_vec, run_to_end
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
@@ -157,6 +159,8 @@ class SpecialistsRun:
         self.checks: list[list[tuple[int, float]]] = [[] for _ in range(n)]
         self.best: list[dict[str, Any] | None] = [None] * n
         self.eval_envs: list[gym.Env] | None = None
+        self.last: list[EpisodeRecord | None] = [None] * n  # per specialist, the episode the last step ended
+        self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run (a step is short: unused)
 
     @property
     def done(self) -> bool:
@@ -197,7 +201,32 @@ class SpecialistsRun:
             self.check_finite()
         if keep_best_due(self.cfg, td3.learning_starts, self.t):
             self.keep_best_check()
+        if self.checkpoint_due():
+            self.check_finite(full=True)  # no checkpoint holds a diverged state
+        self.last = records
         return records
+
+    # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
+
+    def start(self) -> None:
+        """Nothing before the first step."""
+
+    def finish(self) -> None:
+        """The final `check_finite(full=True)`: no result holds a diverged state."""
+        self.check_finite(full=True)
+
+    def progress(self) -> tuple[int, str]:
+        """Env steps of all specialists; the returns of the episodes the last step ended ("" if none)."""
+        ended = [f"obj {k} {fmt_vec(r.returns)}" for (_, k), r in zip(self.jobs, self.last) if r is not None]
+        return self.t * len(self.jobs), "; ".join(ended)
+
+    def checkpoint_due(self) -> bool:
+        """After every train_specialist.checkpoint_every-th env step but the last (none when it is 0)."""
+        every = self.cfg.checkpoint_every
+        return bool(every) and self.t > 0 and self.t % every == 0 and not self.done
+
+    def where(self) -> str:
+        return f"step {self.t}"
 
     def keep_best_check(self) -> None:
         """Score every specialist's current actor (`keep_best_score`, on its own evaluation env,
@@ -417,32 +446,6 @@ class SpecialistsRun:
         self.checks, self.best = checks, best
 
 
-def continue_training(
-    run: SpecialistsRun,
-    on_step: Callable[[int, list[EpisodeRecord | None]], None] | None = None,
-    on_checkpoint: Callable[[SpecialistsRun], None] | None = None,
-) -> list[SpecialistResult]:
-    """Step `run` (fresh or restored) to cfg.total_steps and return its results.
-
-    `on_step(t, records)` after every step; `on_checkpoint(run)` after every
-    cfg.checkpoint_every-th step but the last (none when it is 0): save `run.state_dict()`
-    there. An exception raised in a callback stops the run.
-
-    Raises TrainingDiverged (pipeline.core.finite) when a loss, weight or buffer value is not
-    finite: checked every CHECK_EVERY updates, before every checkpoint and before the results,
-    so no checkpoint and no result holds a diverged state."""
-    every = run.cfg.checkpoint_every
-    while not run.done:
-        records = run.step()
-        if on_step is not None:
-            on_step(run.t, records)
-        if on_checkpoint is not None and every and run.t % every == 0 and not run.done:
-            run.check_finite(full=True)
-            on_checkpoint(run)
-    run.check_finite(full=True)
-    return run.results()
-
-
 def train_specialists(
     envs: Sequence[gym.Env],
     spec: EnvSpec,
@@ -456,8 +459,14 @@ def train_specialists(
 ) -> list[SpecialistResult]:
     """Train specialists jobs = [(seed, objective), ...] with TD3 for cfg.total_steps env steps
     each, in lockstep, specialist s on envs[s]; resume from `state` (a
-    `SpecialistsRun.state_dict()`, ValueError if it does not fit) if given. The callbacks are
-    those of `continue_training`.
+    `SpecialistsRun.state_dict()`, ValueError if it does not fit) if given. No checkpoints: the
+    stage drives its runs with pipeline.core.drive.
+
+    `on_step(t, records)` is called after every step; `on_checkpoint(run)` after every step
+    where `run.checkpoint_due()` (save `run.state_dict()` there). An exception raised in a
+    callback stops the run. Raises TrainingDiverged (pipeline.core.finite) when a loss, weight
+    or buffer value is not finite: checked every CHECK_EVERY updates, before every checkpoint
+    and before the results, so no checkpoint and no result holds a diverged state.
 
     Randomness: torch init, env resets, the start-up action sampler, exploration noise, batch
     rows and target smoothing noise are all seeded from (seed, objective) alone, so a
@@ -467,7 +476,10 @@ def train_specialists(
     run = SpecialistsRun(envs, spec, td3, cfg, jobs, device)
     if state is not None:
         run.load_state_dict(state)
-    return continue_training(run, on_step, on_checkpoint)
+    hooks = [] if on_step is None else [lambda run: on_step(run.t, run.last)]
+    if on_checkpoint is not None:
+        hooks.append(lambda run: on_checkpoint(run) if run.checkpoint_due() else None)
+    return run_to_end(run, hooks, fresh=state is None).results()
 
 
 def train_specialist(
