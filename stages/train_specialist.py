@@ -22,7 +22,7 @@ from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
-from pipeline.specialists.keep_best import KeepBest
+from pipeline.specialists.keep_best import KeepBest, keep_best_hook
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
 from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
 
@@ -210,6 +210,7 @@ def train_group(
         send=send,
         problem=problem,
         periodic=cfg.checkpoint_every > 0,
+        hooks=[keep_best_hook],
         every=PROGRESS_EVERY,
     )
 

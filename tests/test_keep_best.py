@@ -184,7 +184,7 @@ def scripted(monkeypatch, script=SCRIPT) -> None:
         calls[objective] += 1
         return script[objective][i]
 
-    monkeypatch.setattr(td3_training, "keep_best_score", score)  # the name SpecialistsRun calls
+    monkeypatch.setattr(keep_best, "keep_best_score", score)  # the name keep_best_hook calls
 
 
 def test_the_kept_actor_is_the_one_of_its_recorded_step(monkeypatch):

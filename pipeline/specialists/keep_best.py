@@ -1,7 +1,9 @@
 """Keep-best: which of a TD3 specialist's actors its training hands on.
 
-Keep-best (train_specialist.keep_best_every > 0; off by default, as in the paper and plain TD3;
-the checks are run by `SpecialistsRun`, pipeline/specialists/td3_training.py): after every env
+Keep-best (train_specialist.keep_best_every > 0; off by default, as in the paper and plain TD3)
+is a hook on the loop that steps a `SpecialistsRun` (`keep_best_hook`, in the hooks of
+pipeline.core.drive.drive or run_to_end; the run's `results` refuses to hand on actors when a
+due check is missing, so a loop without the hook cannot pass unnoticed): after every env
 step t that is a multiple of keep_best_every and past learning_starts, and after the last step
 (`keep_best_steps`), each specialist's actor is scored by keep_best_episodes deterministic
 episodes (no exploration noise) on an evaluation env of its own, reset with seeds derived from
@@ -24,10 +26,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.envs import make_env
 from pipeline.core.nets import Actor
 from pipeline.core.seeding import derive_seeds
 from pipeline.evaluation.episodes import evaluate_policy
 from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.specialists.td3 import unstack_actor
 
 
 @dataclass
@@ -70,3 +74,28 @@ def keep_best_score(actor: Actor, env: gym.Env, objective: int, seeds: Sequence[
         return math.nan
     returns = [evaluate_policy(actor, [env], [int(s)]).returns[0, objective] for s in seeds]
     return float(np.mean(returns))
+
+
+def keep_best_hook(run) -> None:
+    """After a step of `run` (a pipeline.specialists.td3_training.SpecialistsRun): where a check
+    is due (`keep_best_due`), score every specialist's current actor (`keep_best_score`, on an
+    evaluation env of its own, seeds from (seed, objective, check index)); record (step, score)
+    in `run.checks` and keep a CPU copy of the actor and its target actor in `run.best` if the
+    score is finite and beats the best so far. Nothing else of the run is touched."""
+    if not keep_best_due(run.cfg, run.td3.learning_starts, run.t):
+        return
+    if run.eval_envs is None:
+        run.eval_envs = [make_env(run.spec.env_id, run.spec.max_episode_steps) for _ in run.jobs]
+    for s, ((seed, objective), env) in enumerate(zip(run.jobs, run.eval_envs)):
+        seeds = keep_best_seeds(seed, objective, len(run.checks[s]), run.cfg.keep_best_episodes)
+        actor = unstack_actor(run.state.actor, s)
+        score = keep_best_score(actor, env, objective, seeds)
+        run.checks[s].append((run.t, score))
+        best = run.best[s]
+        if math.isfinite(score) and (best is None or score > best["score"]):
+            run.best[s] = {
+                "step": run.t,
+                "score": score,
+                "actor": actor.state_dict(),
+                "actor_target": unstack_actor(run.state.actor_target, s).state_dict(),
+            }

@@ -24,14 +24,14 @@ uninterrupted one on a CPU. Only MuJoCo envs (behind gymnasium's standard wrappe
 saved mid-episode; `env_checkpoint_problem` says why another cannot. On CUDA the state is
 saved as CPU tensors and restored onto the device (untested here: no GPU).
 
-Keep-best (train_specialist.keep_best_every > 0) is described in
-pipeline/specialists/keep_best.py; `SpecialistsRun` runs its checks.
+Keep-best (train_specialist.keep_best_every > 0) is a hook on the loop that steps the run
+(pipeline/specialists/keep_best.py, `keep_best_hook`); its records live in the run's state so
+they are checkpointed with it.
 """
 
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -42,13 +42,13 @@ import torch
 from pipeline.core.buffer import StackedReplay
 from pipeline.core.checkpoint import cpu_copy
 from pipeline.core.drive import fmt_vec, run_to_end
-from pipeline.core.envs import EnvSpec, make_env
+from pipeline.core.envs import EnvSpec
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.keep_best import KeepBest, keep_best_due, keep_best_score, keep_best_seeds
+from pipeline.specialists.keep_best import KeepBest, keep_best_hook, keep_best_steps
 from pipeline.specialists.td3 import Updater, init_stacked, run_seeds, unstack_actor
 from pipeline.specialists.td3_state import (
     buffer_state,
@@ -199,8 +199,6 @@ class SpecialistsRun:
         self.t = t + 1
         if t >= td3.learning_starts and due(self.n_updates):
             self.check_finite()
-        if keep_best_due(self.cfg, td3.learning_starts, self.t):
-            self.keep_best_check()
         if self.checkpoint_due():
             self.check_finite(full=True)  # no checkpoint holds a diverged state
         self.last = records
@@ -227,26 +225,6 @@ class SpecialistsRun:
 
     def where(self) -> str:
         return f"step {self.t}"
-
-    def keep_best_check(self) -> None:
-        """Score every specialist's current actor (`keep_best_score`, on its own evaluation env,
-        seeds from (seed, objective, check index)); record (step, score) and keep a CPU copy of
-        the actor and its target actor if the score is finite and beats the best so far."""
-        if self.eval_envs is None:
-            self.eval_envs = [make_env(self.spec.env_id, self.spec.max_episode_steps) for _ in self.jobs]
-        for s, ((seed, objective), env) in enumerate(zip(self.jobs, self.eval_envs)):
-            seeds = keep_best_seeds(seed, objective, len(self.checks[s]), self.cfg.keep_best_episodes)
-            actor = unstack_actor(self.state.actor, s)
-            score = keep_best_score(actor, env, objective, seeds)
-            self.checks[s].append((self.t, score))
-            best = self.best[s]
-            if math.isfinite(score) and (best is None or score > best["score"]):
-                self.best[s] = {
-                    "step": self.t,
-                    "score": score,
-                    "actor": actor.state_dict(),
-                    "actor_target": unstack_actor(self.state.actor_target, s).state_dict(),
-                }
 
     def keep_best_record(self, s: int) -> KeepBest | None:
         """Specialist s's keep-best record so far (None when keep-best is off)."""
@@ -289,6 +267,12 @@ class SpecialistsRun:
         state, n = self.state, len(self.jobs)
         e = state.critic.n_members // n
         out = []
+        missing = keep_best_steps(self.cfg, self.td3.learning_starts)[len(self.checks[0]) :] if n else []
+        if missing and missing[0] <= self.t:
+            raise RuntimeError(
+                f"keep-best is on (train_specialist.keep_best_every = {self.cfg.keep_best_every}) but no check ran "
+                f"at step {missing[0]}: step the run with keep_best_hook among its hooks (pipeline.core.drive)"
+            )
         for s, (seed, objective) in enumerate(self.jobs):
             actor, actor_target = state.actor.unstack(s), state.actor_target.unstack(s)
             best = self.best[s] if self.cfg.keep_best_every else None
@@ -476,7 +460,7 @@ def train_specialists(
     run = SpecialistsRun(envs, spec, td3, cfg, jobs, device)
     if state is not None:
         run.load_state_dict(state)
-    hooks = [] if on_step is None else [lambda run: on_step(run.t, run.last)]
+    hooks = [keep_best_hook] + ([] if on_step is None else [lambda run: on_step(run.t, run.last)])
     if on_checkpoint is not None:
         hooks.append(lambda run: on_checkpoint(run) if run.checkpoint_due() else None)
     return run_to_end(run, hooks, fresh=state is None).results()
