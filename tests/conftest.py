@@ -38,15 +38,14 @@ TINY_PARAMS: dict[str, Any] = {
     "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 100},
     "seeds": [0],
     "objectives": [0, 1],
-    "train_specialist": {
-        "total_steps": 350,
+    "td3": {
         "learning_starts": 260,
         "buffer_size": 1000,
         "batch_size": 64,
         "hidden_sizes": [32, 32],
         "secondary_critics": True,
-        "device": "cpu",
     },
+    "train_specialist": {"total_steps": 350, "device": "cpu"},
 }
 
 DELETE = object()  # an override value that removes the key from the preset

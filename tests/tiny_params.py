@@ -23,7 +23,8 @@ TINY = {
     "seeds": [0],
     "objectives": [0, 1],
     "methods": ["mapex_td3", "warmup_only_td3"],
-    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "td3": {"learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "train_specialist": {"total_steps": 300},
     "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
     "critic_fidelity": {"episodes": 2},
     "extract": {
@@ -95,7 +96,7 @@ TINY_ALL = {
         "mopderl",
         "morld",
     ],
-    "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+    "td3": {**TINY["td3"], "buffer_size": 2000},
     "train_pderl": PDERL_TINY,
     "mopderl": MOPDERL_TINY,
     "morld": MORLD_TINY,
