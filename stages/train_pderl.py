@@ -49,7 +49,7 @@ def train_pderl(
     Each generation evaluates the population (fitness: return of the specialist's objective),
     evolves it (elites, tournament selection, distillation crossover, proximal mutation), runs
     one noisy RL episode and makes one TD3 update per frame collected (once
-    train_specialist.learning_starts frames are in); every train_pderl.rl_sync_period
+    td3.learning_starts frames are in); every train_pderl.rl_sync_period
     generations the RL actor replaces the worst individual. Every frame lands in the RL
     agent's replay buffer. Once train_pderl.total_frames are spent (the last generation runs
     to its end), every actor is evaluated once more; those frames count too.

@@ -17,15 +17,15 @@ import pipeline.specialists.td3 as td3_mod
 from pipeline.core.buffer import Batch, StackedReplay, batch_at
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3 import TD3State, init_stacked, init_td3, run_seeds, stack_td3, stacked_update, td3_update
 from pipeline.specialists.td3_learner import TD3Learner
 from pipeline.specialists.td3_training import train_specialists
 
 ENV, CAP = "mo-swimmer-v5", 25
-CFG = TrainSpecialistParams(
-    total_steps=90, learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70, device="cpu"
-)
+CFG = TD3Params(learning_starts=40, batch_size=16, hidden_sizes=[16, 16], buffer_size=70)
+RUN = TrainSpecialistParams(total_steps=90, device="cpu")
 
 
 def spec_of():
@@ -102,14 +102,14 @@ def test_batched_training_draws_what_one_at_a_time_draws(monkeypatch):
     spec = spec_of()
     jobs = [(0, 0), (0, 1), (1, 0)]
     rows, noises = record_draws(monkeypatch)
-    stacked = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, CFG, jobs, torch.device("cpu"))
+    stacked = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, CFG, RUN, jobs, torch.device("cpu"))
     together = (torch.stack(rows), torch.stack(noises))
-    assert together[0].shape == (CFG.total_steps - CFG.learning_starts, 3, CFG.batch_size)
+    assert together[0].shape == (RUN.total_steps - CFG.learning_starts, 3, CFG.batch_size)
     alone = []
     for s, job in enumerate(jobs):
         rows.clear()
         noises.clear()
-        res = train_specialists([make_env(ENV, CAP)], spec, CFG, [job], torch.device("cpu"))[0]
+        res = train_specialists([make_env(ENV, CAP)], spec, CFG, RUN, [job], torch.device("cpu"))[0]
         assert torch.equal(torch.stack(rows)[:, 0], together[0][:, s]), job
         assert torch.equal(torch.stack(noises)[:, 0], together[1][:, s]), job
         alone.append(res)
@@ -182,11 +182,11 @@ def test_stacked_networks_round_trip():
 def test_cuda_graphs_match_eager_cuda():
     spec = spec_of()
     jobs = [(0, 0), (0, 1)]
-    cfg = CFG.model_copy(update={"device": "cuda"})
+    run = RUN.model_copy(update={"device": "cuda"})
     dev = torch.device("cuda")
-    graphed = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, cfg, jobs, dev)
+    graphed = train_specialists([make_env(ENV, CAP) for _ in jobs], spec, CFG, run, jobs, dev)
     eager = train_specialists(
-        [make_env(ENV, CAP) for _ in jobs], spec, cfg.model_copy(update={"cuda_graphs": False}), jobs, dev
+        [make_env(ENV, CAP) for _ in jobs], spec, CFG.model_copy(update={"cuda_graphs": False}), run, jobs, dev
     )
     for a, b in zip(graphed, eager):
         np.testing.assert_allclose(a.buffer["obs"], b.buffer["obs"], rtol=1e-4, atol=1e-4)
@@ -303,11 +303,11 @@ def test_td3_learner_on_cuda_graphs_eager_and_resume():
     spec, dev = spec_of(), torch.device("cuda")
     runs = {}
     for graphs in (True, False):
-        learner, _ = learner_and_reference(spec, CFG.model_copy(update={"cuda_graphs": graphs, "device": "cuda"}), dev)
+        learner, _ = learner_and_reference(spec, CFG.model_copy(update={"cuda_graphs": graphs}), dev)
         feed(learner, spec, 60)
         learner.train(30)
         runs[graphs] = learner
-    cfg = CFG.model_copy(update={"device": "cuda"})
+    cfg = CFG
     part, _ = learner_and_reference(spec, cfg, dev)
     feed(part, spec, 60)
     part.train(12)

@@ -22,8 +22,8 @@ from pipeline.core.envs import env_spec, make_env
 from pipeline.core.finite import CHECK_EVERY, TrainingDiverged, check_finite, first_nonfinite
 from pipeline.critics.posthoc import fit_posthoc_critics
 from pipeline.params.fit_critics import FitCriticsParams
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import PderlRun
 from pipeline.specialists.td3_training import SpecialistsRun
 from stages.common import DIVERGED_EXIT, run_parts
@@ -95,15 +95,8 @@ def test_load_buffer_refuses_a_non_finite_row(tmp_path, name, value, shown):
 HOPPER = {"id": "mo-hopper-2obj-v5", "max_episode_steps": 40}
 # 300 steps, updates from step 100 (checks at updates 100 and 200: steps 200 and 300),
 # checkpoints every 70 steps: 70, 140, 210, 280
-TRAIN = {
-    "total_steps": 300,
-    "learning_starts": 100,
-    "batch_size": 32,
-    "hidden_sizes": [16, 16],
-    "buffer_size": 180,
-    "checkpoint_every": 70,
-    "processes": 1,
-}
+AGENT = {"learning_starts": 100, "batch_size": 32, "hidden_sizes": [16, 16], "buffer_size": 180}
+TRAIN = {"total_steps": 300, "checkpoint_every": 70, "processes": 1}
 
 
 def poison_critic_after(monkeypatch, step: int, specialist: int) -> None:
@@ -130,7 +123,7 @@ def poison_critic_after(monkeypatch, step: int, specialist: int) -> None:
 )
 def test_train_specialist_stops_at_a_nan_critic(tmp_path, write_params, cli, monkeypatch, poison_at, found_at):
     assert CHECK_EVERY == 100  # the steps above assume it
-    params = write_params(tmp_path, {"env": HOPPER, "train_specialist": TRAIN})
+    params = write_params(tmp_path, {"env": HOPPER, "td3": AGENT, "train_specialist": TRAIN})
     poison_critic_after(monkeypatch, poison_at, specialist=1)
     out = tmp_path / "out"
     result = cli("train-specialist", "--seed", 0, "--out", out, "--params", params)
@@ -175,7 +168,8 @@ TINY = {
     "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0]},
     "seeds": [0],
     "objectives": [0, 1],
-    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "td3": {"learning_starts": 200, "batch_size": 32, "hidden_sizes": [16, 16]},
+    "train_specialist": {"total_steps": 300},
     "fit_critics": {"steps": 30, "check_every": 0, "batch_size": 32, "hidden_sizes": [16, 16]},
     "extract": {
         "iterations": 2,
@@ -298,7 +292,7 @@ def hopper_spec():
 
 
 def pderl_run(spec) -> PderlRun:
-    td3 = TrainSpecialistParams(learning_starts=16, batch_size=16, hidden_sizes=[16], buffer_size=500, device="cpu")
+    td3 = TD3Params(learning_starts=16, batch_size=16, hidden_sizes=[16], buffer_size=500)
     cfg = TrainPderlParams(
         total_frames=200, population_size=3, mini_buffer_size=200, crossover_transitions=64,
         crossover_batch_size=32, mutation_states=32, device="cpu",

@@ -38,7 +38,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         "mopderl_seeds": [0],
         "morld_seeds": [0] if "morld" in baselines else [],
         "methods": methods,
-        "train_specialist": {**TINY["train_specialist"], "buffer_size": 2000},
+        "td3": {**TINY["td3"], "buffer_size": 2000},
         "train_pderl": PDERL_TINY,
         "mopderl": MOPDERL_TINY,
         "morld": MORLD_TINY,

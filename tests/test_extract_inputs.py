@@ -135,6 +135,16 @@ def test_missing_metadata_key_is_refused(specs, tmp_path, mapex, write_params):
     assert_refused(r, tmp_path, "obj0/critics.pt: metadata has no 'seed'", "obj0/buffer.zarr")
 
 
+def test_critics_without_secondary_heads_are_refused_naming_the_td3_key(specs, tmp_path, mapex, write_params):
+    """Joint critics that cover the primary objective only (a specialist trained with
+    td3.secondary_critics: false) cannot drive extraction: the message names the key to set."""
+    _, _, meta = load_critics(specs / "obj1" / "critics.pt")
+    heads = [CriticEnsemble(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], 2) for _ in range(2)]
+    save_critics(specs / "obj1" / "critics.pt", *heads, {**meta, "objectives": [1]})
+    r = extract(mapex, write_params, tmp_path, specs)
+    assert_refused(r, tmp_path, "obj1/critics.pt: critics covering objectives [1]", "td3.secondary_critics: true")
+
+
 def test_zero_hidden_width_is_refused(specs, tmp_path, mapex, write_params):
     r = extract(mapex, write_params, tmp_path, specs, hidden_sizes=[0])
     assert_refused(r, tmp_path, "extract.hidden_sizes.0 = 0", "greater than 0", one_line=False)

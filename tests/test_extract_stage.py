@@ -27,7 +27,8 @@ TINY = {
     "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 40, "reference_point": [-100.0, -4500.0]},
     "seeds": [0],
     "objectives": [0, 1],
-    "train_specialist": {"total_steps": 300, "learning_starts": 200, "batch_size": 32, "hidden_sizes": [32, 32]},
+    "td3": {"learning_starts": 200, "batch_size": 32, "hidden_sizes": [32, 32]},
+    "train_specialist": {"total_steps": 300},
     "extract": {
         "iterations": 3,
         "child_buffer_size": 200,

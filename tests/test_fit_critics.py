@@ -263,11 +263,12 @@ TINY_PARAMS = """\
 env:
   id: mo-halfcheetah-v5
   max_episode_steps: 100
-train_specialist:
-  total_steps: 300
+td3:
   learning_starts: 260
   batch_size: 64
   hidden_sizes: [32, 32]
+train_specialist:
+  total_steps: 300
   device: cpu
 fit_critics:
   steps: 50
@@ -354,6 +355,41 @@ def test_fidelity_metrics_files(run_dir, path, source):
         assert m[key]["n_states"] == 64
         assert -1.0 <= m[key]["pearson"] <= 1.0
         assert m[key]["rel_error"] >= 0.0 and isinstance(m[key]["mean_g"], float)
+
+
+def test_joint_critics_discount_is_read_from_their_td3_section(run_dir, tmp_path):
+    """Joint critics are scored at the discount their specialist trained with: meta
+    params["td3"]["gamma"]. Critics whose meta has no td3 section (the layout before it
+    existed: the agent's keys under train_specialist) are refused, naming the file."""
+    import json
+
+    obj = torch.load(run_dir / "spec" / "critics.pt", weights_only=True)
+    assert obj["meta"]["source"] == "joint" and obj["meta"]["params"]["td3"]["gamma"] == 0.99
+    for name, params, code in (
+        ("g09.pt", obj["meta"]["params"] | {"td3": obj["meta"]["params"]["td3"] | {"gamma": 0.9}}, 0),
+        ("old.pt", {"train_specialist": obj["meta"]["params"]["td3"]}, 2),
+    ):
+        torch.save(obj | {"meta": obj["meta"] | {"params": params}}, tmp_path / name)
+        out = tmp_path / f"{name}.json"
+        res = mapex(
+            "critic-fidelity",
+            "--objective",
+            0,
+            "--specialist",
+            run_dir / "spec",
+            "--critics",
+            tmp_path / name,
+            "--out",
+            out,
+            "--params",
+            run_dir / "params.yaml",
+        )
+        assert res.exit_code == code, res.output
+        if code == 0:
+            assert json.loads(out.read_text())["gamma"] == 0.9
+        else:
+            assert f"{tmp_path / name}: metadata does not record the critics' discount" in res.stderr
+            assert not out.exists()
 
 
 def test_fit_csv_records_every_check_and_meta_the_fit(run_dir):

@@ -25,18 +25,16 @@ from pipeline.core.checkpoint import POLICY_FORMAT
 from pipeline.core.drive import run_to_end
 from pipeline.core.envs import env_spec, make_env
 from pipeline.params import ParamsError, section
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import keep_best_due, keep_best_score, keep_best_seeds, keep_best_steps
 from pipeline.specialists.td3_training import SpecialistsRun
 
 ENV, CAP = "mo-hopper-2obj-v5", 40
 # learning from step 100; checks every 40 steps past it: 120, 160, 200, 240, 280 and the last, 300
+TD3 = TD3Params(learning_starts=100, batch_size=32, hidden_sizes=[16, 16], buffer_size=180)
 CFG = TrainSpecialistParams(
     total_steps=300,
-    learning_starts=100,
-    batch_size=32,
-    hidden_sizes=[16, 16],
-    buffer_size=180,
     checkpoint_every=70,
     device="cpu",
     keep_best_every=40,
@@ -57,7 +55,7 @@ def one_thread():
 
 def make_run(cfg: TrainSpecialistParams = CFG, jobs=JOBS) -> SpecialistsRun:
     envs = [make_env(ENV, CAP) for _ in jobs]
-    return SpecialistsRun(envs, env_spec(envs[0], ENV, CAP), cfg, jobs, torch.device("cpu"))
+    return SpecialistsRun(envs, env_spec(envs[0], ENV, CAP), TD3, cfg, jobs, torch.device("cpu"))
 
 
 def to_the_end(run: SpecialistsRun, on_checkpoint=None, fresh: bool = True):
@@ -99,8 +97,15 @@ def final_actors(run: SpecialistsRun, s: int) -> tuple[dict, dict]:
 )
 def test_checks_follow_multiples_past_learning_starts_and_the_last_step(every, expected):
     cfg = CFG.model_copy(update={"keep_best_every": every})
-    assert keep_best_steps(cfg) == expected
-    assert [t for t in range(1, 400) if keep_best_due(cfg, t)] == expected
+    assert keep_best_steps(cfg, TD3.learning_starts) == expected
+    assert [t for t in range(1, 400) if keep_best_due(cfg, TD3.learning_starts, t)] == expected
+
+
+def test_checks_start_past_the_learning_starts_given():
+    """The schedule's start is td3.learning_starts, passed in: not a fixed step."""
+    assert keep_best_steps(CFG, 150) == [160, 200, 240, 280, 300]
+    assert keep_best_steps(CFG, 1) == [40, 80, 120, 160, 200, 240, 280, 300]
+    assert not keep_best_due(CFG, 160, 160) and keep_best_due(CFG, 159, 160)
 
 
 def test_a_run_checks_at_the_scheduled_steps_and_defaults_are_off():
@@ -315,7 +320,8 @@ def test_a_state_without_its_checks_is_refused():
 
 def test_stage_records_the_kept_step_score_and_every_check(tmp_path, write_params, cli):
     params = write_params(
-        tmp_path, {"env": {"id": ENV, "max_episode_steps": CAP}, "train_specialist": CFG.model_dump()}
+        tmp_path,
+        {"env": {"id": ENV, "max_episode_steps": CAP}, "td3": TD3.model_dump(), "train_specialist": CFG.model_dump()},
     )
     result = cli("train-specialist", "--seed", 0, "--out", tmp_path / "out", "--params", params)
     assert result.exit_code == 0, result.stderr

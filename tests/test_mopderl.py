@@ -43,19 +43,12 @@ from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population
 from pipeline.params.mopderl import MopderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from stages.mopderl import mopderl as mopderl_stage
 from stages.train_pderl import train_pderl as train_pderl_stage
 
 CAP = 30
-TD3 = {
-    "total_steps": 1000,
-    "learning_starts": 100,
-    "buffer_size": 5000,
-    "batch_size": 32,
-    "hidden_sizes": [16],
-    "device": "cpu",
-}
+TD3 = {"learning_starts": 100, "buffer_size": 5000, "batch_size": 32, "hidden_sizes": [16]}
 PDERL = {
     "total_frames": 200,
     "population_size": 3,
@@ -200,7 +193,7 @@ def hopper():
 
 def synthetic_run(spec, seed: int = 0, **over) -> MopderlRun:
     """A run over random starting actors and RL agents whose buffers hold 300 random rows."""
-    td3 = TrainSpecialistParams(**TD3)
+    td3 = TD3Params(**TD3)
     cfg = MopderlParams(**(MOPDERL | over)).resolved(spec.env_id)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(5)
@@ -337,7 +330,7 @@ def test_checkpoint_resume_is_bitwise(hopper):
 def specialists(tmp_path_factory, write_params):
     """Tiny PDERL specialists of seed 0 (both objectives), made by the real train_pderl stage."""
     d = tmp_path_factory.mktemp("pderl")
-    over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "train_pderl": PDERL}
+    over = {"env": {"max_episode_steps": CAP}, "td3": TD3, "train_pderl": PDERL}
     params = write_params(d, over)
     app = typer.Typer()
     app.command()(train_pderl_stage)
@@ -353,7 +346,7 @@ def stage(write_params, specialists):
     app.command()(mopderl_stage)
 
     def invoke(d: Path, overrides=None, seed: int = 0, source: Path | None = None):
-        over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "mopderl": MOPDERL} | (overrides or {})
+        over = {"env": {"max_episode_steps": CAP}, "td3": TD3, "mopderl": MOPDERL} | (overrides or {})
         params = write_params(d, over)
         args = [
             "--seed",
@@ -386,6 +379,7 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     assert not (tmp_path / "full" / "resume" / "mopderl" / "seed0").exists()  # progress cleared
     assert meta["method"] == "mopderl" and meta["seed"] == 0 and meta["env_id"] == "mo-halfcheetah-v5"
     assert meta["params"]["mopderl"]["population_size"] == 4 and "provenance" in meta
+    assert meta["params"]["td3"] == TD3Params(**TD3).model_dump()  # the RL agents' section, whole
     assert meta["action_low"] == [-1.0] * 6 and meta["n_objectives"] == 2
     # the starting population: each specialist's population actors ("rl" is the RL agent)
     starts = [m for m in members if m.origin == "specialist"]

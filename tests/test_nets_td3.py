@@ -16,7 +16,7 @@ from pipeline.core.buffer import Batch, batch_at
 from pipeline.core.checkpoint import check_matches, load_critics, load_policy, save_critics, save_policy
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
 from pipeline.specialists.td3 import (
     actor_loss,
     covered_objectives,
@@ -216,7 +216,7 @@ def spec(n_objectives: int = 2) -> EnvSpec:
     return EnvSpec("mo-test-v0", OBS, ACT, n_objectives, (-1.0,) * ACT, (1.0,) * ACT, 100)
 
 
-CFG = TrainSpecialistParams(hidden_sizes=[16, 16], batch_size=8, learning_starts=8, total_steps=100)
+CFG = TD3Params(hidden_sizes=[16, 16], batch_size=8, learning_starts=8)
 
 
 def random_batch(seed: int, n: int = 8, n_objectives: int = 2) -> Batch:

@@ -37,7 +37,7 @@ def tiny_hopper(methods: list[str]) -> dict:
     }
     params["objectives"] = [0, 1, 2]
     params["methods"] = methods
-    params["train_specialist"] = {**TINY["train_specialist"], "buffer_size": 2000}
+    params["td3"] = {**TINY["td3"], "buffer_size": 2000}
     params["train_pderl"] = PDERL_TINY
     params["mopderl"] = MOPDERL_TINY
     params["morld"] = {**MORLD_TINY, "pop_size": 3}  # uniform weights need one agent per objective at least

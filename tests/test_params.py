@@ -9,12 +9,17 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params import MOVED_KEYS, EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.methods import derived_lists
 from pipeline.params.sync import synced_text
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.td3 import TD3Params
+from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def validate_td3(values: dict) -> TD3Params:
+    return section({"td3": values}, "td3", TD3Params)
 
 
 def validate_ts(values: dict) -> TrainSpecialistParams:
@@ -22,7 +27,7 @@ def validate_ts(values: dict) -> TrainSpecialistParams:
 
 
 def test_defaults_are_the_papers_td3_table():
-    p = TrainSpecialistParams()
+    p = TD3Params()
     # Appendix table "PDERL and TD3 hyperparameters".
     assert p.learning_starts == 25_000
     assert p.gamma == 0.99
@@ -35,93 +40,104 @@ def test_defaults_are_the_papers_td3_table():
     assert p.policy_noise == 0.2
     assert p.noise_clip == 0.5
     assert p.policy_freq == 2
-    assert p.total_steps == 2_000_000
+    assert TrainSpecialistParams().total_steps == 2_000_000
     assert EnvParams().max_episode_steps == 750
 
 
 def test_missing_section_takes_the_defaults():
+    assert section({}, "td3", TD3Params) == TD3Params()
+    assert section({"td3": None}, "td3", TD3Params) == TD3Params()
     assert section({}, "train_specialist", TrainSpecialistParams) == TrainSpecialistParams()
     assert section({"train_specialist": None}, "train_specialist", TrainSpecialistParams) == TrainSpecialistParams()
 
 
 def test_unknown_key_is_rejected_and_named():
     with pytest.raises(ParamsError) as info:
-        validate_ts({"gama": 0.9})
+        validate_td3({"gama": 0.9})
     msg = str(info.value)
-    assert "train_specialist.gama" in msg
+    assert "td3.gama" in msg
     assert "unknown key" in msg
     assert "0.9" in msg
 
 
 @pytest.mark.parametrize(
-    ("key", "value", "expected"),
+    ("name", "key", "value", "expected"),
     [
-        ("gamma", 1.5, "less than 1"),
-        ("tau", 0.0, "greater than 0"),
-        ("batch_size", -3, "greater than 0"),
-        ("policy_freq", 0, "greater than or equal to 1"),
-        ("batch_size", "big", "valid integer"),
-        ("device", "tpu", "'auto', 'cpu' or 'cuda'"),
+        ("td3", "gamma", 1.5, "less than 1"),
+        ("td3", "tau", 0.0, "greater than 0"),
+        ("td3", "batch_size", -3, "greater than 0"),
+        ("td3", "policy_freq", 0, "greater than or equal to 1"),
+        ("td3", "batch_size", "big", "valid integer"),
+        ("train_specialist", "device", "tpu", "'auto', 'cpu' or 'cuda'"),
     ],
 )
-def test_bad_value_message_names_key_value_and_expectation(key, value, expected):
+def test_bad_value_message_names_key_value_and_expectation(name, key, value, expected):
+    validate = validate_td3 if name == "td3" else validate_ts
     with pytest.raises(ParamsError) as info:
-        validate_ts({key: value})
+        validate({key: value})
     msg = str(info.value)
-    assert f"train_specialist.{key} = {value!r}" in msg
+    assert f"{name}.{key} = {value!r}" in msg
     assert expected in msg
     assert msg.startswith("params.yaml: invalid params")
 
 
 def test_every_failing_key_is_reported():
     with pytest.raises(ParamsError) as info:
-        validate_ts({"gamma": 2.0, "tau": -1.0})
+        validate_td3({"gamma": 2.0, "tau": -1.0})
     msg = str(info.value)
-    assert "train_specialist.gamma = 2.0" in msg
-    assert "train_specialist.tau = -1.0" in msg
+    assert "td3.gamma = 2.0" in msg
+    assert "td3.tau = -1.0" in msg
 
 
 def test_learning_starts_below_batch_size_is_rejected():
     with pytest.raises(ParamsError, match=r"learning_starts \(100\) must be >= batch_size \(256\)"):
-        validate_ts({"learning_starts": 100})
+        validate_td3({"learning_starts": 100})
     # Equal is fine.
-    assert validate_ts({"learning_starts": 256, "total_steps": 1000}).learning_starts == 256
+    assert validate_td3({"learning_starts": 256}).learning_starts == 256
 
 
 def test_learning_starts_must_leave_steps_to_train():
-    with pytest.raises(ParamsError, match=r"learning_starts \(500\) must be < total_steps \(500\)"):
-        validate_ts({"learning_starts": 500, "total_steps": 500})
+    """The one check across td3 and train_specialist: it names both keys, and is exactly <."""
+    with pytest.raises(ValueError) as info:
+        check_against_td3(validate_ts({"total_steps": 500}), validate_td3({"learning_starts": 500}))
+    msg = str(info.value)
+    assert "td3.learning_starts (500)" in msg and "train_specialist.total_steps (500)" in msg
+    with pytest.raises(ValueError, match=r"td3.learning_starts \(25000\) must be < train_specialist.total_steps"):
+        check_against_td3(validate_ts({"total_steps": 1000}), TD3Params())
+    check_against_td3(validate_ts({"total_steps": 501}), validate_td3({"learning_starts": 500}))  # one step trains
 
 
 def test_non_positive_hidden_size_is_rejected():
     with pytest.raises(ParamsError, match="hidden_sizes must be positive"):
-        validate_ts({"hidden_sizes": [64, 0]})
+        validate_td3({"hidden_sizes": [64, 0]})
 
 
 def test_params_are_frozen():
-    p = TrainSpecialistParams()
+    p = TD3Params()
     with pytest.raises(Exception):
         p.gamma = 0.5  # type: ignore[misc]
+    with pytest.raises(Exception):
+        TrainSpecialistParams().total_steps = 5  # type: ignore[misc]
 
 
 @given(st.floats(allow_nan=False, allow_infinity=False, min_value=-5, max_value=5))
 def test_gamma_accepted_exactly_on_its_range(gamma):
     inside = 0 <= gamma < 1
     if inside:
-        assert validate_ts({"gamma": gamma}).gamma == gamma
+        assert validate_td3({"gamma": gamma}).gamma == gamma
     else:
-        with pytest.raises(ParamsError, match="train_specialist.gamma"):
-            validate_ts({"gamma": gamma})
+        with pytest.raises(ParamsError, match="td3.gamma"):
+            validate_td3({"gamma": gamma})
 
 
 @given(st.integers(1, 400), st.integers(1, 400))
 def test_cross_field_rule_is_exactly_learning_starts_ge_batch_size(learning_starts, batch_size):
-    values = {"learning_starts": learning_starts, "batch_size": batch_size, "total_steps": 1000}
+    values = {"learning_starts": learning_starts, "batch_size": batch_size}
     if learning_starts >= batch_size:
-        assert validate_ts(values).batch_size == batch_size
+        assert validate_td3(values).batch_size == batch_size
     else:
         with pytest.raises(ParamsError, match="must be >= batch_size"):
-            validate_ts(values)
+            validate_td3(values)
 
 
 # --- the file level: load_params ----------------------------------------------------------
@@ -151,11 +167,49 @@ def test_missing_file_invalid_yaml_and_non_mapping(tmp_path):
 
 
 def test_section_error_names_the_params_file(tmp_path, write_params):
-    path = write_params(tmp_path, {"train_specialist": {"gamma": 1.5}})
+    path = write_params(tmp_path, {"td3": {"gamma": 1.5}})
     raw = load_params(path)
     with pytest.raises(ParamsError) as info:
-        section(raw, "train_specialist", TrainSpecialistParams, path)
+        section(raw, "td3", TD3Params, path)
     assert str(info.value).startswith(f"{path}: invalid params")
+    assert "td3.gamma = 1.5" in str(info.value)
+
+
+def test_old_params_file_with_an_agent_key_under_train_specialist_names_its_new_home(tmp_path):
+    """A params file written before the td3 section existed fails on load, naming each moved key
+    with its new home, rather than the stages silently taking td3's defaults."""
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump({"train_specialist": {"actor_lr": 0.001, "total_steps": 10}}))
+    with pytest.raises(ParamsError) as info:
+        load_params(path)
+    msg = str(info.value)
+    assert msg.startswith(f"{path}: ")
+    assert "train_specialist.actor_lr -> td3.actor_lr" in msg
+    assert "total_steps" not in msg  # a run key stays where it is
+    # every moved key of the file is named, in one line
+    path.write_text(
+        yaml.safe_dump({"train_specialist": {"total_steps": 10, "learning_starts": 5, "hidden_sizes": [8]}})
+    )
+    with pytest.raises(ParamsError) as info:
+        load_params(path)
+    msg = str(info.value)
+    assert "train_specialist.learning_starts -> td3.learning_starts" in msg
+    assert "train_specialist.hidden_sizes -> td3.hidden_sizes" in msg
+    assert "\n" not in msg
+    # the same values in their new home load
+    path.write_text(yaml.safe_dump({"td3": {"actor_lr": 0.001}, "train_specialist": {"total_steps": 10}}))
+    raw = load_params(path)
+    assert section(raw, "td3", TD3Params, path).actor_lr == 0.001
+    assert section(raw, "train_specialist", TrainSpecialistParams, path).total_steps == 10
+
+
+def test_moved_keys_are_exactly_the_td3_section():
+    """Every key of section td3 came from train_specialist, and none is still there: a key added
+    to either model must be placed in the map of moved keys (or kept out of it) on purpose."""
+    new, keys = MOVED_KEYS["train_specialist"]
+    assert new == "td3"
+    assert set(keys) == set(TD3Params.model_fields)
+    assert not set(keys) & set(TrainSpecialistParams.model_fields)
 
 
 def test_run_params_reject_duplicates_and_negatives():
@@ -171,7 +225,9 @@ def test_run_params_reject_duplicates_and_negatives():
 def test_tiny_preset_validates(tiny_params):
     raw = load_params(tiny_params)
     cfg = section(raw, "train_specialist", TrainSpecialistParams, tiny_params)
-    assert cfg.total_steps == 350 and cfg.hidden_sizes == [32, 32]
+    td3 = section(raw, "td3", TD3Params, tiny_params)
+    assert cfg.total_steps == 350 and td3.hidden_sizes == [32, 32]
+    check_against_td3(cfg, td3)
     assert section(raw, "env", EnvParams, tiny_params).max_episode_steps == 100
 
 
@@ -181,7 +237,8 @@ def test_repository_params_file_validates():
     section(raw, "env", EnvParams, path)
     section(raw, "", RunParams, path)
     cfg = section(raw, "train_specialist", TrainSpecialistParams, path)
-    assert cfg.learning_starts < cfg.total_steps
+    td3 = section(raw, "td3", TD3Params, path)
+    assert td3.learning_starts < cfg.total_steps
 
 
 def test_run_lists_are_derived_from_methods_and_checked():

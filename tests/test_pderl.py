@@ -26,8 +26,8 @@ from pipeline.core.checkpoint import load_critics, load_policy
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
 from pipeline.core.policyset import load_policy_set
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.pderl import (
     Individual,
     PderlRun,
@@ -43,14 +43,7 @@ from stages.train_pderl import CHECKPOINT_PREFIX
 from stages.train_pderl import train_pderl as train_pderl_stage
 
 CAP = 30
-TD3 = {
-    "total_steps": 1000,
-    "learning_starts": 100,
-    "buffer_size": 5000,
-    "batch_size": 32,
-    "hidden_sizes": [16, 16],
-    "device": "cpu",
-}
+TD3 = {"learning_starts": 100, "buffer_size": 5000, "batch_size": 32, "hidden_sizes": [16, 16]}
 PDERL = {
     "total_frames": 400,
     "population_size": 3,
@@ -235,7 +228,7 @@ def test_elites_survive_evolution_unchanged():
 
 
 def tiny_cfgs(**pderl):
-    return TrainSpecialistParams(**TD3), TrainPderlParams(**(PDERL | pderl))
+    return TD3Params(**TD3), TrainPderlParams(**(PDERL | pderl))
 
 
 @pytest.fixture(scope="module")
@@ -311,7 +304,7 @@ def test_runs_on_cuda_and_resumes(hopper, graphs):
     uninterrupted run: CUDA promises reproducibility only up to its kernels, and the
     population's discrete choices can amplify a last-bit difference.)"""
     env, spec = hopper
-    td3 = TrainSpecialistParams(**(TD3 | {"device": "cuda", "cuda_graphs": graphs}))
+    td3 = TD3Params(**(TD3 | {"cuda_graphs": graphs}))
     cfg = TrainPderlParams(**(PDERL | {"device": "cuda"}))
     saved = {}
 
@@ -347,7 +340,7 @@ def stage(monkeypatch, write_params):
     app.command()(train_pderl_stage)
 
     def invoke(d: Path, overrides=None, objective: int | list[int] = 1):
-        over = {"env": {"max_episode_steps": CAP}, "train_specialist": TD3, "train_pderl": PDERL} | (overrides or {})
+        over = {"env": {"max_episode_steps": CAP}, "td3": TD3, "train_pderl": PDERL} | (overrides or {})
         params = write_params(d, over)
         chosen = [
             a for k in ([objective] if isinstance(objective, int) else objective) for a in ("--objective", str(k))
@@ -405,7 +398,8 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     )
     cmeta = full["cmeta"]
     assert cmeta["source"] == "joint" and cmeta["objectives"] == [0, 1] and cmeta["buffer_objective"] == 1
-    assert cmeta["params"]["train_specialist"]["gamma"] == 0.99 and "provenance" in cmeta
+    assert set(cmeta["params"]) == {"env", "td3", "train_pderl"}
+    assert cmeta["params"]["td3"]["gamma"] == 0.99 and "provenance" in cmeta
     attrs, data = full["attrs"], full["data"]
     assert attrs["objective"] == 1 and attrs["seed"] == 0 and attrs["max_episode_steps"] == CAP
     assert len(data["obs"]) == pset.meta["env_frames"] >= PDERL["total_frames"]
@@ -506,7 +500,7 @@ def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeyp
 
 def test_stage_rejects_bad_params(tmp_path, stage):
     res = stage(tmp_path, {"train_pderl": PDERL | {"total_frames": 50}})
-    assert res.exit_code == 2 and "learning_starts" in res.output
+    assert res.exit_code == 2 and "td3.learning_starts (100) must be < train_pderl.total_frames (50)" in res.output
     res = stage(tmp_path, {"train_pderl": PDERL | {"population_size": 1}})
     assert res.exit_code == 2 and "train_pderl.population_size" in res.output
     res = stage(tmp_path, objective=2)

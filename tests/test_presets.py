@@ -15,8 +15,9 @@ from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, se
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
 from pipeline.params.registry import section_models
 from pipeline.params.sync import synced_text
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
-from pipeline.params.train_specialist import TrainSpecialistParams
+from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 
 ROOT = Path(__file__).resolve().parents[1]
 PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
@@ -25,14 +26,18 @@ PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
 PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
 # Three objectives (docs/n_objectives.md): paper-scale and quickstart-scale, mo-hopper-v5 and mo-ant-v5
 NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
+# Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
+ALL_PARAMS = [ROOT / "params.yaml"] + [
+    p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "reference_points.yaml"
+]
 
 
-@pytest.mark.parametrize(
-    "path", [ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ], ids=lambda p: f"{p.parent.name}/{p.name}"
-)
+@pytest.mark.parametrize("path", ALL_PARAMS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_params_file_validates(path, tmp_path):
     """params.yaml as it is; a preset as `mapex sync-params --from` writes it (presets list
-    what runs once, in `methods`)."""
+    what runs once, in `methods`). Every section validates with its model (no key left where
+    it moved from: load_params refuses that), and so does the check across td3 and
+    train_specialist that stage train_specialist makes."""
     if path != ROOT / "params.yaml":
         (tmp_path / "params.yaml").write_text(synced_text(path.read_text(), str(path)))
         path = tmp_path / "params.yaml"
@@ -40,7 +45,15 @@ def test_params_file_validates(path, tmp_path):
     env = section(raw, "env", EnvParams, path)
     for name, model in section_models().items():
         section(raw, name, model, path)
+    check_against_td3(
+        section(raw, "train_specialist", TrainSpecialistParams, path), section(raw, "td3", TD3Params, path)
+    )
     assert env.reference_point is not None and len(env.reference_point) == len(raw["objectives"])
+
+
+def test_every_params_file_is_checked():
+    """ALL_PARAMS holds the files the tests above name one by one, and then some."""
+    assert {ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, ROOT / "presets" / "imported.yaml"} <= set(ALL_PARAMS)
 
 
 def test_every_known_section_has_a_model():
@@ -57,7 +70,8 @@ def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
         assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
         assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
-        assert ts == TrainSpecialistParams(total_steps=ts.total_steps)  # everything else: the paper's TD3 table
+        assert ts == TrainSpecialistParams(total_steps=ts.total_steps)  # everything else: the defaults
+        assert section(raw, "td3", TD3Params, path) == TD3Params()  # the paper's TD3 table
         assert env.max_episode_steps == 750
 
 
@@ -102,9 +116,11 @@ def test_three_objective_presets():
         assert env.reference_point == refs[env.id] and env.max_episode_steps == 750
         assert all(raw["extract"].get(k) is not None for k in ("epochs", "beta", "omega_max")), path
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
-        assert ts.secondary_critics
+        td3 = section(raw, "td3", TD3Params, path)
+        assert td3.secondary_critics
         if not path.stem.endswith("-quick"):
             assert ts == TrainSpecialistParams(total_steps=2_000_000)
+            assert td3 == TD3Params()
             ex = section(raw, "extract", ExtractParams, path)
             assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
 
@@ -138,7 +154,8 @@ def test_payoff_preset_is_the_issue_settings():
     omega_max 1) on 200k-row hybrid buffers at 256 units, at least 12 each, one per iteration."""
     raw = load_params(PAYOFF)
     ts = section(raw, "train_specialist", TrainSpecialistParams, PAYOFF)
-    assert ts.total_steps >= 300_000 and ts.hidden_sizes == [256, 256] and ts.secondary_critics
+    td3 = section(raw, "td3", TD3Params, PAYOFF)
+    assert ts.total_steps >= 300_000 and td3.hidden_sizes == [256, 256] and td3.secondary_critics
     assert len(raw["seeds"]) >= 2
     ex = section(raw, "extract", ExtractParams, PAYOFF).resolved("mo-halfcheetah-v5")
     assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS["mo-halfcheetah-v5"]

@@ -31,6 +31,7 @@ from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.resume import FORMAT as CHECKPOINT_FORMAT
 from pipeline.core.resume import FORMAT_VERSION as CHECKPOINT_VERSION
 from pipeline.core.resume import Checkpoint
+from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3_training import SpecialistsRun, train_specialist
 
@@ -42,7 +43,7 @@ TOTAL = 350  # its total_steps
 
 # Hopper with a cap of 18 steps: at seed 0 some episodes fall (terminated) and some are cut by
 # the cap (truncated); one even falls on its 18th step, so both flags are set there.
-HOPPER = {"env": {"id": "mo-hopper-2obj-v5", "max_episode_steps": 18}, "train_specialist": {"secondary_critics": False}}
+HOPPER = {"env": {"id": "mo-hopper-2obj-v5", "max_episode_steps": 18}, "td3": {"secondary_critics": False}}
 
 
 @dataclass
@@ -173,7 +174,9 @@ def test_policy_loads_and_acts_in_bounds(cheetah):
     assert meta["env_id"] == "mo-halfcheetah-v5" and meta["objective"] == 1 and meta["seed"] == 0
     assert (meta["obs_dim"], meta["act_dim"], meta["n_objectives"]) == (17, 6, 2)
     assert meta["hidden_sizes"] == [32, 32]
+    assert set(meta["params"]) == {"env", "td3", "train_specialist"}
     assert TrainSpecialistParams(**meta["params"]["train_specialist"]).total_steps == TOTAL
+    assert TD3Params(**meta["params"]["td3"]).hidden_sizes == [32, 32]
     data, _ = load_buffer(cheetah.out / "buffer.zarr")
     with torch.no_grad():
         a = actor(torch.from_numpy(data["obs"][:50]))
@@ -202,9 +205,7 @@ def test_critics_cover_only_the_primary_when_secondary_is_off(hopper):
     assert online.n_members == target.n_members == 2
     assert online.weights[0].shape == (2, 11 + 3, 32)
     assert (
-        torch_load_checked(hopper.out / "critics.pt", CRITICS_FORMAT, 1)["meta"]["params"]["train_specialist"][
-            "secondary_critics"
-        ]
+        torch_load_checked(hopper.out / "critics.pt", CRITICS_FORMAT, 1)["meta"]["params"]["td3"]["secondary_critics"]
         is False
     )
 
@@ -258,9 +259,11 @@ def error_lines(stderr: str) -> list[str]:
 
 
 BAD_PARAMS = [
-    ({"train_specialist": {"gamma": 1.5}}, ["train_specialist.gamma = 1.5", "less than 1"]),
-    ({"train_specialist": {"batch_sizee": 64}}, ["train_specialist.batch_sizee", "unknown key"]),
-    ({"train_specialist": {"learning_starts": 32}}, ["learning_starts (32) must be >= batch_size (64)"]),
+    ({"td3": {"gamma": 1.5}}, ["td3.gamma = 1.5", "less than 1"]),
+    ({"td3": {"batch_sizee": 64}}, ["td3.batch_sizee", "unknown key"]),
+    ({"td3": {"learning_starts": 32}}, ["learning_starts (32) must be >= batch_size (64)"]),
+    ({"td3": {"learning_starts": 350}}, ["td3.learning_starts (350) must be < train_specialist.total_steps (350)"]),
+    ({"train_specialist": {"gamma": 0.98}}, ["key(s) moved to section `td3`", "train_specialist.gamma -> td3.gamma"]),
     ({"env": {"max_episode_steps": 0}}, ["env.max_episode_steps = 0", "greater than 0"]),
     ({"bogus_section": {"x": 1}}, ["unknown top-level key(s) ['bogus_section']"]),
     ({"env": {"id": "mo-nonexistent-v9"}}, ["env.id = 'mo-nonexistent-v9'", "cannot build it"]),
@@ -289,7 +292,16 @@ def test_bad_params_exit_2_with_one_message_and_write_nothing(tmp_path, write_pa
 @pytest.mark.parametrize(
     ("overrides", "expected"),
     BAD_PARAMS,
-    ids=["out-of-range", "unknown-key", "cross-field", "env-section", "top-level", "env-id"],
+    ids=[
+        "out-of-range",
+        "unknown-key",
+        "cross-field",
+        "cross-section",
+        "moved-key",
+        "env-section",
+        "top-level",
+        "env-id",
+    ],
 )
 def test_bad_params_messages(overrides, expected, tmp_path, write_params, cli):
     """The same command in-process (interpreter start-up costs seconds here)."""
@@ -329,14 +341,13 @@ def test_update_schedule_and_episode_records(monkeypatch):
         return real_update(state, batch, noise, update_actor, **kw)
 
     monkeypatch.setattr(td3_mod, "stacked_update", counting_update)
-    cfg = TrainSpecialistParams(
-        total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3
-    )
+    td3 = TD3Params(learning_starts=30, batch_size=8, hidden_sizes=[4], buffer_size=100, policy_freq=3)
+    cfg = TrainSpecialistParams(total_steps=40)
     env = make_env("mo-swimmer-v5", 15)
     spec = env_spec(env, "mo-swimmer-v5", 15)
     seen: list[tuple[int, int | None]] = []
     result = train_specialist(
-        env, spec, cfg, 0, 0, torch.device("cpu"), on_step=lambda t, r: seen.append((t, r and r.episode))
+        env, spec, td3, cfg, 0, 0, torch.device("cpu"), on_step=lambda t, r: seen.append((t, r and r.episode))
     )
     env.close()
     assert calls == [False, False, True] * 3 + [False]
@@ -349,9 +360,10 @@ def test_update_schedule_and_episode_records(monkeypatch):
 def test_out_of_range_objective_in_the_core():
     env = make_env("mo-swimmer-v5", 15)
     spec = env_spec(env, "mo-swimmer-v5", 15)
-    cfg = TrainSpecialistParams(total_steps=40, learning_starts=30, batch_size=8, hidden_sizes=[4])
+    td3 = TD3Params(learning_starts=30, batch_size=8, hidden_sizes=[4])
+    cfg = TrainSpecialistParams(total_steps=40)
     with pytest.raises(ValueError, match="objective 5 out of range"):
-        train_specialist(env, spec, cfg, 5, 0, torch.device("cpu"))
+        train_specialist(env, spec, td3, cfg, 5, 0, torch.device("cpu"))
     env.close()
 
 
@@ -363,15 +375,10 @@ def test_out_of_range_objective_in_the_core():
 
 RESUME = {
     "env": {"id": "mo-hopper-2obj-v5", "max_episode_steps": 40},
-    "train_specialist": {
-        "total_steps": 300,
-        "learning_starts": 100,
-        "batch_size": 32,
-        "hidden_sizes": [16, 16],
-        "buffer_size": 180,
-        "checkpoint_every": 70,
-    },
+    "td3": {"learning_starts": 100, "batch_size": 32, "hidden_sizes": [16, 16], "buffer_size": 180},
+    "train_specialist": {"total_steps": 300, "checkpoint_every": 70},
 }
+RESUME_TD3 = TD3Params(**RESUME["td3"])
 RESUME_CFG = TrainSpecialistParams(**RESUME["train_specialist"], device="cpu")
 PAPER_ENVS = ["mo-hopper-2obj-v5", "mo-halfcheetah-v5", "mo-ant-2obj-v5", "mo-walker2d-v5", "mo-swimmer-v5"]
 
@@ -463,8 +470,9 @@ def test_env_state_refuses_envs_it_cannot_restore():
 
 def hopper_run(jobs, device: str = "cpu", graphs: bool = False):
     envs = [make_env("mo-hopper-2obj-v5", 40) for _ in jobs]
-    cfg = RESUME_CFG.model_copy(update={"device": device, "cuda_graphs": graphs})
-    return SpecialistsRun(envs, env_spec(envs[0], "mo-hopper-2obj-v5", 40), cfg, jobs, torch.device(device))
+    td3 = RESUME_TD3.model_copy(update={"cuda_graphs": graphs})
+    cfg = RESUME_CFG.model_copy(update={"device": device})
+    return SpecialistsRun(envs, env_spec(envs[0], "mo-hopper-2obj-v5", 40), td3, cfg, jobs, torch.device(device))
 
 
 def assert_same_results(a, b) -> None:
@@ -558,10 +566,15 @@ def count_steps(monkeypatch, die_at: int | None = None, objective: int = 0) -> S
     return counter
 
 
-def run_stage(cli, d: Path, write_params, train_specialist=None):
-    """The stage in-process on the RESUME preset, its train_specialist section updated."""
+def run_stage(cli, d: Path, write_params, train_specialist=None, td3=None):
+    """The stage in-process on the RESUME preset, its train_specialist and td3 sections updated."""
     params = write_params(
-        d, {"env": RESUME["env"], "train_specialist": {**RESUME["train_specialist"], **(train_specialist or {})}}
+        d,
+        {
+            "env": RESUME["env"],
+            "td3": {**RESUME["td3"], **(td3 or {})},
+            "train_specialist": {**RESUME["train_specialist"], **(train_specialist or {})},
+        },
     )
     return cli("train-specialist", "--seed", 0, "--out", d / "out", "--params", params)
 
@@ -629,8 +642,9 @@ def test_sigkilled_stage_resumes_from_shared_storage(device, graphs, tmp_path, w
     working directory as a retry on another node, resumes and ends with the bytes of a run
     never stopped (on CUDA: within the tolerance of assert_close_results)."""
     root = Path(__file__).resolve().parents[1]
-    ts = {**RESUME["train_specialist"], "total_steps": 1000, "device": device, "cuda_graphs": graphs}
-    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    ts = {**RESUME["train_specialist"], "total_steps": 1000, "device": device}
+    td3 = {**RESUME["td3"], "cuda_graphs": graphs}
+    params = write_params(tmp_path, {"env": RESUME["env"], "td3": td3, "train_specialist": ts})
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
     shared = {**env, "MAPEX_RESUME_ROOT": str(tmp_path / "shared")}
 
@@ -720,7 +734,7 @@ def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_para
     the bytes of a run never stopped."""
     root = Path(__file__).resolve().parents[1]
     ts = {**RESUME["train_specialist"], "total_steps": 2000, "checkpoint_every": 400, "processes": 2}
-    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    params = write_params(tmp_path, {"env": RESUME["env"], "td3": RESUME["td3"], "train_specialist": ts})
     env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
 
     def command(out: Path) -> list[str]:
@@ -798,7 +812,7 @@ def test_sigterm_checkpoints_at_once_and_the_rerun_resumes(tmp_path, write_param
     says where in one line and exits with 143; the rerun resumes from that step and ends with
     the bytes of a run never stopped."""
     ts = {**RESUME["train_specialist"], "total_steps": 600}
-    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    params = write_params(tmp_path, {"env": RESUME["env"], "td3": RESUME["td3"], "train_specialist": ts})
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
     ref = subprocess.run(
         stage_command(tmp_path / "ref", params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
@@ -833,7 +847,7 @@ def test_sigterm_is_passed_on_to_the_workers_and_each_checkpoints(tmp_path, writ
     it passes it on, each worker checkpoints after its current step and says so, the stage
     exits with 143 once both have, and the rerun resumes both to the bytes of a run never stopped."""
     ts = {**RESUME["train_specialist"], "total_steps": 700, "checkpoint_every": 150, "processes": 2}
-    params = write_params(tmp_path, {"env": RESUME["env"], "train_specialist": ts})
+    params = write_params(tmp_path, {"env": RESUME["env"], "td3": RESUME["td3"], "train_specialist": ts})
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
     ref = subprocess.run(
         stage_command(tmp_path / "ref", params), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
@@ -939,7 +953,7 @@ def test_changed_params_start_over_instead_of_resuming(tmp_path, write_params, c
     saves: list[int] = []
     monkeypatch.setattr(stage.Checkpoint, "save", lambda self, state: saves.append(state))
     counter.clear()
-    changed = run_stage(cli, tmp_path, write_params, {"tau": 0.01, "checkpoint_every": 0})
+    changed = run_stage(cli, tmp_path, write_params, {"checkpoint_every": 0}, td3={"tau": 0.01})
     assert changed.exit_code == 0, changed.stderr
     assert "changed since it was written; starting over" in changed.stderr
     assert "resuming" not in changed.stderr

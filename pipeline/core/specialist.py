@@ -160,7 +160,7 @@ def check_critics(crit_path: Path, cmeta: dict, buf_path: Path, attrs: dict, mod
     if cmeta["objectives"] != list(range(n_objectives)):
         raise ArtifactError(
             f"{crit_path}: critics covering objectives {cmeta['objectives']}; expected all of {list(range(n_objectives))} "
-            f"for {buf_path} (train with train_specialist.secondary_critics: true, or use --variant mapex_posthoc)"
+            f"for {buf_path} (train with td3.secondary_critics: true, or use --variant mapex_posthoc)"
         )
     if mode == "posthoc":
         check_posthoc_buffer(crit_path, cmeta, buf_path, attrs)

@@ -12,7 +12,7 @@ progress); the run prints nothing.
 Devices: on a CPU the buffers are CPU tensors and minibatch rows are drawn with each
 specialist's numpy generator (the same stream as its exploration noise). On CUDA the buffers
 live on the GPU, rows are drawn on the GPU from a per-specialist torch generator, and the
-update runs as captured CUDA graphs (`train_specialist.cuda_graphs`); the only per-step host
+update runs as captured CUDA graphs (`td3.cuda_graphs`); the only per-step host
 sync is reading the actions to step the envs (and, every CHECK_EVERY updates, the check that
 the losses and weights are finite: pipeline.core.finite). The two devices therefore draw
 different (each reproducible) minibatches.

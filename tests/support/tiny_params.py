@@ -19,6 +19,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 from pipeline.params.methods import derived_lists
 
 # HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
@@ -28,15 +29,14 @@ TINY: dict[str, Any] = {
     "env": {"id": "mo-halfcheetah-v5", "max_episode_steps": 100},
     "seeds": [0],
     "objectives": [0, 1],
-    "train_specialist": {
-        "total_steps": 350,
+    "td3": {
         "learning_starts": 260,
         "buffer_size": 1000,
         "batch_size": 64,
         "hidden_sizes": [32, 32],
         "secondary_critics": True,
-        "device": "cpu",
     },
+    "train_specialist": {"total_steps": 350, "device": "cpu"},
 }
 
 DELETE = object()  # an override value that removes the key from the preset
@@ -56,10 +56,16 @@ def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, A
 
 
 def with_lists(params: dict) -> dict:
-    """`params` with the run lists derived from its methods, seeds, imports and export methods."""
+    """`params` with the run lists derived from its methods, seeds, imports and export methods,
+    and the extract keys stage warmup_only tracks at their defaults where missing (as
+    `mapex sync-params` writes them: DVC refuses a listed param that is not in the file)."""
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
-    return {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+    out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+    if out["warmup_from"]:
+        fields = ExtractParams.model_fields
+        out["extract"] = {k: fields[k].default for k in WARMUP_ONLY_KEYS} | (params.get("extract") or {})
+    return out
 
 
 # A chain runs every stage on two specialists, so its episodes and networks are smaller still.
@@ -74,15 +80,14 @@ TINY_CHAIN = merge(
             "objective_names": None,
         },
         "methods": ["mapex_td3", "warmup_only_td3"],
-        "train_specialist": {
-            "total_steps": 300,
+        "td3": {
             "learning_starts": 200,
             "buffer_size": DELETE,
             "batch_size": 32,
             "hidden_sizes": [16, 16],
             "secondary_critics": DELETE,
-            "device": DELETE,
         },
+        "train_specialist": {"total_steps": 300, "device": DELETE},
         "fit_critics": {"steps": 20, "batch_size": 32, "hidden_sizes": [16, 16]},
         "critic_fidelity": {"episodes": 2},
         "extract": {
@@ -155,7 +160,7 @@ TINY_ALL = {
         "mopderl",
         "morld",
     ],
-    "train_specialist": {**TINY_CHAIN["train_specialist"], "buffer_size": 2000},
+    "td3": {**TINY_CHAIN["td3"], "buffer_size": 2000},
     "train_pderl": PDERL_TINY,
     "mopderl": MOPDERL_TINY,
     "morld": MORLD_TINY,
