@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-import pipeline.specialists.td3_training as td3_training
+import pipeline.specialists.keep_best as keep_best
 from pipeline.core.artifacts import torch_load_checked
 from pipeline.core.buffer import FIELDS
 from pipeline.core.checkpoint import POLICY_FORMAT
@@ -27,7 +27,13 @@ from pipeline.core.envs import env_spec, make_env
 from pipeline.params import ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
-from pipeline.specialists.keep_best import keep_best_due, keep_best_score, keep_best_seeds, keep_best_steps
+from pipeline.specialists.keep_best import (
+    keep_best_due,
+    keep_best_hook,
+    keep_best_score,
+    keep_best_seeds,
+    keep_best_steps,
+)
 from pipeline.specialists.td3_training import SpecialistsRun
 
 ENV, CAP = "mo-hopper-2obj-v5", 40
@@ -61,7 +67,9 @@ def make_run(cfg: TrainSpecialistParams = CFG, jobs=JOBS) -> SpecialistsRun:
 def to_the_end(run: SpecialistsRun, on_checkpoint=None, fresh: bool = True):
     """Step `run` to its end (pipeline.core.drive.run_to_end), `on_checkpoint(run)` where a
     checkpoint is due; its results."""
-    hooks = [] if on_checkpoint is None else [lambda run: on_checkpoint(run) if run.checkpoint_due() else None]
+    hooks = [keep_best_hook]
+    if on_checkpoint is not None:
+        hooks.append(lambda run: on_checkpoint(run) if run.checkpoint_due() else None)
     return run_to_end(run, hooks, fresh).results()
 
 
@@ -345,3 +353,13 @@ def test_stage_records_the_kept_step_score_and_every_check(tmp_path, write_param
         assert [int(r["kept"]) for r in rows] == [int(t == kb["step"]) for t in CHECK_STEPS]
         np.testing.assert_allclose([float(r["score"]) for r in rows], [x for _, x in kb["checks"]], rtol=1e-5)
         assert f"obj {k} (" in result.stderr and f"keep-best kept the actor of step {kb['step']}" in result.stderr
+
+
+def test_a_loop_without_the_keep_best_hook_is_refused():
+    """Keep-best is a hook on the loop: a run stepped without it, with keep-best on, hands on no
+    actors (its results name the missing check) rather than the final ones unannounced."""
+    run = make_run()
+    run_to_end(run)
+    with pytest.raises(RuntimeError, match="keep_best_hook"):
+        run.results()
+    run.close()

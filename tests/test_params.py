@@ -10,6 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline.params import MOVED_KEYS, EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 from pipeline.params.methods import derived_lists
 from pipeline.params.sync import synced_text
 from pipeline.params.td3 import TD3Params
@@ -261,6 +262,7 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "mopderl_seeds": [],
         "morld_seeds": [],
         "export_methods": [],
+        "warmup_from": [],
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(
@@ -290,12 +292,17 @@ def test_sync_params_writes_the_derived_block_and_keeps_the_rest():
     synced = synced_text(text)
     raw = yaml.safe_load(synced)
     assert section(raw, "", RunParams).mopderl_seeds == [0, 1]
-    assert raw["extract_from"] == ["pderl"] and raw["pderl_seeds"] == [0, 1] and raw["extract"] == {"beta": 0.5}
+    assert raw["extract_from"] == ["pderl"] and raw["pderl_seeds"] == [0, 1] and raw["warmup_from"] == ["pderl"]
+    # the extract keys stage warmup_only tracks are filled in at their defaults; beta stays
+    assert raw["extract"] == {"beta": 0.5} | {k: ExtractParams.model_fields[k].default for k in WARMUP_ONLY_KEYS}
     assert synced.startswith("# my comment\nseeds: [0, 1]   # two seeds\nmethods:") and "stale" not in synced
     assert synced_text(synced) == synced  # syncing twice changes nothing
     # a changed method list rewrites the block in place
     again = yaml.safe_load(synced_text(synced.replace("warmup_only_pderl, mopderl", "warmup_only_pderl")))
-    assert again["mopderl_seeds"] == [] and again["extract"] == {"beta": 0.5}
+    assert again["mopderl_seeds"] == [] and again["extract"] == raw["extract"]
+    # without a warm-up-only method nothing is filled in
+    plain = yaml.safe_load(synced_text("seeds: [0]\nmethods: [mapex_td3]\nextract:\n  beta: 0.5\n"))
+    assert plain["extract"] == {"beta": 0.5} and plain["warmup_from"] == [] and plain["extract_variants"] == ["mapex"]
     with pytest.raises(ValueError, match="f.yaml: unknown methods"):
         synced_text("methods: [nope]\n", "f.yaml")
 

@@ -72,8 +72,10 @@ class RunParams(Strict):
         ["mapex"],
         description="derived: variants stage extract runs from each kind, with the joint critics",
     )
-    warmup_from: list[Literal["td3", "pderl"]] = Field(
-        ["td3"], description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from"
+    warmup_from: list[Literal["td3", "pderl"]] | None = Field(
+        None,
+        description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from; "
+        "dvc.yaml needs it written, validation accepts it left out",
     )
     posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
@@ -97,8 +99,8 @@ class RunParams(Strict):
 
     @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "methods")
     @classmethod
-    def _unique(cls, v: list[str]) -> list[str]:
-        if len(set(v)) != len(v):
+    def _unique(cls, v: list[str] | None) -> list[str] | None:
+        if v is not None and len(set(v)) != len(v):
             raise ValueError(f"entries must be unique, got {v}")
         return v
 
