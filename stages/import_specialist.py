@@ -14,14 +14,14 @@ from pipeline.core.buffer import load_buffer, save_buffer
 from pipeline.core.checkpoint import save_policy
 from pipeline.core.envs import EnvSpec, env_spec, make_env, spec_meta
 from pipeline.core.envstate import env_checkpoint_problem
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
 from pipeline.interop.collect import CollectionRun
 from pipeline.interop.readers import FORMATS, read_policy
 from pipeline.params import EnvParams, ParamsError
 from pipeline.params.import_specialists import ImportSpecialistsParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress, read_params, reports_errors
 
 CHECKPOINT_NAME = "collect.ckpt.pt"
 
@@ -139,6 +139,7 @@ def import_specialist(
     seed: int = typer.Option(0, help="run seed: it fixes the collection's noise and episode starts"),
     out: Path = typer.Option(..., help="the slot directory to write (policy.pt, buffer.zarr, collect.csv)"),
     params: Path = PARAMS_OPTION,
+    provenance: Path | None = PROVENANCE_OPTION,
 ) -> None:
     """Import a specialist trained elsewhere (Stable-Baselines3 TD3/DDPG/SAC, CleanRL
     TD3/DDPG/SAC, or a TorchScript actor) as slot obj{K} of kind `imported`.
@@ -153,6 +154,7 @@ def import_specialist(
     OUT/collect.csv (each collected episode's return vector). A long collection checkpoints
     every checkpoint_every rows and on SIGTERM; a rerun resumes it. Post-hoc critics for every
     objective come next (stage fit_critics), then MAPEX-PostHoc (docs/import_export.md).
+    With --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
     """
     _, env_p, cfg = read_params(params, "import_specialists", ImportSpecialistsParams)
     env = make_env(env_p.id, env_p.max_episode_steps)
@@ -180,11 +182,8 @@ def import_specialist(
         "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
         "source": source | origin,
         "collection_frames": collected,
-        "provenance": provenance("cpu"),
     }
-    buf_attrs = {
-        k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
-    }
+    buf_attrs = {k: meta[k] for k in ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed")}
     save_buffer(
         out / "buffer.zarr",
         data,
@@ -202,3 +201,4 @@ def import_specialist(
         )
     else:
         write_text_atomic(out / "collect.csv", episodes_csv([], spec.n_objectives))
+    write_provenance(provenance, "import_specialist", "cpu")

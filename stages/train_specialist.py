@@ -14,6 +14,7 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.finite import TrainingDiverged
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, resume, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
@@ -22,7 +23,7 @@ from pipeline.core.workers import split_evenly
 from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.td3_training import KeepBest, SpecialistResult, SpecialistsRun, continue_training
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 PROGRESS_EVERY = 250  # env steps (of all specialists of a group) between progress messages
@@ -36,6 +37,7 @@ def train_specialist(
         None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
     ),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Train the TD3 specialists of one seed, one per objective of a multi-objective env.
 
@@ -55,7 +57,8 @@ def train_specialist(
     curve for `dvc plots`). With train_specialist.keep_best_every > 0 (off by default: the
     final actor, as in the paper), policy.pt holds instead the actor that scored best in the
     deterministic evaluations made every keep_best_every steps and at the end, and
-    keep_best.csv lists every evaluation (step, score, kept).
+    keep_best.csv lists every evaluation (step, score, kept). With --provenance, what produced
+    the run (pipeline.core.provenance) goes to that file, outside OUT.
 
     Every train_specialist.checkpoint_every env steps the specialists trained together save
     their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
@@ -94,6 +97,7 @@ def train_specialist(
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
     remove_stale_checkpoints(out, objectives)
+    write_provenance(provenance, "train_specialist", device)
 
 
 def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[list[int]]]:
@@ -125,7 +129,7 @@ def train_part(
             what = ", ".join(f"obj {k} ({names[k]})" for k in group)
             results = train_group(out, group, what, seed, spec, env_p, cfg, device, send)
             for result in results:
-                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg, device)
+                save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, cfg)
                 if result.keep_best is not None:
                     send(
                         "say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result)
@@ -218,10 +222,10 @@ def train_group(
         run.close()
 
 
-def save_td3_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams, device) -> None:
+def save_td3_specialist(out: Path, result: SpecialistResult, spec, env_p, cfg: TrainSpecialistParams) -> None:
     """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
     keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check)."""
-    meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()}, device)
+    meta = specialist_meta(spec, env_p, cfg.hidden_sizes, result.seed, {"train_specialist": cfg.model_dump()})
     kb = result.keep_best
     policy_meta = None
     if kb is not None:

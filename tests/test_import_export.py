@@ -396,7 +396,7 @@ def fake_evaluation(tmp_path: Path, population: Path) -> Path:
     out.mkdir()
     (out / "evaluated.csv").write_text(evaluated_csv(members, results))
     record = {"env_id": ENV, "method": meta["method"], "seed": 0, "episodes": 1, "population": len(members)}
-    record |= {"env_samples_evaluation": 0, "provenance": None, "max_episode_steps": STEPS}
+    record |= {"env_samples_evaluation": 0, "max_episode_steps": STEPS}
     (out / "evaluation.json").write_text(json.dumps(record))
     return out
 
