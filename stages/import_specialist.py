@@ -179,7 +179,12 @@ def import_specialist(
         "architecture": imported.architecture,
         "seed": seed,
         "objective": objective,
-        "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
+        # what the collection reads (dvc.yaml's params of this stage); not the scoring reference
+        # point, the objectives' labels or when to checkpoint, which change no number
+        "params": {
+            "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+            "import_specialists": cfg.model_dump(exclude={"policies", "checkpoint_every"}),
+        },
         "source": source | origin,
         "collection_frames": collected,
     }

@@ -170,6 +170,9 @@ def test_policy_loads_and_acts_in_bounds(cheetah):
     assert (meta["obs_dim"], meta["act_dim"], meta["n_objectives"]) == (17, 6, 2)
     assert meta["hidden_sizes"] == [32, 32]
     assert TrainSpecialistParams(**meta["params"]["train_specialist"]).total_steps == TOTAL
+    # only what inputs and params fix: no provenance, no scoring or labelling env key (a change
+    # to those must not change the bytes that extraction and the rest hash)
+    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps"}
     data, _ = load_buffer(cheetah.out / "buffer.zarr")
     with torch.no_grad():
         a = actor(torch.from_numpy(data["obs"][:50]))

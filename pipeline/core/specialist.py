@@ -43,7 +43,9 @@ def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict) -> dict:
         "action_high": list(spec.action_high),
         "hidden_sizes": list(hidden_sizes),
         "seed": seed,
-        "params": {"env": env_p.model_dump(), **params},
+        # the env keys training reads (dvc.yaml's env.id, env.max_episode_steps), not the scoring
+        # reference point or the objectives' labels: changing those must leave these bytes alone
+        "params": {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), **params},
     }
 
 
