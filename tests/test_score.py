@@ -259,6 +259,21 @@ def test_provenance_record_is_written_beside_the_outputs(run):
     assert sorted(p.name for p in (run / "out").iterdir()) == ["front.csv", "hypervolume.csv", "metrics.json"]
 
 
+def test_outputs_do_not_depend_on_what_ran_them(run, monkeypatch):
+    """Another commit (or a dirty checkout) changes the record only: OUT's bytes stay, so DVC
+    reruns nothing after a rerun of this stage that changes no number."""
+    import pipeline.core.provenance as prov
+
+    outputs = []
+    for i, commit in enumerate(["a" * 40, "b" * 40]):
+        monkeypatch.setattr(prov, "_git", lambda commit=commit: {"git_commit": commit, "git_dirty": True})
+        code, out = score_run(run, None, "--provenance", run / "records" / f"{i}.json")
+        assert code == 0, out
+        outputs.append({p.name: p.read_bytes() for p in (run / "out").iterdir()})
+        assert json.loads((run / "records" / f"{i}.json").read_text())["git_commit"] == commit
+    assert outputs[0] == outputs[1]
+
+
 def test_without_provenance_option_no_record_is_written(run):
     code, out = score_run(run)
     assert code == 0, out
