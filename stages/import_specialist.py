@@ -179,11 +179,13 @@ def import_specialist(
         "architecture": imported.architecture,
         "seed": seed,
         "objective": objective,
-        # what the collection reads (dvc.yaml's params of this stage); not the scoring reference
-        # point, the objectives' labels or when to checkpoint, which change no number
+        # what the import reads (dvc.yaml's params of this stage): not the scoring reference point,
+        # the objectives' labels or when to checkpoint, nor, for a buffer handed in, the collection's
         "params": {
             "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
-            "import_specialists": cfg.model_dump(exclude={"policies", "checkpoint_every"}),
+            "import_specialists": cfg.model_dump(include={"collect_rows", "exploration_noise"})
+            if buffer is None
+            else {},
         },
         "source": source | origin,
         "collection_frames": collected,
