@@ -6,12 +6,15 @@ formatting pass) leaves every artifact the same: run the same tiny preset before
 
 What is hashed:
 - torch files (.pt): every tensor's dtype, shape and bytes, and every other value, walked in
-  key order; metadata keys named `provenance` (git commit, library versions, device) are
-  left out, since they differ between two checkouts of the same code by definition;
-- Zarr stores (.zarr): every array's dtype, shape and bytes and the attributes (less
-  `provenance`);
-- JSON files: the parsed document less `provenance` keys, canonically dumped;
+  key order;
+- Zarr stores (.zarr): every array's dtype, shape and bytes and the attributes;
+- JSON files: the parsed document, canonically dumped;
 - everything else (CSV, Markdown, PNG): the raw bytes.
+What only records provenance (git commit, library versions, device), which differs between two
+checkouts of the same code by definition, is left out: the records under DATA_DIR/provenance/
+(pipeline.core.provenance), and, in data written before provenance moved there, metadata keys
+named `provenance` and the score stage's provenance.json files. The report's Markdown shows
+the records, so report.md differs between commits too.
 
 Usage: python benchmarks/artifact_digest.py DATA_DIR [--alias OLD=NEW ...] [--skip KEY ...] > digests.txt
 
@@ -32,6 +35,7 @@ import torch
 import zarr
 
 SKIP_KEYS = {"provenance"}
+SKIP_FILES = {"provenance.json"}  # the score stage's chain of records, before data/provenance/
 ALIASES: dict[str, str] = {}
 
 
@@ -87,6 +91,8 @@ def digests(root: Path) -> dict[str, str]:
     out: dict[str, str] = {}
     for path in sorted(root.rglob("*")):
         rel = str(path.relative_to(root))
+        if path.relative_to(root).parts[0] == "provenance" or path.name in SKIP_FILES:
+            continue  # provenance records
         if any(part.endswith(".zarr") for part in path.relative_to(root).parts[:-1]):
             continue  # inside a Zarr store: hashed as a whole
         if path.is_dir() and path.suffix == ".zarr":

@@ -18,10 +18,17 @@ for form in paper gentle; do
       src=$form; [ "$method" = warmup_only_td3 ] && src=paper
       pop="$W/fronts/$src/$method/seed$s/population.pt"
       ev="$W/evaluate/$form/$method/seed$s"; sc="$W/score/$form/$method/seed$s"
-      [ -e "$ev/evaluated.csv" ] || $MAPEX evaluate --population "$pop" --seed "$s" --out "$ev" --params "$W/$form.yaml"
-      [ -e "$sc/metrics.json" ] || $MAPEX score --population "$pop" --evaluated "$ev" --out "$sc" --params "$W/$form.yaml"
+      prov="$W/provenance/$form"  # the records the report's provenance table shows
+      [ -e "$ev/evaluated.csv" ] || $MAPEX evaluate --population "$pop" --seed "$s" --out "$ev" --params "$W/$form.yaml" \
+        --provenance "$prov/evaluate/$method/seed$s.json"
+      [ -e "$sc/metrics.json" ] || $MAPEX score --population "$pop" --evaluated "$ev" --out "$sc" --params "$W/$form.yaml" \
+        --provenance "$prov/score/$method/seed$s.json"
+      # the gentle form's warm-up only runs are the paper form's: so is their extraction record
+      rec="$prov/fronts/$method/seed$s.json" src_rec="$W/provenance/$src/fronts/$method/seed$s.json"
+      if [ ! -e "$rec" ] && [ -e "$src_rec" ]; then mkdir -p "$(dirname "$rec")" && cp "$src_rec" "$rec"; fi
     done
   done
-  $MAPEX report --evaluated "$W/evaluate/$form" --scored "$W/score/$form" --out "$W/report/$form" --params "$W/$form.yaml"
+  $MAPEX report --evaluated "$W/evaluate/$form" --scored "$W/score/$form" --provenance "$W/provenance/$form" \
+    --out "$W/report/$form" --params "$W/$form.yaml"
   echo "$form: $W/report/$form/report.md"
 done

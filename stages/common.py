@@ -28,6 +28,14 @@ M = TypeVar("M", bound=BaseModel)
 PARAMS_OPTION = typer.Option(
     Path("params.yaml"), "--params", help="params file (validated before anything is read or written)"
 )
+# Where a stage writes what produced its run (pipeline.core.provenance), outside its outputs:
+# dvc.yaml passes data/provenance/<the out's path under data/>.json, an out of its own.
+PROVENANCE_OPTION = typer.Option(
+    None,
+    "--provenance",
+    help="JSON file to write what produced this run to (git commit, library versions, device, threads), "
+    "kept out of the outputs so that they depend on inputs and params alone (default: none written)",
+)
 
 
 # The pipeline's input errors: one readable line and exit code 2, in a stage or in its workers.

@@ -11,7 +11,8 @@ Outputs (in OUT):
                    (re-evaluated mean and std over `evaluate.episodes` episodes). Columns are named
                    obj0, obj1, ... rather than after the objectives so dvc.yaml's plot axes fit every env.
   evaluation.json  what was run: env_id, method, seed, episodes, seed_stream, max_episode_steps,
-                   population, env_samples_evaluation, and `provenance` (pipeline.core.provenance).
+                   population, env_samples_evaluation.
+What produced the run (pipeline.core.provenance) goes to the --provenance file, outside OUT.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import csv
 import io
 import json
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -27,12 +29,12 @@ import typer
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.population import Member, load_population, member_actor
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.seeding import select_device
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
 from pipeline.params import ParamsError
 from pipeline.params.evaluate import EvaluateParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress, read_params, reports_errors
 
 META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "method")
 
@@ -43,6 +45,7 @@ def evaluate(
     out: Path = typer.Option(..., help="output directory (evaluated.csv, evaluation.json)"),
     seed: int = typer.Option(0, help="run seed of the population (must match its metadata)"),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Re-evaluate every member of an extracted population on fresh episode seeds.
 
@@ -52,7 +55,8 @@ def evaluate(
     (`evaluate.seed_stream`). Nothing is scored here: run `mapex score` on the outputs.
 
     Writes to OUT: evaluated.csv (one row per member: extraction-time and re-evaluated returns;
-    a `dvc plots` scatter of obj0 vs obj1) and evaluation.json (what was run, and provenance).
+    a `dvc plots` scatter of obj0 vs obj1) and evaluation.json (what was run); with --provenance,
+    what produced the run (pipeline.core.provenance) to that file, outside OUT.
     """
     _, env_p, cfg = read_params(params, "evaluate", EvaluateParams)
     members, meta = load_population(population, META_KEYS)
@@ -91,11 +95,11 @@ def evaluate(
         "max_episode_steps": env_p.max_episode_steps,
         "population": len(members),
         "env_samples_evaluation": sum(r.env_samples for r in results),
-        "provenance": provenance(device),
     }
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "evaluated.csv", evaluated_csv(members, results))
     write_text_atomic(out / "evaluation.json", json.dumps(record, indent=2) + "\n")
+    write_provenance(provenance, "evaluate", device)
 
 
 def _check_population(path: Path, members: list[Member], meta: dict, env_id: str, seed: int) -> None:

@@ -6,6 +6,7 @@ import csv
 import io
 import json
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -13,12 +14,12 @@ import typer
 from pipeline.core.artifacts import ArtifactError, atomic_path, read_json
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population, member_actor
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.evaluated import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated, read_std
 from pipeline.interop.export import check_export, onnx_available, onnx_bytes, torchscript_bytes
 from pipeline.params import ParamsError
 from pipeline.params.export import ExportParams
-from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
 
 FRONT_FORMAT = "mapex.front"
 FRONT_VERSION = 1
@@ -73,6 +74,7 @@ def export(
     ),
     onnx: str = typer.Option(None, help="auto | yes | no (default: params export.onnx)"),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Export the non-dominated policies of one run as self-contained files.
 
@@ -86,8 +88,9 @@ def export(
     OUT/front.csv and OUT/front.json list, per policy: its file, its re-evaluated returns and
     their spread (std over the evaluation episodes), its extraction-time returns, its origin
     (a specialist's starting policy, or a child with its parents, target weight and iteration);
-    front.json adds the env (id, dims, bounds, episode cap) and the provenance of extraction,
-    evaluation and export. OUT is replaced as a whole, never left half-written.
+    front.json adds the env (id, dims, bounds, episode cap). OUT is replaced as a whole, never
+    left half-written. With --provenance, what produced the run (pipeline.core.provenance) goes
+    to that file, outside OUT.
     """
     _, _, cfg = read_params(params, "export", ExportParams)  # export.methods must be in methods (RunParams)
     want_onnx = onnx or cfg.onnx
@@ -152,12 +155,8 @@ def export(
             "seed": meta["seed"],
             "evaluation": {"episodes": record["episodes"]},
             "policies": records,
-            "provenance": {
-                "extract": meta.get("provenance"),
-                "evaluate": record["provenance"],
-                "export": provenance("cpu"),
-            },
         }
         (tmp / "front.csv").write_text(front_csv(records, n_obj))
         (tmp / "front.json").write_text(json.dumps(doc, indent=2) + "\n")
+    write_provenance(provenance, "export", "cpu")
     typer.echo(f"export: {len(records)} front policies of {meta['method']} seed {meta['seed']} in {out}", err=True)

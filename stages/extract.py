@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -10,7 +11,7 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots
@@ -18,7 +19,14 @@ from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
-from stages.common import PARAMS_OPTION, progress_send, read_params, reports_errors, require_every_objective
+from stages.common import (
+    PARAMS_OPTION,
+    PROVENANCE_OPTION,
+    progress_send,
+    read_params,
+    reports_errors,
+    require_every_objective,
+)
 
 
 def variant_params(
@@ -65,6 +73,7 @@ def extract(
         "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume",
     ),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Extract a Pareto front from single-objective specialists (MAPEX, Algorithm 1).
 
@@ -83,7 +92,8 @@ def extract(
     starting policy, or a child's parents, target weight and iteration; its returns and
     cumulative env samples) and OUT/history.csv (population, front size and env samples per
     iteration). Hypervolumes are computed downstream from population.pt, so env.reference_point
-    is not an input here.
+    is not an input here. With --provenance, what produced the run (pipeline.core.provenance)
+    goes to that file, outside OUT.
 
     A child whose training diverges (a NaN or infinity in its warm-up or advantage-weighted
     loss or its weights, e.g. from a critic that holds one) stops the stage with one line
@@ -142,7 +152,6 @@ def extract(
                 "params": config,
                 # env frames spent collecting imported specialists' buffers (their sample cost; 0 otherwise)
                 "collection_frames": sum(int(s.buffer_attrs.get("collection_frames", 0)) for s in slots),
-                "provenance": provenance(device),
             },
         )
         write_text_atomic(out / "history.csv", history_csv(run.history))
@@ -158,3 +167,4 @@ def extract(
             save=save,
             send=send,
         )
+    write_provenance(provenance, "extract", device)

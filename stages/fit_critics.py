@@ -6,6 +6,7 @@ import copy
 import csv
 import io
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -13,14 +14,14 @@ import typer
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.checkpoint import save_critics
 from pipeline.core.finite import TrainingDiverged
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.seeding import derive_seeds, select_device, torch_generator
 from pipeline.core.specialist import load_slot
 from pipeline.critics.fidelity import mean_rel_error, score_critics
 from pipeline.critics.posthoc import fit_posthoc_critics
 from pipeline.params import ParamsError
 from pipeline.params.fit_critics import FitCriticsParams
-from stages.common import PARAMS_OPTION, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
 
 # Extra seed key so post-hoc fitting draws streams independent of the specialist's own,
 # which are derived from (seed, objective) alone.
@@ -43,6 +44,7 @@ def fit_critics(
     specialist: Path = typer.Option(..., help="specialist directory holding buffer.zarr and policy.pt"),
     out: Path = typer.Option(..., help="output directory (critics.pt, fit.csv)"),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Fit post-hoc critics Q^(k)_m for every objective m offline on specialist k's buffer.
 
@@ -56,7 +58,8 @@ def fit_critics(
 
     Writes to OUT: critics.pt (same format as the jointly trained critics, source "posthoc",
     with the checksums of the buffer they were fitted on) and fit.csv (every fidelity check:
-    step, loss, mean normalised error). Their fidelity report is stage critic_fidelity's.
+    step, loss, mean normalised error). Their fidelity report is stage critic_fidelity's. With
+    --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
 
     A fit that diverges (a NaN or infinity in the loss or a critic weight, checked every 100
     steps and at the end) stops with one line naming the seed, objective and step, and exit
@@ -130,7 +133,7 @@ def fit_critics(
             "best_step": fitted.best_step,
             "best_error": min((c.error for c in fitted.checks), default=None),
         },
-        "provenance": provenance(device),
     }
     save_critics(out / "critics.pt", online, fitted.target.cpu(), meta)
     write_text_atomic(out / "fit.csv", fit_csv(fitted.checks))
+    write_provenance(provenance, "fit_critics", device)

@@ -1,7 +1,8 @@
 """`mapex grid-report`: one report across the cells of a sweep (docs/sweeps.md).
 
 Not a DVC stage: it reads the workspaces `mapex sweep` leaves behind (one per grid cell, each
-with its params.yaml and its restored data/score and data/evaluate) and writes one folder.
+with its params.yaml and its restored data/score, data/evaluate and data/provenance) and writes
+one folder.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ def load_cell(ws: Path) -> Cell:
     report_p = section(raw, "report", ReportParams, ws / "params.yaml")
     runs = [
         r
-        for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate")
+        for r in load_runs(ws / "data" / "score", ws / "data" / "evaluate", ws / "data" / "provenance")
         if r.seed in run_p.seeds and r.method in run_p.methods
     ]
     if not runs:

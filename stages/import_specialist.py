@@ -16,13 +16,13 @@ from pipeline.core.checkpoint import save_policy
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, spec_meta
 from pipeline.core.envstate import env_checkpoint_problem
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.interop.collect import CollectionRun
 from pipeline.interop.readers import FORMATS, read_policy
 from pipeline.params import EnvParams, ParamsError
 from pipeline.params.import_specialists import ImportSpecialistsParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress_send, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress_send, read_params, reports_errors
 
 CHECKPOINT_NAME = "collect.ckpt.pt"
 
@@ -130,6 +130,7 @@ def import_specialist(
     seed: int = typer.Option(0, help="run seed: it fixes the collection's noise and episode starts"),
     out: Path = typer.Option(..., help="the slot directory to write (policy.pt, buffer.zarr, collect.csv)"),
     params: Path = PARAMS_OPTION,
+    provenance: Path | None = PROVENANCE_OPTION,
 ) -> None:
     """Import a specialist trained elsewhere (Stable-Baselines3 TD3/DDPG/SAC, CleanRL
     TD3/DDPG/SAC, or a TorchScript actor) as slot obj{K} of kind `imported`.
@@ -144,6 +145,7 @@ def import_specialist(
     OUT/collect.csv (each collected episode's return vector). A long collection checkpoints
     every checkpoint_every rows and on SIGTERM; a rerun resumes it. Post-hoc critics for every
     objective come next (stage fit_critics), then MAPEX-PostHoc (docs/import_export.md).
+    With --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
     """
     _, env_p, cfg = read_params(params, "import_specialists", ImportSpecialistsParams)
     env = make_env(env_p.id, env_p.max_episode_steps)
@@ -161,12 +163,18 @@ def import_specialist(
             "architecture": imported.architecture,
             "seed": seed,
             "objective": objective,
-            "params": {"env": env_p.model_dump(), "import_specialists": cfg.model_dump(exclude={"policies"})},
+            # what the import reads (dvc.yaml's params of this stage): not the scoring reference point,
+            # the objectives' labels or when to checkpoint, nor, for a buffer handed in, the collection's
+            "params": {
+                "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+                "import_specialists": cfg.model_dump(include={"collect_rows", "exploration_noise"})
+                if buffer is None
+                else {},
+            },
             "source": imported.source | origin,
             "collection_frames": collected,
-            "provenance": provenance("cpu"),
         }
-        keys = ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
+        keys = ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed")
         buf_attrs = {k: meta[k] for k in keys}
         save_buffer(
             out / "buffer.zarr",
@@ -190,3 +198,4 @@ def import_specialist(
     else:
         save = lambda run: write(run.data(), {"buffer": "collected"}, run.t, run.returns)  # noqa: E731
         collect(out, imported.actor, spec, env_p, cfg, seed, objective, file, save)
+    write_provenance(provenance, "import_specialist", "cpu")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -13,14 +14,21 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots
 from pipeline.params import RunParams, section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.td3 import TD3Params
-from stages.common import PARAMS_OPTION, progress_send, read_params, reports_errors, require_every_objective
+from stages.common import (
+    PARAMS_OPTION,
+    PROVENANCE_OPTION,
+    progress_send,
+    read_params,
+    reports_errors,
+    require_every_objective,
+)
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
 
@@ -59,6 +67,7 @@ def mopderl(
         "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume",
     ),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """MOPDERL phase 2 (the baseline): evolve the merged PDERL populations towards a Pareto front.
 
@@ -90,7 +99,8 @@ def mopderl(
     OUT/history.csv, one row per generation (0 = the starting actors): env_frames,
     new_individuals, archive_size, front_size (rank-0 individuals of the population) and
     archive_hv_norm: the hypervolume of the archive's training-time fitness, scaled to [0, 1]
-    by the archive's own range (reference 0), as extract's progress line shows.
+    by the archive's own range (reference 0), as extract's progress line shows. With
+    --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
 
     Training that diverges (a NaN or infinity in an RL agent's losses, networks or buffer,
     checked every 100 updates and after every generation, or in a new individual's weights)
@@ -127,7 +137,7 @@ def mopderl(
         )
 
         def save(run: MopderlRun) -> None:
-            run_meta = meta | {"seed": seed, "method": "mopderl", "params": config, "provenance": provenance(device)}
+            run_meta = meta | {"seed": seed, "method": "mopderl", "params": config}
             save_population(out / "population.pt", run.members, run_meta)
             write_text_atomic(out / "history.csv", history_csv(run.history))
 
@@ -145,3 +155,4 @@ def mopderl(
             )
     finally:
         env.close()
+    write_provenance(provenance, "mopderl", device)

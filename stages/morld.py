@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -20,12 +21,12 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.params import ParamsError
 from pipeline.params.morld import MorldParams
-from stages.common import PARAMS_OPTION, fmt_vec, progress_send, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress_send, read_params, reports_errors
 
 CHECKPOINT = "morld_state.pt"
 HISTORY_COLUMNS = ("exchange", "frames", "front_eval_frames", "trained_policy", "archive_size")
@@ -36,6 +37,7 @@ def morld(
     seed: int = typer.Option(0, help="run seed; with the params it fixes every random draw"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Run the MORL/D baseline of one seed and export its policies as a population.
 
@@ -60,7 +62,8 @@ def morld(
     included) every morld.checkpoint_every exchanges; a rerun with the same params, code,
     device and thread count resumes from it and ends with the same artifacts. It is deleted
     once the artifacts are written. On SIGTERM the stage stops after the current exchange, its
-    checkpoint written, with exit code 143.
+    checkpoint written, with exit code 143. With --provenance, what produced the run
+    (pipeline.core.provenance) goes to that file, outside OUT.
 
     Training that diverges (a NaN or infinity in an agent's networks, entropy temperature or
     replay buffer, checked after every exchange; MOSAC's losses are not exposed) stops the
@@ -110,7 +113,7 @@ def morld(
             err=True,
         )
         members, extra = export_members(run, cfg.eval_episodes)
-        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config, "provenance": provenance(device)}
+        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config}
         save_population(out / "population.pt", members, meta | extra)
         write_text_atomic(out / "history.csv", history_csv(run.history))
         best = max(members, key=lambda m: m.returns[0])
@@ -131,6 +134,7 @@ def morld(
             save=save,
             send=send,
         )
+    write_provenance(provenance, "morld", device)
 
 
 def _library_version() -> str | None:

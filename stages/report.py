@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Optional
 
 import typer
 
@@ -21,15 +22,21 @@ from stages.common import PARAMS_OPTION, check_min_return, read_params, reports_
 def report(
     evaluated: Path = typer.Option(..., help="root of the evaluate outputs, holding METHOD/seedS/evaluated.csv"),
     scored: Path = typer.Option(..., help="root of the score outputs, scanned for METHOD/seedS/metrics.json"),
+    provenance: Optional[Path] = typer.Option(
+        None,
+        help="root of the stages' provenance records, holding fronts|evaluate|score/METHOD/seedS.json "
+        "(default: none; the provenance table then says 'not recorded')",
+    ),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Write the experiment report: verdicts, metrics table, fronts, hypervolume curves, provenance.
 
     Params: sections `env` (id, objective names), `seeds`, `methods` and `report`. Reads every
-    SCORED/METHOD/seedS (metrics.json, front.csv, hypervolume.csv, provenance.json from
-    `score`) of the seeds and methods params.yaml lists, and EVALUATED/METHOD/seedS/evaluated.csv
-    (from `evaluate`). Writes OUT/report.md with a verdict for each pair of comparable methods
+    SCORED/METHOD/seedS (metrics.json, front.csv, hypervolume.csv from `score`) of the seeds and
+    methods params.yaml lists, EVALUATED/METHOD/seedS/evaluated.csv (from `evaluate`) and, under
+    PROVENANCE, the records fronts/, evaluate/ and score/METHOD/seedS.json the stages wrote
+    (each 'not recorded' in the table where absent). Writes OUT/report.md with a verdict for each pair of comparable methods
     that was run (MAPEX vs its warm-up only ablation, vs MAPEX-TD3, vs MOPDERL and MORL/D:
     beyond the seed noise or tied; report.noise_sems, report.min_difference), a
     warning for each specialist weak on its own objective (report.weak_specialist_fraction,
@@ -39,14 +46,14 @@ def report(
     to reach each other's hypervolume (when both ran), one front figure per seed
     (front_seedS.png: starting policies apart from the rest; with 3 or more objectives every
     pair of objectives and a 3-D view), the hypervolume history
-    (hypervolume.png) and each run's provenance. The folder is built beside OUT and renamed
+    (hypervolume.png) and what produced each run (its stages' provenance). The folder is built beside OUT and renamed
     into place when complete.
     """
     raw, env_p, cfg = read_params(params, "report", ReportParams)
     run_p = section(raw, "", RunParams, params)
     seeds, methods = run_p.seeds, run_p.methods
     # Only the seeds and methods params.yaml names: folders of ones dropped from the lists may linger.
-    runs = [r for r in load_runs(scored, evaluated) if r.seed in seeds and r.method in methods]
+    runs = [r for r in load_runs(scored, evaluated, provenance) if r.seed in seeds and r.method in methods]
     if not runs:
         raise ArtifactError(f"{scored}: no scored run for seeds {seeds} and methods {methods}")
     check_comparable(scored, runs, env_p.id)

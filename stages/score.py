@@ -11,9 +11,8 @@ Outputs (in OUT):
                    by iteration t: iteration, population, env_samples (cumulative, extraction),
                    hypervolume_extract (of the extraction-time returns, the paper's learning
                    curve) and hypervolume (of the same members' re-evaluated returns).
-  provenance.json  what produced this run's numbers: {"extract": population.pt's record (null if
-                   it has none), "evaluate": evaluation.json's, "score": this stage's}. Kept out of
-                   metrics.json so `dvc metrics show` stays a table of numbers.
+What produced the run (pipeline.core.provenance) goes to the --provenance file, outside OUT; the
+report reads it beside those of extract and evaluate.
 """
 
 from __future__ import annotations
@@ -23,6 +22,7 @@ import io
 import json
 import math
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
@@ -30,12 +30,12 @@ import typer
 from pipeline.core.artifacts import ArtifactError, read_json, write_text_atomic
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import Member, load_population
-from pipeline.core.provenance import provenance
+from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.evaluated import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated
 from pipeline.evaluation.metrics import hypervolume_history, population_summary
 from pipeline.params import ParamsError
 from pipeline.params.score import ScoreParams
-from stages.common import PARAMS_OPTION, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, read_params, reports_errors
 
 # read_evaluated, check_same_run, META_KEYS and EVALUATION_KEYS: pipeline.evaluation.evaluated (export reads them too)
 
@@ -44,8 +44,9 @@ from stages.common import PARAMS_OPTION, read_params, reports_errors
 def score(
     population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
-    out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv, provenance.json)"),
+    out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv)"),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Score the re-evaluated population of one run: its front, metrics and hypervolume history.
 
@@ -58,8 +59,8 @@ def score(
     are the specialists alone (every starting policy of their policy sets). The hypervolume
     history is computed for every iteration, on extraction-time and on re-evaluated returns.
 
-    Writes to OUT: front.csv, metrics.json (DVC metrics), hypervolume.csv (a `dvc plots`
-    curve) and provenance.json.
+    Writes to OUT: front.csv, metrics.json (DVC metrics) and hypervolume.csv (a `dvc plots`
+    curve); with --provenance, what produced the run (pipeline.core.provenance) to that file.
     """
     _, env_p, cfg = read_params(params, "score", ScoreParams)
     members, meta = load_population(population, META_KEYS)
@@ -101,12 +102,11 @@ def score(
         "distinct_tol": cfg.distinct_tol,
         "utility_weights": cfg.utility_weights,
     }
-    chain = {"extract": meta.get("provenance"), "evaluate": record["provenance"], "score": provenance("cpu")}
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "front.csv", front_csv(members, means))
     write_text_atomic(out / "metrics.json", json.dumps(finite(metrics), indent=2) + "\n")
     write_text_atomic(out / "hypervolume.csv", _csv(list(history), list(zip(*(c.tolist() for c in history.values())))))
-    write_text_atomic(out / "provenance.json", json.dumps(chain, indent=2) + "\n")
+    write_provenance(provenance, "score", "cpu")
 
 
 def reference_point(ref: list[float] | None, n_objectives: int, params: Path) -> np.ndarray:

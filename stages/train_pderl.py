@@ -14,6 +14,7 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.core.policyset import save_policy_set
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
@@ -23,7 +24,7 @@ from pipeline.params import EnvParams, ParamsError, RunParams, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.specialists.pderl import PderlResult, PderlRun
-from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
 
@@ -41,6 +42,7 @@ def train_pderl(
         None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
     ),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Train the PDERL specialists of one seed: one PDERL run per objective.
 
@@ -64,7 +66,8 @@ def train_pderl(
     thread count resumes from it and ends with the same artifacts. It is deleted once the
     artifacts are written; on SIGTERM it is written after the current generation and the
     stage exits with code 143. train_pderl.processes > 1 runs the objectives side by side in that
-    many worker processes (the same artifacts: each run is the same in any process).
+    many worker processes (the same artifacts: each run is the same in any process). With
+    --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
 
     Training that diverges (a NaN or infinity in the RL agent's losses, networks or buffer, or
     in a population actor after crossover or mutation; checked every 100 updates and after
@@ -105,6 +108,7 @@ def train_pderl(
             prefix="",
         )
         bar.total = bar.n  # the final evaluations overshoot the frame budget
+    write_provenance(provenance, "train_pderl", device)
 
 
 def train_part(
@@ -164,7 +168,7 @@ def train_one(
     def save(run: PderlRun) -> None:
         result = run.result()
         send("returns", f"{label} final: best {max(result.fitness):.1f} rl {result.rl_fitness:.1f}")
-        save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg, device)
+        save_pderl(out / f"obj{k}", result, spec, env_p, td3, cfg)
 
     drive(
         lambda: PderlRun(spec, td3, cfg, k, seed, device),  # on an env of its own
@@ -184,13 +188,12 @@ def save_pderl(
     env_p: EnvParams,
     td3: TD3Params,
     cfg: TrainPderlParams,
-    device,
 ) -> None:
     """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
     those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
     k = result.objective
     params = {"td3": td3.model_dump(), "train_pderl": cfg.model_dump()}
-    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
+    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params)
     meta |= {"trainer": "pderl", "env_frames": result.frames}
     save_specialist(out, meta, k, result)
     save_policy_set(

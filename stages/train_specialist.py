@@ -14,6 +14,7 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
+from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
@@ -24,7 +25,7 @@ from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 from pipeline.specialists.keep_best import KeepBest, keep_best_hook
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
-from stages.common import PARAMS_OPTION, progress, read_params, reports_errors, run_parts
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 PROGRESS_EVERY = 250  # env steps (of all specialists of a group) between progress messages
@@ -38,6 +39,7 @@ def train_specialist(
         None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
     ),
     params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Train the TD3 specialists of one seed, one per objective of a multi-objective env.
 
@@ -57,7 +59,8 @@ def train_specialist(
     curve for `dvc plots`). With train_specialist.keep_best_every > 0 (off by default: the
     final actor, as in the paper), policy.pt holds instead the actor that scored best in the
     deterministic evaluations made every keep_best_every steps and at the end, and
-    keep_best.csv lists every evaluation (step, score, kept).
+    keep_best.csv lists every evaluation (step, score, kept). With --provenance, what produced
+    the run (pipeline.core.provenance) goes to that file, outside OUT.
 
     Every train_specialist.checkpoint_every env steps the specialists trained together save
     their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
@@ -101,6 +104,7 @@ def train_specialist(
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
     remove_stale_checkpoints(out, objectives)
+    write_provenance(provenance, "train_specialist", device)
 
 
 def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[list[int]]]:
@@ -194,7 +198,7 @@ def train_group(
 
     def save(run: SpecialistsRun) -> None:
         for result in run.results():
-            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg, device)
+            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg)
             if result.keep_best is not None:
                 send("say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result))
 
@@ -216,12 +220,12 @@ def train_group(
 
 
 def save_td3_specialist(
-    out: Path, result: SpecialistResult, spec, env_p, td3: TD3Params, cfg: TrainSpecialistParams, device
+    out: Path, result: SpecialistResult, spec, env_p, td3: TD3Params, cfg: TrainSpecialistParams
 ) -> None:
     """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
     keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check)."""
     params = {"td3": td3.model_dump(), "train_specialist": cfg.model_dump()}
-    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params, device)
+    meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params)
     kb = result.keep_best
     policy_meta = None
     if kb is not None:

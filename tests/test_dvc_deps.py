@@ -10,6 +10,7 @@ change results without a rerun) or a stale dep (a rerun for nothing) fails here;
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -117,3 +118,62 @@ def test_an_edit_to_extraction_code_reruns_no_training_stage(name):
     tests/test_dvc_pipeline.py checks the same with `dvc status` after a real edit."""
     deps = sorted(d for d in code_deps(STAGES[name]) if d.startswith("pipeline/extraction/"))
     assert not deps, f"stage {name} depends on {deps}"
+
+
+# What produced a run (pipeline.core.provenance) is a file of its own: `--provenance RECORD`, an out
+# of the stage at data/provenance/<its --out below data/>.json, which no stage reads but the report.
+# The fidelity checks write metrics that nothing downstream reads, and record nothing.
+UNRECORDED = {"critic_fidelity", "critic_fidelity_posthoc"}
+
+
+def option(stage: dict, name: str) -> str | None:
+    found = re.findall(rf"--{name} (\S+)", stage["cmd"])
+    assert len(found) <= 1, f"{name} given twice in {stage['cmd']!r}"
+    return found[0] if found else None
+
+
+def inside(path: str, folder: str) -> bool:
+    return path == folder or path.startswith(folder.rstrip("/") + "/")
+
+
+def out_paths(stage: dict) -> list[str]:
+    return [o if isinstance(o, str) else next(iter(o)) for o in stage.get("outs", [])]
+
+
+@pytest.mark.parametrize("name", sorted(set(STAGES) - {"report"}))
+def test_provenance_record_is_an_out_of_its_own_that_only_the_report_reads(name):
+    stage = STAGES[name]
+    record = option(stage, "provenance")
+    if name in UNRECORDED:
+        assert record is None, f"stage {name}: records provenance; take it out of UNRECORDED"
+        return
+    assert record is not None, f"stage {name}: no --provenance in its cmd"
+    out = option(stage, "out")
+    assert out.startswith("data/") and record == f"data/provenance/{out[len('data/') :]}.json", (name, record)
+    outs = out_paths(stage)
+    assert record in outs, f"stage {name}: its record {record} is no out"
+    assert not [o for o in outs if o != record and inside(record, o)], f"stage {name}: record inside another out"
+    readers = [n for n, s in STAGES.items() if n != "report" and any(inside(record, d) for d in s.get("deps", []))]
+    assert not readers, f"{record} is read by {readers}: a rerun that changes no number would rerun them"
+
+
+def test_the_report_reads_the_records_its_table_shows():
+    from pipeline.reporting.runs import PROVENANCE_FOLDERS
+
+    report = STAGES["report"]
+    assert option(report, "provenance") == "data/provenance"
+    for folder in PROVENANCE_FOLDERS.values():
+        assert f"data/provenance/{folder}" in report["deps"], folder
+    # every stage that writes data/<folder>/METHOD/seedS records under data/provenance/<folder>
+    writers = [option(s, "out") or "" for s in STAGES.values()]
+    for folder in PROVENANCE_FOLDERS.values():
+        assert any(w.startswith(f"data/{folder}/") for w in writers), folder
+
+
+def test_provenance_check_sees_a_record_read_downstream():
+    """The checks above are not blind: a record inside a folder another stage reads is caught."""
+    assert inside("data/specialists/td3/seed0/provenance.json", "data/specialists/td3/seed0")
+    assert not inside("data/provenance/specialists/td3/seed0.json", "data/specialists/td3/seed0")
+    assert option({"cmd": "mapex x --out data/a --provenance data/provenance/a.json"}, "provenance") == (
+        "data/provenance/a.json"
+    )

@@ -4,12 +4,17 @@ Checks the caching users rely on: a second `dvc repro` runs nothing; changing an
 param reruns extract, evaluate, score and report but not the specialists; changing it back
 restores the earlier outputs from DVC's run-cache without recomputation; a scoring setting or
 the reference point reruns only score and report; a fidelity setting only critic_fidelity.
+An edit to training code that changes no number reruns the training stage only: what produced
+a run is recorded beside the artifacts (data/provenance/), not inside what later stages hash.
 Every method in one chain is tests/test_dvc_methods.py (a file of its own, so the two heavy
 chains run in parallel under pytest-xdist).
 """
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -72,3 +77,39 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     # a fidelity setting reruns only the fidelity check
     set_key(repo, "critic_fidelity", "episodes", 3)
     assert ran(run([dvc, "repro"], repo)) == {"critic_fidelity"}
+
+
+def run_copy(cmd: list[str], root: Path) -> str:
+    """`run`, but with the copy's own pipeline/ and stages/ on the import path: an edit there is
+    the code that runs, and provenance records the copy's git state (`run` imports this checkout's)."""
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(root)}
+    r = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
+    assert r.returncode == 0, f"{' '.join(cmd)} failed:\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}"
+    return r.stdout + r.stderr
+
+
+def test_an_edit_that_changes_no_number_reruns_only_the_stage_it_touches(repo):
+    """A comment in the TD3 code, committed (HEAD moves): train_specialist reruns, its outputs come
+    out bit for bit as before, so extraction, evaluation, scoring, the fidelity checks and the
+    report stay cached; only its provenance record, an out of its own, tells the new commit."""
+    dvc = str(BIN / "dvc")
+    run_copy([dvc, "repro"], repo)  # up to date after the test above; the whole chain when run alone
+    record = repo / "data" / "provenance" / "specialists" / "td3" / "seed0.json"
+    before = json.loads(record.read_text())
+    lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["train_specialist@0"]
+
+    with open(repo / "pipeline" / "specialists" / "td3.py", "a") as fh:
+        fh.write("\n# a comment: no number changes\n")
+    run(["git", "commit", "-qam", "a comment in the training code"], repo)
+    head = run(["git", "rev-parse", "HEAD"], repo).strip()
+    assert ran(run_copy([dvc, "repro"], repo)) == {"train_specialist"}
+    assert "up to date" in run_copy([dvc, "status"], repo)
+
+    after = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["train_specialist@0"]
+    outs = {o["path"]: o["md5"] for o in lock["outs"]}
+    new_outs = {o["path"]: o["md5"] for o in after["outs"]}
+    specialists, rel = "data/specialists/td3/seed0", str(record.relative_to(repo))
+    assert new_outs[specialists] == outs[specialists]  # the artifacts: the same bytes
+    assert new_outs[rel] != outs[rel]  # the record: the new commit
+    assert before["stage"] == "train_specialist" and before["git_commit"] != head
+    assert json.loads(record.read_text())["git_commit"] == head

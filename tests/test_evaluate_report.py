@@ -1,7 +1,7 @@
 """Stages evaluate, score and report end to end through their real typer commands, on tiny
 synthetic populations (random [16, 16] actors on HalfCheetah, 50-step episodes, 2 episodes a
-member); the verdict and provenance table on hand-made runs. The score stage's known answers
-are in test_score.py."""
+member), with the provenance records the stages write beside their outputs; the verdict and
+provenance table on hand-made runs. The score stage's known answers are in test_score.py."""
 
 from __future__ import annotations
 
@@ -71,8 +71,7 @@ def write_params(directory: Path, env: dict | None = None, evaluate: dict | None
 
 
 def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, drop: tuple[str, ...] = ()) -> None:
-    """2 specialists (the same for every variant of a seed, as in a real run) + 3 children.
-    Seed 1's population records no provenance (as populations from before it was recorded)."""
+    """2 specialists (the same for every variant of a seed, as in a real run) + 3 children."""
     low, high = [-1.0] * 6, [1.0] * 6
     members = []
     for i in range(5):
@@ -105,7 +104,6 @@ def make_population(path: Path, seed: int, variant: str, env_id: str = ENV_ID, d
         seed=seed,
         params={},
         method=variant,
-        **({"provenance": PROVENANCE} if seed == 0 else {}),
     )
     save_population(path, members, {k: v for k, v in meta.items() if k not in drop})
 
@@ -141,6 +139,8 @@ def read_csv(path: Path) -> list[dict[str, str]]:
 
 
 def evaluate_and_score(root: Path, variant: str, seed: int, params: Path) -> None:
+    """The evaluate and score stages of one run, each writing its provenance record under
+    ROOT/provenance as dvc.yaml has them do under data/provenance."""
     pop = root / "extract" / variant / f"seed{seed}" / "population.pt"
     code, out = invoke(
         "evaluate",
@@ -152,6 +152,8 @@ def evaluate_and_score(root: Path, variant: str, seed: int, params: Path) -> Non
         seed,
         "--params",
         params,
+        "--provenance",
+        root / "provenance" / "evaluate" / variant / f"seed{seed}.json",
     )
     assert code == 0, out
     code, out = invoke(
@@ -164,18 +166,26 @@ def evaluate_and_score(root: Path, variant: str, seed: int, params: Path) -> Non
         root / "score" / variant / f"seed{seed}",
         "--params",
         params,
+        "--provenance",
+        root / "provenance" / "score" / variant / f"seed{seed}.json",
     )
     assert code == 0, out
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> Path:
-    """Populations, evaluate and score outputs for 2 seeds x 2 variants."""
+    """Populations, evaluate and score outputs for 2 seeds x 2 variants. Seed 0's populations
+    come with an extraction record (PROVENANCE), seed 1's with none (extracted by hand, without
+    --provenance)."""
     root = tmp_path_factory.mktemp("runs")
     params = write_params(root)
     for v in VARIANTS:
         for s in SEEDS:
             make_population(root / "extract" / v / f"seed{s}" / "population.pt", s, v)
+            if s == 0:
+                record = root / "provenance" / "fronts" / v / f"seed{s}.json"
+                record.parent.mkdir(parents=True, exist_ok=True)
+                record.write_text(json.dumps({"stage": "extract", **PROVENANCE}))
             evaluate_and_score(root, v, s, params)
     return root
 
@@ -219,9 +229,10 @@ def test_evaluation_json(runs):
     assert (record["env_id"], record["method"], record["seed"], record["population"]) == (ENV_ID, "mapex_td3", 0, 5)
     assert (record["episodes"], record["seed_stream"], record["max_episode_steps"]) == (EPISODES, 1, CAP)
     assert record["env_samples_evaluation"] == 5 * EPISODES * CAP  # HalfCheetah never terminates
-    prov = record["provenance"]
-    assert prov["versions"]["torch"] == torch.__version__ and prov["torch_threads"] == 1
-    assert prov["device"].startswith("cpu")
+    assert "provenance" not in record  # a file of its own, outside OUT
+    prov = json.loads((runs / "provenance" / "evaluate" / "mapex_td3" / "seed0.json").read_text())
+    assert prov["stage"] == "evaluate" and prov["versions"]["torch"] == torch.__version__
+    assert prov["torch_threads"] == 1 and prov["device"].startswith("cpu")
 
 
 def test_reevaluation_uses_the_fresh_seed_stream(runs):
@@ -342,19 +353,34 @@ def test_specialists_score_the_same_in_both_variants(runs):
     assert a["front"] != b["front"]  # the children differ
 
 
-def test_provenance_travels_from_population_to_score(runs):
-    chain = json.loads((runs / "score" / "mapex_td3" / "seed0" / "provenance.json").read_text())
-    assert chain["extract"] == PROVENANCE
-    evaluation = json.loads((runs / "evaluate" / "mapex_td3" / "seed0" / "evaluation.json").read_text())
-    assert chain["evaluate"] == evaluation["provenance"]
-    assert json.loads((runs / "score" / "mapex_td3" / "seed1" / "provenance.json").read_text())["extract"] is None
+def test_provenance_records_lie_outside_the_outputs(runs):
+    """Each stage's record is the --provenance file; its output folder holds no run-dependent file."""
+    for v in VARIANTS:
+        for s in SEEDS:
+            for stage in ("evaluate", "score"):
+                record = json.loads((runs / "provenance" / stage / v / f"seed{s}.json").read_text())
+                assert record["stage"] == stage and record["versions"]["torch"] == torch.__version__
+            assert sorted(p.name for p in (runs / "evaluate" / v / f"seed{s}").iterdir()) == [
+                "evaluated.csv",
+                "evaluation.json",
+            ]
+            assert sorted(p.name for p in (runs / "score" / v / f"seed{s}").iterdir()) == [
+                "front.csv",
+                "hypervolume.csv",
+                "metrics.json",
+            ]
 
 
 # ---------------------------------------------------------------- report
 
 
 def report_args(
-    runs: Path, out: Path, params: Path | None = None, scored: Path | None = None, evaluated: Path | None = None
+    runs: Path,
+    out: Path,
+    params: Path | None = None,
+    scored: Path | None = None,
+    evaluated: Path | None = None,
+    provenance: Path | None = None,
 ) -> list:
     return [
         "report",
@@ -362,6 +388,8 @@ def report_args(
         evaluated or runs / "evaluate",
         "--scored",
         scored or runs / "score",
+        "--provenance",
+        provenance or runs / "provenance",
         "--out",
         out,
         "--params",
@@ -448,13 +476,41 @@ def test_report_provenance_section(report_dir):
     section = text.split("## Provenance", 1)[1].split("## Definitions", 1)[0]
     rows = [line for line in section.splitlines() if line.startswith("| ")][1:]
     extract = [r for r in rows if r.startswith("| extract |")]
-    # seed 0's populations record provenance, seed 1's do not: two rows, each naming its runs
+    # seed 0's extractions left a record, seed 1's did not: two rows, each naming its runs
     assert len(extract) == 2
     assert "MAPEX-TD3 seed 0; warm-up only (TD3) seed 0" in extract[0] and "0123456789 |" in extract[0]
     assert "MAPEX-TD3 seed 1; warm-up only (TD3) seed 1" in extract[1] and "not recorded" in extract[1]
     # evaluate and score ran in this process for every run: one row each
     assert sum(r.startswith("| evaluate |") for r in rows) == 1 and sum(r.startswith("| score |") for r in rows) == 1
     assert torch.__version__ in section
+
+
+def _provenance_rows(report_md: Path) -> list[str]:
+    section = report_md.read_text().split("## Provenance", 1)[1].split("## Definitions", 1)[0]
+    return [line for line in section.splitlines() if line.startswith("| ")][1:]
+
+
+def test_report_without_provenance_records_says_not_recorded(runs, tmp_path):
+    """Runs made without --provenance (or a report given no root): every stage 'not recorded',
+    one row per stage, and the report is otherwise the same."""
+    for where in (tmp_path / "no_records", None):
+        args = report_args(runs, tmp_path / "r", provenance=where)
+        if where is None:
+            i = args.index("--provenance")
+            del args[i : i + 2]
+        code, out = invoke(*args)
+        assert code == 0, out
+        rows = _provenance_rows(tmp_path / "r" / "report.md")
+        assert [r.split("|")[1].strip() for r in rows] == ["extract", "evaluate", "score"]
+        assert all(r.endswith("|" + " not recorded |" * 8) for r in rows), rows
+
+
+def test_report_names_an_unreadable_provenance_record(runs, tmp_path):
+    shutil.copytree(runs / "provenance", tmp_path / "provenance")
+    bad = tmp_path / "provenance" / "score" / "mapex_td3" / "seed1.json"
+    bad.write_text("{not json")
+    out = _report_fails(runs, tmp_path, provenance=tmp_path / "provenance")
+    assert str(bad) in out and "cannot be read as JSON" in out
 
 
 def _run(variant: str, seed: int, hv: float, provenance: dict | None = None) -> Run:
@@ -592,7 +648,7 @@ def test_report_without_evaluated_csv(runs, tmp_path):
     assert "evaluated.csv" in out and "not found" in out
 
 
-@pytest.mark.parametrize("name", ["provenance.json", "front.csv", "hypervolume.csv"])
+@pytest.mark.parametrize("name", ["front.csv", "hypervolume.csv"])
 def test_report_missing_score_file(runs, tmp_path, name):
     scored = _copy_scored(runs, tmp_path)
     (scored / "mapex_td3" / "seed1" / name).unlink()
@@ -744,6 +800,7 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
         (ws / "data").mkdir(parents=True)
         shutil.copytree(runs / "score", ws / "data" / "score")
         shutil.copytree(runs / "evaluate", ws / "data" / "evaluate")
+        shutil.copytree(runs / "provenance", ws / "data" / "provenance")
         params = yaml.safe_load((runs / "params.yaml").read_text()) | {"seeds": seeds}
         # weak specialists by each cell's own report params: none in a, seed 1's speed specialist in b
         params["report"] |= (
@@ -775,7 +832,9 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
     weak = text.split("## Weak specialists", 1)[1].split("\n## ", 1)[0]
     (line,) = [line for line in weak.splitlines() if line.startswith("- ")]
     assert line.startswith("- cheetah.b: Warning: the TD3 x velocity specialist (objective 0) of seed 1 returned")
-    assert sum(line.startswith("| cheetah.a | extract |") for line in text.splitlines()) >= 1
+    extract_rows = [line for line in text.splitlines() if line.startswith("| cheetah.a | extract |")]
+    # each cell's records from its data/provenance: seed 0's extractions recorded, seed 1's not
+    assert len(extract_rows) == 2 and "0123456789 |" in extract_rows[0] and "not recorded" in extract_rows[1]
     assert all((tmp_path / "grid_report" / f).stat().st_size > 5000 for f in ("fronts.png", "hypervolume.png"))
     code, out = invoke("grid-report", tmp_path / "nothing_here", "--out", tmp_path / "x")
     assert code == 2 and "nothing_here: not a directory" in out

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -90,7 +91,9 @@ def extract_cmd(specialists: Path, out: Path, params: Path, resume: Path | None,
 
 def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     params = write_params(tmp_path / "params.yaml")
-    r = mapex(*extract_cmd(specialists, tmp_path / "out", params, tmp_path / "resume"), cwd=tmp_path)
+    record = tmp_path / "provenance" / "seed0.json"
+    cmd = extract_cmd(specialists, tmp_path / "out", params, tmp_path / "resume")
+    r = mapex(*cmd, "--provenance", str(record), cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     members, meta = load_population(tmp_path / "out" / "population.pt")
     assert [m.origin for m in members] == ["specialist", "specialist", "child", "child", "child"]
@@ -107,7 +110,11 @@ def test_extract_end_to_end_population_and_history(specialists, tmp_path):
     assert len(lines) == 1 + 4
     assert [int(line.split(",")[1]) for line in lines[1:]] == [2, 3, 4, 5]
     assert not (tmp_path / "resume" / "extract" / "mapex_td3" / "seed0").exists()  # cleaned up when done
-    prov = meta["provenance"]
+    # what produced the run is beside OUT, not in it (OUT holds what inputs and params fix)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["history.csv", "population.pt"]
+    assert "provenance" not in meta
+    prov = json.loads(record.read_text())
+    assert prov["stage"] == "extract"
     # extract.device is auto here: CUDA on a GPU machine (benchmarks/device/check.sh runs this file there)
     assert (
         prov["device"].startswith("cuda" if torch.cuda.is_available() else "cpu")
@@ -139,10 +146,7 @@ def test_children_per_iteration_end_to_end(specialists, tmp_path):
 def _population_equal(a: Path, b: Path) -> None:
     ma, meta_a = load_population(a)
     mb, meta_b = load_population(b)
-    # provenance holds the git state, which other work in the same checkout may change mid-test
-    assert {k: v for k, v in meta_a.items() if k != "provenance"} == {
-        k: v for k, v in meta_b.items() if k != "provenance"
-    }
+    assert meta_a == meta_b
     assert len(ma) == len(mb)
     for x, y in zip(ma, mb):
         assert (x.returns, x.parents, x.target_weight, x.env_samples) == (

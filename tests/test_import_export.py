@@ -245,7 +245,11 @@ def test_import_stage_writes_a_slot(cli, sb3_models, tmp_path):
     assert result.exit_code == 0, result.output
     actor, meta = load_policy(out / "policy.pt")  # weights_only=True inside
     assert meta["source"]["format"] == "sb3" and meta["collection_frames"] == 60 and meta["objective"] == 0
+    # only what the stage's declared inputs and params fix: no provenance, no undeclared param
+    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps"}
+    assert meta["params"]["import_specialists"] == {"collect_rows": 60, "exploration_noise": 0.1}
     data, attrs = load_buffer(out / "buffer.zarr")
+    assert "provenance" not in attrs
     assert attrs["n_transitions"] == 60 and data["reward"].shape == (60, 2) and attrs["collection_frames"] == 60
     assert (out / "collect.csv").read_text().startswith("episode,obj0,obj1\n")
 
@@ -331,6 +335,8 @@ def test_import_takes_a_buffer_in_the_project_format(cli, sb3_models, tmp_path):
     a, _ = load_buffer(out0 / "buffer.zarr")
     b, attrs = load_buffer(out1 / "buffer.zarr")
     assert attrs["objective"] == 1 and attrs["collection_frames"] == 0
+    # the collection's params are no input of a buffer handed in
+    assert load_policy(out1 / "policy.pt")[1]["params"]["import_specialists"] == {}
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
 
@@ -399,7 +405,7 @@ def fake_evaluation(tmp_path: Path, population: Path) -> Path:
     out.mkdir()
     (out / "evaluated.csv").write_text(evaluated_csv(members, results))
     record = {"env_id": ENV, "method": meta["method"], "seed": 0, "episodes": 1, "population": len(members)}
-    record |= {"env_samples_evaluation": 0, "provenance": None, "max_episode_steps": STEPS}
+    record |= {"env_samples_evaluation": 0, "max_episode_steps": STEPS}
     (out / "evaluation.json").write_text(json.dumps(record))
     return out
 

@@ -378,7 +378,7 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     assert sorted(p.name for p in out.iterdir()) == ["history.csv", "population.pt"]
     assert not (tmp_path / "full" / "resume" / "mopderl" / "seed0").exists()  # progress cleared
     assert meta["method"] == "mopderl" and meta["seed"] == 0 and meta["env_id"] == "mo-halfcheetah-v5"
-    assert meta["params"]["mopderl"]["population_size"] == 4 and "provenance" in meta
+    assert meta["params"]["mopderl"]["population_size"] == 4 and "provenance" not in meta
     assert meta["params"]["td3"] == TD3Params(**TD3).model_dump()  # the RL agents' section, whole
     assert meta["action_low"] == [-1.0] * 6 and meta["n_objectives"] == 2
     # the starting population: each specialist's population actors ("rl" is the RL agent)

@@ -70,3 +70,7 @@ def test_payoff_run_resumes_and_reports_both_forms(tmp_path):
     for form in ("paper", "gentle"):
         report = (light / "report" / form / "report.md").read_text()
         assert "MAPEX-TD3" in report and "warm-up only" in report
+        # what produced every run came back beside the outputs (light/provenance/) and is shown
+        provenance = report.split("## Provenance", 1)[1].split("## Definitions", 1)[0]
+        rows = [line for line in provenance.splitlines() if line.startswith("| extract |") or "| score |" in line]
+        assert rows and not [r for r in rows if "not recorded" in r], provenance

@@ -399,7 +399,7 @@ def test_stage_end_to_end_and_resume_after_kill(tmp_path, stage, monkeypatch):
     cmeta = full["cmeta"]
     assert cmeta["source"] == "joint" and cmeta["objectives"] == [0, 1] and cmeta["buffer_objective"] == 1
     assert set(cmeta["params"]) == {"env", "td3", "train_pderl"}
-    assert cmeta["params"]["td3"]["gamma"] == 0.99 and "provenance" in cmeta
+    assert cmeta["params"]["td3"]["gamma"] == 0.99 and "provenance" not in cmeta
     attrs, data = full["attrs"], full["data"]
     assert attrs["objective"] == 1 and attrs["seed"] == 0 and attrs["max_episode_steps"] == CAP
     assert len(data["obs"]) == pset.meta["env_frames"] >= PDERL["total_frames"]

@@ -1,8 +1,12 @@
-"""Provenance: the git state it records ignores dvc.lock (rewritten by `dvc repro` mid-run)."""
+"""Provenance: the git state it records ignores dvc.lock (rewritten by `dvc repro` mid-run); a
+stage writes its record to the --provenance file only."""
 
 from __future__ import annotations
 
+import json
 import subprocess
+
+import torch
 
 import pipeline.core.provenance as prov
 
@@ -34,3 +38,15 @@ def test_git_dirty_ignores_dvc_lock_but_not_code(tmp_path, monkeypatch):
         assert state()["git_dirty"] is True
     finally:
         prov._git.cache_clear()
+
+
+def test_write_provenance_writes_a_record_only_where_asked(tmp_path):
+    prov.write_provenance(None, "score")  # no --provenance: nothing anywhere
+    assert list(tmp_path.iterdir()) == []
+    path = tmp_path / "provenance" / "score" / "mapex_td3" / "seed0.json"
+    prov.write_provenance(path, "score", "cpu")
+    record = json.loads(path.read_text())
+    assert record["stage"] == "score" and record["device"].startswith("cpu: ")
+    assert {"git_commit", "git_dirty", "versions", "python", "torch_threads"} <= set(record)
+    assert record["versions"]["torch"] == torch.__version__
+    assert [p.name for p in path.parent.iterdir()] == ["seed0.json"]  # written atomically, no .partial left

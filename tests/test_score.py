@@ -35,13 +35,6 @@ EXTRACT = [(10.0, 1.0), (1.0, 10.0), (6.0, 6.0), (7.0, 3.0), (2.0, 2.0)]
 REEVAL = [(9.0, 1.0), (1.0, 9.0), (5.0, 5.0), (2.0, 2.0), (3.0, 4.0)]
 ITERATION = [0, 0, 1, 2, 2]
 SAMPLES = [100, 200, 300, 400, 500]
-POPULATION_PROVENANCE = {
-    "git_commit": "abc123",
-    "git_dirty": False,
-    "versions": {"torch": "9.9"},
-    "device": "cpu: test",
-    "torch_threads": 1,
-}
 
 
 @contextlib.contextmanager
@@ -90,7 +83,6 @@ def write_population(path: Path, meta_drop: tuple[str, ...] = (), extract=EXTRAC
         seed=seed,
         method="mapex",
         params={},
-        provenance=POPULATION_PROVENANCE,
     )
     save_population(path, members, {k: v for k, v in meta.items() if k not in meta_drop})
 
@@ -143,7 +135,6 @@ def write_evaluated(directory: Path, record: dict | None = None, drop_column: st
         "max_episode_steps": 750,
         "population": 5,
         "env_samples_evaluation": 37500,
-        "provenance": {"git_commit": "def456", "versions": {}},
     }
     (directory / "evaluation.json").write_text(json.dumps(base if record is None else record))
 
@@ -166,7 +157,7 @@ def run(tmp_path) -> Path:
     return tmp_path
 
 
-def score_run(root: Path, params: Path | None = None) -> tuple[int, str]:
+def score_run(root: Path, params: Path | None = None, *extra) -> tuple[int, str]:
     return invoke(
         "--population",
         root / "population.pt",
@@ -176,6 +167,7 @@ def score_run(root: Path, params: Path | None = None) -> tuple[int, str]:
         root / "out",
         "--params",
         params or write_params(root),
+        *extra,
     )
 
 
@@ -211,7 +203,7 @@ def test_metrics_hand_computed(run):
     assert (m["iterations"], m["population"], m["children"], m["env_samples_extraction"]) == (2, 5, 3, 500)
     assert (m["episodes"], m["env_samples_evaluation"], m["method"], m["seed"]) == (10, 37500, "mapex", 0)
     assert (m["reference_point"], m["distinct_tol"], m["utility_weights"]) == ([0.0, 0.0], 0.02, 3)
-    assert "provenance" not in m  # kept in provenance.json: `dvc metrics show` stays a table of numbers
+    assert "provenance" not in m  # a file of its own (--provenance): `dvc metrics show` stays a table of numbers
 
 
 def test_front_csv_sorted_along_objective_0(run):
@@ -256,22 +248,37 @@ def test_score_params_change_the_metrics(run):
     assert json.loads((run / "out" / "metrics.json").read_text())["front"]["hypervolume"] == pytest.approx(52.0)
 
 
-def test_provenance_chain(run):
+def test_provenance_record_is_written_beside_the_outputs(run):
+    code, out = score_run(run, None, "--provenance", run / "records" / "score.json")
+    assert code == 0, out
+    record = json.loads((run / "records" / "score.json").read_text())
+    assert record["stage"] == "score"
+    assert {"git_commit", "git_dirty", "versions", "device", "torch_threads"} <= set(record)
+    assert record["versions"]["torch"] == torch.__version__
+    # OUT holds the numbers only
+    assert sorted(p.name for p in (run / "out").iterdir()) == ["front.csv", "hypervolume.csv", "metrics.json"]
+
+
+def test_outputs_do_not_depend_on_what_ran_them(run, monkeypatch):
+    """Another commit (or a dirty checkout) changes the record only: OUT's bytes stay, so DVC
+    reruns nothing after a rerun of this stage that changes no number."""
+    import pipeline.core.provenance as prov
+
+    outputs = []
+    for i, commit in enumerate(["a" * 40, "b" * 40]):
+        monkeypatch.setattr(prov, "_git", lambda commit=commit: {"git_commit": commit, "git_dirty": True})
+        code, out = score_run(run, None, "--provenance", run / "records" / f"{i}.json")
+        assert code == 0, out
+        outputs.append({p.name: p.read_bytes() for p in (run / "out").iterdir()})
+        assert json.loads((run / "records" / f"{i}.json").read_text())["git_commit"] == commit
+    assert outputs[0] == outputs[1]
+
+
+def test_without_provenance_option_no_record_is_written(run):
     code, out = score_run(run)
     assert code == 0, out
-    chain = json.loads((run / "out" / "provenance.json").read_text())
-    assert chain["extract"] == POPULATION_PROVENANCE
-    assert chain["evaluate"] == {"git_commit": "def456", "versions": {}}
-    assert {"git_commit", "git_dirty", "versions", "device", "torch_threads"} <= set(chain["score"])
-    assert chain["score"]["versions"]["torch"] == torch.__version__
-
-
-def test_population_without_provenance_is_recorded_as_null(tmp_path):
-    write_population(tmp_path / "population.pt", meta_drop=("provenance",))
-    write_evaluated(tmp_path / "evaluated")
-    code, out = score_run(tmp_path)
-    assert code == 0, out
-    assert json.loads((tmp_path / "out" / "provenance.json").read_text())["extract"] is None
+    assert sorted(p.name for p in run.iterdir()) == ["evaluated", "out", "params.yaml", "population.pt"]
+    assert sorted(p.name for p in (run / "out").iterdir()) == ["front.csv", "hypervolume.csv", "metrics.json"]
 
 
 # ---------------------------------------------------------------- bad inputs: one line, exit 2, nothing written
@@ -321,7 +328,7 @@ def test_missing_evaluated_csv(run):
     assert "evaluated.csv" in out and "not found" in out
 
 
-@pytest.mark.parametrize("key", ["episodes", "env_samples_evaluation", "provenance"])
+@pytest.mark.parametrize("key", ["episodes", "env_samples_evaluation"])
 def test_evaluation_json_key_missing(tmp_path, key):
     write_population(tmp_path / "population.pt")
     write_evaluated(tmp_path / "evaluated")

@@ -177,6 +177,9 @@ def test_policy_loads_and_acts_in_bounds(cheetah):
     assert set(meta["params"]) == {"env", "td3", "train_specialist"}
     assert TrainSpecialistParams(**meta["params"]["train_specialist"]).total_steps == TOTAL
     assert TD3Params(**meta["params"]["td3"]).hidden_sizes == [32, 32]
+    # only what inputs and params fix: no provenance, no scoring or labelling env key (a change
+    # to those must not change the bytes that extraction and the rest hash)
+    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps"}
     data, _ = load_buffer(cheetah.out / "buffer.zarr")
     with torch.no_grad():
         a = actor(torch.from_numpy(data["obs"][:50]))

@@ -3,7 +3,8 @@
 # PARAMS (one process per seed, all at once), then for every seed MAPEX in the paper's form and
 # warm-up only (PARAMS's extract section) and MAPEX in the gentle form (the same with
 # extract.epochs 1 and extract.lr 1e-4), all runs at once. No DVC needed: it calls the stage
-# commands (python -m stages.cli) directly, in the layout dvc.yaml uses, under WORKDIR.
+# commands (python -m stages.cli) directly, in the layout dvc.yaml uses, under WORKDIR; what
+# produced each run goes to WORKDIR/provenance/ (specialists/, and {paper,gentle}/fronts/).
 #
 #   bash benchmarks/device/payoff.sh WORKDIR [PARAMS]   (default presets/payoff/mo-halfcheetah-v5.yaml)
 #
@@ -46,7 +47,8 @@ run() {  # run NAME OUTPUT_FILE CMD...: skip when OUTPUT_FILE exists, else run w
 pids=()
 for s in $SEEDS; do
   run "train_specialist_seed$s" "$W/specialists/td3/seed$s/obj1/policy.pt" \
-    "$PY" -m stages.cli train-specialist --seed "$s" --out "$W/specialists/td3/seed$s" --params "$W/paper.yaml" &
+    "$PY" -m stages.cli train-specialist --seed "$s" --out "$W/specialists/td3/seed$s" --params "$W/paper.yaml" \
+    --provenance "$W/provenance/specialists/td3/seed$s.json" &
   pids+=($!)
 done
 for p in "${pids[@]}"; do wait "$p"; done
@@ -59,6 +61,7 @@ for s in $SEEDS; do
     run "extract_${form}_${variant}_seed$s" "$out/population.pt" \
       "$PY" -m stages.cli extract --seed "$s" --variant "$variant" --kind td3 \
       --specialists "$W/specialists/td3/seed$s" --out "$out" --params "$W/$form.yaml" \
+      --provenance "$W/provenance/$form/fronts/${variant}_td3/seed$s.json" \
       --resume-dir "$W/resume/$form" &  # per form: both forms run method mapex_td3 at once
     pids+=($!)
   done

@@ -6,7 +6,7 @@ A TD3 specialist is the special case of a set of one. Loadable with weights_only
 
 policies.pt (format "mapex.policy_set", version 1)
     meta:     as policy.pt's meta (env_id, obs_dim, act_dim, n_objectives, action_low,
-              action_high, hidden_sizes, objective, seed, params, provenance ...)
+              action_high, hidden_sizes, objective, seed, params ...)
     names:    one label per actor ("rl", "pop3", ...), unique
     fitness:  one float per actor (mean return of the specialist's objective when last
               evaluated), or None where never evaluated

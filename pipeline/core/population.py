@@ -4,8 +4,8 @@ population.pt (format "mapex.population", version 3), loadable with torch.load(w
 
     meta:     env_id, obs_dim, act_dim, n_objectives, action_low, action_high, seed,
               method (pipeline/params/methods.py: mapex_td3, mopderl, ...), params (the params
-              the run used; for extraction also its --variant and --kind),
-              provenance (pipeline.core.provenance: git commit, library versions, device, threads)
+              the run used; for extraction also its --variant and --kind); no provenance
+              (git commit, library versions, device: a file of its own, pipeline.core.provenance)
     members:  list, in the order policies joined the population (index = policy id): first
               the starting policies (every policy of specialist 0's policy set, in the set's
               order, then specialist 1's, ...), then the children

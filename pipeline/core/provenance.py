@@ -1,14 +1,24 @@
-"""What produced an artifact: code version, library versions, device and thread count.
+"""What produced a stage's outputs: code version, library versions, device and thread count.
 
-Recorded in every artifact's metadata and shown in the report, so a reader can tell whether
-two results are comparable. Bitwise reproducibility holds only between runs whose provenance
-agrees on everything here except `git_dirty` noise (same machine type, thread count, library
-versions and device); see the README, "Reproducibility".
+Recorded beside the artifacts, never inside them. A stage run with `--provenance PATH` writes
+its record there as JSON (`write_provenance`); dvc.yaml declares that file as an out of its own
+under data/provenance/, at the path of the stage's out below data/ plus .json (the record of
+data/fronts/mapex_td3/seed0/population.pt is data/provenance/fronts/mapex_td3/seed0.json). An
+artifact a later stage reads holds only what its inputs and params determine, so a rerun that
+changes no number (a refactor, a comment, a new commit) rewrites its bytes unchanged and DVC
+reruns nothing downstream; only the record, which no stage but the report reads, changes.
+Without --provenance (a stage command run by hand) no record is written.
+
+The report's provenance table reads the records (pipeline.reporting.runs), so a reader can
+tell whether two results are comparable. Bitwise reproducibility holds only between runs whose
+records agree on everything here except `git_dirty` noise (same machine type, thread count,
+library versions and device); see the README, "Reproducibility".
 """
 
 from __future__ import annotations
 
 import functools
+import json
 import platform
 import subprocess
 from importlib import metadata
@@ -16,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from pipeline.core.artifacts import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[2]
 LIBRARIES = ("mapex", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "zarr")
@@ -76,7 +88,7 @@ def device_name(device: torch.device | str) -> str:
 
 
 def provenance(device: torch.device | str = "cpu") -> dict[str, Any]:
-    """A JSON-able record of what is producing an artifact now."""
+    """A JSON-able record of what is running now (code, libraries, device, threads)."""
     return {
         **_git(),
         "versions": {lib: _version(lib) for lib in LIBRARIES},
@@ -84,3 +96,13 @@ def provenance(device: torch.device | str = "cpu") -> dict[str, Any]:
         "device": device_name(device),
         "torch_threads": torch.get_num_threads(),
     }
+
+
+def write_provenance(path: Path | None, stage: str, device: torch.device | str = "cpu") -> None:
+    """Write the record of this run of `stage` to `path` (JSON, atomically): {"stage": ...,
+    and `provenance(device)`'s keys}. Nothing when `path` is None (no --provenance given).
+    Stages call it after their outputs are written: a record stands for a finished run."""
+    if path is None:
+        return
+    record = {"stage": stage, **provenance(device)}
+    write_text_atomic(path, json.dumps(record, indent=2) + "\n")

@@ -22,16 +22,17 @@ from pipeline.core.buffer import load_buffer, save_buffer
 from pipeline.core.checkpoint import load_critics, load_policy, save_critics, save_policy
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.policyset import load_policy_set
-from pipeline.core.provenance import provenance
 
 SPEC_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives")
-_BUFFER_META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed", "provenance")
+_BUFFER_META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "max_episode_steps", "seed")
 
 Claim = tuple[Path, dict[str, Any], str]  # (file, its metadata, the key naming its objective)
 
 
-def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) -> dict:
-    """Metadata every specialist artifact carries (TD3 and PDERL alike; readers cross-check it)."""
+def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict) -> dict:
+    """Metadata every specialist artifact carries (TD3 and PDERL alike; readers cross-check it):
+    what the inputs and params fix, nothing of the run itself (its provenance is a file of its
+    own, pipeline.core.provenance), so a rerun that changes no number writes the same bytes."""
     return {
         "env_id": spec.env_id,
         "obs_dim": spec.obs_dim,
@@ -42,8 +43,9 @@ def specialist_meta(spec, env_p, hidden_sizes, seed: int, params: dict, device) 
         "action_high": list(spec.action_high),
         "hidden_sizes": list(hidden_sizes),
         "seed": seed,
-        "params": {"env": env_p.model_dump(), **params},
-        "provenance": provenance(device),
+        # the env keys training reads (dvc.yaml's env.id, env.max_episode_steps), not the scoring
+        # reference point or the objectives' labels: changing those must leave these bytes alone
+        "params": {"env": env_p.model_dump(exclude={"objective_names", "reference_point"}), **params},
     }
 
 

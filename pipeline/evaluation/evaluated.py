@@ -13,7 +13,7 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.population import Member
 
 META_KEYS = ("env_id", "n_objectives", "seed", "method")
-EVALUATION_KEYS = ("env_id", "method", "seed", "episodes", "population", "env_samples_evaluation", "provenance")
+EVALUATION_KEYS = ("env_id", "method", "seed", "episodes", "population", "env_samples_evaluation")
 
 
 def read_evaluated(path: Path, members: list[Member], n_obj: int) -> np.ndarray:

@@ -102,9 +102,11 @@ def report_markdown(
     lines += [
         "## Provenance",
         "",
-        "What produced each run: the population (extract), its re-evaluation (evaluate) and the "
-        "scoring (score). Runs with identical provenance share a row. Results are bitwise "
-        "reproducible only between runs that agree on every column (README, Reproducibility).",
+        "What produced each run: the population (extract, or the baseline's own stage), its "
+        "re-evaluation (evaluate) and the scoring (score), from the records each stage wrote beside "
+        "its outputs (data/provenance; 'not recorded' where a stage wrote none). Runs with identical "
+        "provenance share a row. Results are bitwise reproducible only between runs that agree on "
+        "every column (README, Reproducibility).",
         "",
         provenance_table(runs),
         "## Definitions",

@@ -1,7 +1,8 @@
 """Evaluated runs, the report's input: `Run`, one (method, seed) with the evaluate stage's
-re-evaluated returns and the score stage's metrics, front, hypervolume history and provenance;
-the methods' names and their usual order; and the loaders that read every run from the score
-and evaluate outputs (`load_runs`, `load_run`, `check_comparable`), raising ArtifactError that
+re-evaluated returns, the score stage's metrics, front and hypervolume history, and the
+provenance records of the stages that made it; the methods' names and their usual order; and
+the loaders that read every run from the score and evaluate outputs and the provenance records
+(`load_runs`, `load_run`, `read_provenance`, `check_comparable`), raising ArtifactError that
 names the file on a bad input."""
 
 from __future__ import annotations
@@ -41,6 +42,11 @@ FRONT_KEYS = (
     "distinct_count",
 )
 HISTORY_COLUMNS = ("iteration", "env_samples", "hypervolume_extract", "hypervolume")
+# Where each stage of a run (METHOD, seed S) records what produced it, below the provenance root
+# (dvc.yaml: data/provenance): ROOT/<folder>/METHOD/seedS.json, the folder being that of the
+# stage's outputs below data/. "extract" is the stage that made the population: extract, or the
+# baselines' mopderl and morld, all of which write data/fronts/METHOD/seedS.
+PROVENANCE_FOLDERS = {"extract": "fronts", "evaluate": "evaluate", "score": "score"}
 
 
 @dataclass
@@ -56,7 +62,7 @@ class Run:
     on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
     # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))
     history: dict[str, np.ndarray]
-    provenance: dict | None = None  # stage -> pipeline.core.provenance record or None (score's provenance.json)
+    provenance: dict | None = None  # PROVENANCE_FOLDERS' stage -> its pipeline.core.provenance record or None
     objective: np.ndarray | None = None  # (n,) the specialist a starting policy came from, -1 for a child
 
     def starting_counts(self) -> dict[int, int]:
@@ -73,8 +79,9 @@ def methods_in(runs: list[Run]) -> list[str]:
     return [v for v in METHOD_ORDER if v in present] + sorted(present - set(METHOD_ORDER))
 
 
-def load_runs(scored: Path, evaluated: Path) -> list[Run]:
-    """Every SCORED/VARIANT/seedS with a metrics.json, with its score outputs and evaluated.csv."""
+def load_runs(scored: Path, evaluated: Path, provenance: Path | None = None) -> list[Run]:
+    """Every SCORED/VARIANT/seedS with a metrics.json, with its score outputs, evaluated.csv and
+    the provenance records under PROVENANCE (none: every record 'not recorded')."""
     if not scored.is_dir():
         raise ArtifactError(f"{scored}: not a directory of score outputs")
     runs = []
@@ -84,15 +91,22 @@ def load_runs(scored: Path, evaluated: Path) -> list[Run]:
         if match is None:
             continue
         runs.append(
-            load_run(run_dir, evaluated / run_dir.parent.name / run_dir.name, run_dir.parent.name, int(match.group(1)))
+            load_run(
+                run_dir,
+                evaluated / run_dir.parent.name / run_dir.name,
+                run_dir.parent.name,
+                int(match.group(1)),
+                provenance,
+            )
         )
     if not runs:
         raise ArtifactError(f"{scored}: no VARIANT/seedS/metrics.json found (run the score stage first)")
     return runs
 
 
-def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
-    """One run from its score folder and evaluate folder; ArtifactError naming the file on a bad input."""
+def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int, provenance: Path | None = None) -> Run:
+    """One run from its score folder, evaluate folder and provenance root (read_provenance);
+    ArtifactError naming the file on a bad input."""
     metrics = read_json(score_dir / "metrics.json", METRICS_KEYS)
     for group in ("front", "specialists"):
         missing = [k for k in FRONT_KEYS if k not in (metrics[group] if isinstance(metrics[group], dict) else {})]
@@ -103,7 +117,6 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
             f"{score_dir / 'metrics.json'}: is for method {metrics['method']!r} seed {metrics['seed']!r}, "
             f"but sits in {method}/seed{seed}"
         )
-    chain = read_json(score_dir / "provenance.json", ())
     members = _read_csv(eval_dir / "evaluated.csv", ["origin", "iteration", "obj0", "obj1"])
     n_obj = sum(1 for k in members if re.fullmatch(r"obj\d+", k))
     front = _read_csv(score_dir / "front.csv", ["id"], allow_empty=True)
@@ -121,7 +134,7 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
             iteration=np.asarray(members["iteration"], int),
             on_front=on_front,
             history={k: np.asarray(hist[k], float) for k in HISTORY_COLUMNS},
-            provenance=chain,
+            provenance=read_provenance(provenance, method, seed),
             objective=np.array(
                 [int(x) if x != "" else -1 for x in members.get("objective", [""] * len(members["origin"]))]
             ),
@@ -131,6 +144,18 @@ def load_run(score_dir: Path, eval_dir: Path, method: str, seed: int) -> Run:
             f"{score_dir}: front.csv, hypervolume.csv or {eval_dir / 'evaluated.csv'} "
             f"do not fit together or hold unreadable numbers ({exc})"
         ) from None
+
+
+def read_provenance(root: Path | None, method: str, seed: int) -> dict[str, dict | None]:
+    """Per stage of PROVENANCE_FOLDERS, the record ROOT/<folder>/METHOD/seedS.json that stage
+    wrote (pipeline.core.provenance), or None where there is none: no ROOT given, or the stage
+    was run without --provenance (by hand, outside DVC). A record that exists but cannot be
+    read is an ArtifactError naming the file."""
+    records: dict[str, dict | None] = {}
+    for stage, folder in PROVENANCE_FOLDERS.items():
+        path = None if root is None else root / folder / method / f"seed{seed}.json"
+        records[stage] = read_json(path) if path is not None and path.exists() else None
+    return records
 
 
 def check_comparable(scored: Path, runs: list[Run], env_id: str) -> None:

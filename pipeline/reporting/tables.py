@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
 from pipeline.params.methods import label, specialist_kind
-from pipeline.reporting.runs import METHOD_ORDER, Run, methods_in
+from pipeline.reporting.runs import METHOD_ORDER, PROVENANCE_FOLDERS, Run, methods_in
 
 SPECIALIST_ORDER = ("pderl", "td3", "imported")  # the report's order of the kinds of specialists
 
@@ -219,7 +219,7 @@ def sample_efficiency_table(
     return _md_table(["method", "target: final HV of", "frames to 50%", "frames to 90%", "frames to 100%"], rows)
 
 
-PROVENANCE_STAGES = ("extract", "evaluate", "score")
+PROVENANCE_STAGES = tuple(PROVENANCE_FOLDERS)  # extract (or mopderl, morld), evaluate, score
 PROVENANCE_COLUMNS = ("git commit", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "device", "threads")
 
 
@@ -251,7 +251,8 @@ def _run_list(runs: list[Run]) -> str:
 
 def provenance_table(runs: list[Run]) -> str:
     """Per stage, what produced each run (variant x seed): runs with identical provenance share a
-    row. 'extract' is the population's record (population.pt meta['provenance'])."""
+    row. 'extract' is the record of the stage that made the population (extract, mopderl or
+    morld); 'not recorded' where a stage left no record (pipeline.reporting.runs.read_provenance)."""
     rows = []
     for stage in PROVENANCE_STAGES:
         groups: dict[tuple[str, ...], list[Run]] = {}
