@@ -1,7 +1,8 @@
 """Every method through one evaluate -> score -> report chain, in a temporary git + DVC copy of
 the repository: TD3 and PDERL specialists, the extraction variants from both, post-hoc critics
 and the baselines (MORL/D when its optional extra is installed); then an edit to MAPEX's code
-leaves everything but extraction up to date."""
+leaves everything but extraction up to date, and params edits rerun only the stages that read
+them."""
 
 from __future__ import annotations
 
@@ -10,8 +11,9 @@ import os
 import subprocess
 
 import pytest
+import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
-from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, with_lists
 from support.tiny_params import TINY_CHAIN as TINY
 
 # Every method's stages through one DVC chain: `make test-fast` leaves this file out.
@@ -29,14 +31,9 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     except ImportError:  # the optional extra is not installed: the chain without MORL/D
         baselines = ["mopderl"]
     methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
+    methods += ["warmup_only_td3", "warmup_only_pderl"]
     params = {
         **TINY,
-        "pderl_seeds": [0],
-        "extract_from": ["td3", "pderl"],
-        "extract_variants": ["mapex"],
-        "posthoc_from": ["td3", "pderl"],
-        "mopderl_seeds": [0],
-        "morld_seeds": [0] if "morld" in baselines else [],
         "methods": methods,
         "td3": {**TINY["td3"], "buffer_size": 2000},
         "train_pderl": PDERL_TINY,
@@ -45,6 +42,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         "extract": {**TINY["extract"], "iterations": 1},
         "evaluate": {"episodes": 1},
     }
+    params = with_lists(params)
     root = make_repo(tmp_path_factory.mktemp("methods"), params)
     out = run([str(BIN / "dvc"), "repro"], root)
     assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
@@ -83,6 +81,28 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     # critics and the baselines up to date: only extraction and what reads its fronts rerun
     with open(root / "pipeline" / "extraction" / "mapex.py", "a") as fh:
         fh.write("\n# an edit\n")
+    stale = stale_stages(root)
+    assert "extract" in stale and "extract_posthoc" in stale and "warmup_only" in stale
+    assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale
+
+    # DVC params are exact: the specialists' run length and keep-best schedule are
+    # train_specialist's alone (PDERL and MOPDERL read the td3 section), and the warm-up-only
+    # ablation lists only the extract keys it reads, not the advantage-weighted ones
+    run(["git", "checkout", "--", "pipeline/extraction/mapex.py"], root)
+    assert stale_stages(root) == set()
+    edited = {
+        **params,
+        "train_specialist": {**params["train_specialist"], "total_steps": 320, "keep_best_every": 100},
+        "extract": {**params["extract"], "beta": 0.5},
+    }
+    (root / "params.yaml").write_text(yaml.safe_dump(edited))
+    stale = stale_stages(root)
+    assert {"train_specialist", "extract"} <= stale, stale
+    assert not stale & {"train_pderl", "mopderl", "warmup_only", "morld"}, stale
+
+
+def stale_stages(root) -> set[str]:
+    """The stages `dvc status` calls changed (names without their matrix item)."""
     status = json.loads(
         subprocess.run(
             [str(BIN / "dvc"), "status", "--json"],
@@ -92,6 +112,4 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
             env={**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}"},
         ).stdout
     )
-    stale = {name.split("@")[0] for name in status}
-    assert "extract" in stale and "extract_posthoc" in stale
-    assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale
+    return {name.split("@")[0] for name in status}

@@ -93,40 +93,47 @@ CODE_MARKER = "      # generated: the code this stage imports (python -m pipelin
 
 
 def sync_dvc_yaml(path: Path | None = None) -> list[str]:
-    """Rewrite the code deps of every stage in dvc.yaml to its import closure plus stages/cli.py.
+    """Rewrite the code deps of every stage in dvc.yaml to its import closure plus stages/cli.py,
+    and put each stage's `deps` last, so that a reader sees its matrix, cmd, params and outs first.
 
     Line-based, so comments and data deps stay as written; code deps go after the data deps,
-    sorted, below CODE_MARKER. Returns the names of the stages whose deps changed.
+    sorted, below CODE_MARKER. Returns the names of the stages whose deps changed (moving the
+    block does not count).
     """
     path = path or ROOT / "dvc.yaml"
     lines = path.read_text().splitlines(keepends=True)
-    out: list[str] = []
+    starts = [i for i, line in enumerate(lines) if _stage_line(line)]
+    out: list[str] = lines[: starts[0]] if starts else lines
     changed: list[str] = []
-    stage = None
-    i = 0
-    while i < len(lines):
-        line = lines[i]
-        if line.startswith("  ") and not line.startswith("   ") and line.rstrip().endswith(":"):
-            stage = line.strip()[:-1]
-        if stage is not None and line.rstrip() == "    deps:":
-            out.append(line)
-            i += 1
-            block: list[str] = []
-            while i < len(lines) and lines[i].startswith(("      - ", "      #")):  # entries and comments
-                block.append(lines[i])
-                i += 1
-            # comments stay with the data deps; the marker is rewritten above the code deps
-            data = [b for b in block if not b[8:].startswith(("pipeline/", "stages/")) and b != CODE_MARKER]
-            code = sorted(set(module_closure(stage_module(stage))) | {"stages/cli.py"})
-            new = data + [CODE_MARKER] + [f"      - {c}\n" for c in code]
-            if new != block:
-                changed.append(stage)
-            out.extend(new)
+    for n, start in enumerate(starts):
+        end = starts[n + 1] if n + 1 < len(starts) else len(lines)
+        block = lines[start:end]
+        tail: list[str] = []
+        while block and not block[-1].strip():  # blank lines between stages stay between them
+            tail.insert(0, block.pop())
+        stage = block[0].strip()[:-1]
+        at = next((i for i, line in enumerate(block) if line.rstrip() == "    deps:"), None)
+        if at is None:
+            out += block + tail
             continue
-        out.append(line)
-        i += 1
+        stop = at + 1
+        while stop < len(block) and block[stop].startswith(("      - ", "      #")):  # entries and comments
+            stop += 1
+        entries = block[at + 1 : stop]
+        # comments stay with the data deps; the marker is rewritten above the code deps
+        data = [b for b in entries if not b[8:].startswith(("pipeline/", "stages/")) and b != CODE_MARKER]
+        code = sorted(set(module_closure(stage_module(stage))) | {"stages/cli.py"})
+        new = data + [CODE_MARKER] + [f"      - {c}\n" for c in code]
+        if new != entries:
+            changed.append(stage)
+        out += block[:at] + block[stop:] + [block[at]] + new + tail
     path.write_text("".join(out))
     return changed
+
+
+def _stage_line(line: str) -> bool:
+    """Whether `line` opens a stage of dvc.yaml's `stages:` mapping (two-space indented key)."""
+    return line.startswith("  ") and not line.startswith("   ") and line.rstrip().endswith(":") and "#" not in line
 
 
 if __name__ == "__main__":  # python -m pipeline.core.codedeps: bring dvc.yaml's code deps up to date
