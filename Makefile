@@ -4,7 +4,7 @@
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #
 # The tests come in three tiers, chosen by pytest markers (registered in pyproject.toml):
-#   make test-fast  the library-level tests, about 1.5 min: everything but the files marked
+#   make test-fast  the library-level tests, 1 to 2 min: everything but the files marked
 #                   `integration` (a module-level pytestmark: DVC chains, stage commands in
 #                   subprocesses one after another, long training) and the tests marked `slow`
 #   make test       everything not marked slow (the integration files too), about 6.5 min

@@ -8,7 +8,7 @@
 - `cli(*args)`: invokes the same typer app in this process (no interpreter start-up, which
   costs seconds here); returns a click Result (exit_code, stdout, stderr). Good for checks of
   argument and params handling; use `mapex` where a separate process matters.
-- hypothesis runs without its per-example deadline (profile "mapex").
+- hypothesis runs without its per-example deadline (profile "mapex"); torch runs one thread.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import pytest
+import torch
 import yaml
 from hypothesis import settings
 from support.tiny_params import TINY, merge
@@ -28,6 +29,13 @@ from support.tiny_params import TINY, merge
 # that is merely slow, not wrong.
 settings.register_profile("mapex", deadline=None)
 settings.load_profile("mapex")
+
+# One torch thread in every test process, as `mapex` runs its stages by default (stages/cli.py,
+# MAPEX_TORCH_THREADS=1). Tests that invoke a stage function in process bypass that, and ran on
+# torch's default (one thread per core) until an earlier test in the same process happened to
+# call the CLI: their thread count depended on the order of files, and on a busy 2-core machine
+# the tiny nets run 5-10 times slower on two threads (two of test_pderl.py's tests: 25 s vs 5 s).
+torch.set_num_threads(1)
 
 REPO = Path(__file__).resolve().parents[1]
 
