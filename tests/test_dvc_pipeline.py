@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 from pathlib import Path
 
@@ -45,17 +46,29 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     dvc = str(BIN / "dvc")
     first = run([dvc, "repro"], repo)
     # posthoc_from: [] -> no post-hoc fits: joint-critic extraction does not depend on them
-    assert ran(first) == {"train_specialist", "critic_fidelity", "extract", "evaluate", "score", "report"}
+    assert ran(first) == {
+        "train_specialist",
+        "critic_fidelity",
+        "extract",
+        "warmup_only",
+        "evaluate",
+        "score",
+        "report",
+    }
     report = (repo / "data" / "report" / "report.md").read_text()
     metrics_before = (repo / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text()
 
     # nothing changed: nothing runs
     assert ran(run([dvc, "repro"], repo)) == set()
 
-    # an extraction param: extract (both variants), evaluate and report rerun, specialists do not
+    # an advantage-weighted param: MAPEX's extraction, its evaluation and score and the report
+    # rerun; the specialists do not, nor the warm-up-only ablation, which does not read beta
     set_beta(repo, 0.5)
     changed = run([dvc, "repro"], repo)
     assert ran(changed) == {"extract", "evaluate", "score", "report"}
+    items = set(re.findall(r"Running stage '([^']+)'", changed))
+    assert {"evaluate@0-mapex_td3", "score@0-mapex_td3"} <= items
+    assert not {i for i in items if "warmup_only" in i}, items
 
     # back to the old value: everything comes from the run-cache, nothing is recomputed
     set_beta(repo, 1.0)

@@ -178,11 +178,14 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert set(items) == set(listed.stdout.split())
     assert items["critic_fidelity@0-td3-1"].upstream == ("train_specialist@0",)
     assert items["critic_fidelity@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
+    # the report reads the evaluations, the scores and the extractions' provenance records
     assert items["report"].upstream == (
         "evaluate@0-mapex_td3",
         "evaluate@0-warmup_only_td3",
+        "extract@0-td3-mapex",
         "score@0-mapex_td3",
         "score@0-warmup_only_td3",
+        "warmup_only@0-td3",
     )
     assert "data/evaluate/mapex_td3/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
     assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
@@ -200,14 +203,16 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     )
     assert result.exit_code == 2 and "resources: ['evaluation'] are not dvc.yaml stages" in result.output
 
-    # signatures: what DVC's run-cache key depends on besides code. An extract param changes
-    # extract's and everything downstream, not the specialists' or their critics' fidelity.
+    # signatures: what DVC's run-cache key depends on besides code. An advantage-weighted extract
+    # param changes MAPEX's extraction and everything downstream of it, not the specialists', their
+    # critics' fidelity or the warm-up-only ablation's chain (it does not read beta).
     params = yaml.safe_load((ws / "params.yaml").read_text())
     params["extract"]["beta"] = 0.5
     (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     changed = {i.name: i for i in stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
-    assert same == {"train_specialist@0"} | {n for n in items if n.startswith("critic_fidelity")}
+    warmup = {"warmup_only@0-td3", "evaluate@0-warmup_only_td3", "score@0-warmup_only_td3"}
+    assert same == {"train_specialist@0"} | warmup | {n for n in items if n.startswith("critic_fidelity")}
 
     # with post-hoc critics on, MAPEX-PostHoc depends on their fits and the joint-critic
     # extraction still does not, so a post-hoc refit never reruns it
