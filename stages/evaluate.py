@@ -17,8 +17,6 @@ What produced the run (pipeline.core.provenance) goes to the --provenance file, 
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 from pathlib import Path
 from typing import Optional
@@ -26,7 +24,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.population import Member, load_population, member_actor
 from pipeline.core.provenance import write_provenance
@@ -118,12 +116,10 @@ def evaluated_csv(members: list[Member], results: list[EvalResult]) -> str:
     header = ["id", "origin", "objective", "policy_name", "iteration", "parents", "env_samples"]
     header += [f"obj{m}_extract" for m in range(n_obj)] + [f"obj{m}" for m in range(n_obj)]
     header += [f"obj{m}_std" for m in range(n_obj)]
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
+    rows = []
     for i, (mem, res) in enumerate(zip(members, results)):
         objective = "" if mem.objective is None else mem.objective
-        w.writerow(
+        rows.append(
             [
                 i,
                 mem.origin,
@@ -137,4 +133,4 @@ def evaluated_csv(members: list[Member], results: list[EvalResult]) -> str:
                 *map(float, np.asarray(res.std)),
             ]
         )
-    return buf.getvalue()
+    return csv_text(header, rows)

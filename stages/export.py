@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 from pathlib import Path
 from typing import Optional
@@ -11,7 +9,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, atomic_path, read_json
+from pipeline.core.artifacts import ArtifactError, atomic_path, csv_text, read_json
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population, member_actor
 from pipeline.core.provenance import write_provenance
@@ -26,43 +24,39 @@ FRONT_VERSION = 1
 
 
 def front_csv(records: list[dict], n_obj: int) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
     objs = [f"obj{m}" for m in range(n_obj)]
-    w.writerow(
+    header = [
+        "id",
+        "file",
+        "onnx_file",
+        "origin",
+        "objective",
+        "policy_name",
+        "iteration",
+        "parents",
+        "target_weight",
+        *objs,
+        *(f"{c}_std" for c in objs),
+        *(f"{c}_extract" for c in objs),
+    ]
+    rows = [
         [
-            "id",
-            "file",
-            "onnx_file",
-            "origin",
-            "objective",
-            "policy_name",
-            "iteration",
-            "parents",
-            "target_weight",
-            *objs,
-            *(f"{c}_std" for c in objs),
-            *(f"{c}_extract" for c in objs),
+            r["id"],
+            r["file"],
+            r["onnx_file"] or "",
+            r["origin"],
+            "" if r["objective"] is None else r["objective"],
+            r["policy_name"] or "",
+            r["iteration"],
+            ";".join(map(str, r["parents"])),
+            "" if r["target_weight"] is None else ";".join(f"{x:.6g}" for x in r["target_weight"]),
+            *r["returns"],
+            *r["returns_std"],
+            *r["returns_extract"],
         ]
-    )
-    for r in records:
-        w.writerow(
-            [
-                r["id"],
-                r["file"],
-                r["onnx_file"] or "",
-                r["origin"],
-                "" if r["objective"] is None else r["objective"],
-                r["policy_name"] or "",
-                r["iteration"],
-                ";".join(map(str, r["parents"])),
-                "" if r["target_weight"] is None else ";".join(f"{x:.6g}" for x in r["target_weight"]),
-                *r["returns"],
-                *r["returns_std"],
-                *r["returns_extract"],
-            ]
-        )
-    return buf.getvalue()
+        for r in records
+    ]
+    return csv_text(header, rows)
 
 
 @reports_errors

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import copy
-import csv
-import io
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
 from pipeline.core.checkpoint import save_critics
 from pipeline.core.finite import TrainingDiverged
 from pipeline.core.provenance import write_provenance
@@ -29,12 +27,7 @@ POSTHOC_STREAM = 0x9057
 
 
 def fit_csv(checks) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["step", "loss", "mean_rel_error"])
-    for c in checks:
-        w.writerow([c.step, f"{c.loss:.6g}", f"{c.error:.6g}"])
-    return buf.getvalue()
+    return csv_text(["step", "loss", "mean_rel_error"], ([c.step, f"{c.loss:.6g}", f"{c.error:.6g}"] for c in checks))
 
 
 @reports_errors

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
 from pipeline.core.buffer import load_buffer, save_buffer
 from pipeline.core.checkpoint import save_policy
 from pipeline.core.drive import drive
@@ -65,12 +63,8 @@ def check_user_buffer(path: Path, spec: EnvSpec) -> tuple[dict[str, np.ndarray],
 
 
 def episodes_csv(returns: list[list[float]], n_objectives: int) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["episode", *(f"obj{m}" for m in range(n_objectives))])
-    for i, r in enumerate(returns):
-        w.writerow([i, *(f"{x:.6g}" for x in r)])
-    return buf.getvalue()
+    header = ["episode", *(f"obj{m}" for m in range(n_objectives))]
+    return csv_text(header, ([i, *(f"{x:.6g}" for x in r)] for i, r in enumerate(returns)))
 
 
 def collect(

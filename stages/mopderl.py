@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 from typing import Optional
 
 import typer
 
 from pipeline.baselines.mopderl import GenerationRecord, MopderlRun, starts_from_slots
-from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
@@ -34,10 +32,7 @@ HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size",
 
 
 def history_csv(records: list[GenerationRecord]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
-    w.writeheader()
-    w.writerows(
+    rows = (
         {
             "generation": r.generation,
             "env_frames": r.frames,
@@ -48,7 +43,7 @@ def history_csv(records: list[GenerationRecord]) -> str:
         }
         for r in records
     )
-    return buf.getvalue()
+    return csv_text(HISTORY_FIELDS, rows)
 
 
 @reports_errors

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 from typing import Optional
 
@@ -17,7 +15,7 @@ from pipeline.baselines.morld import (
     history_csv_rows,
     require_morl_baselines,
 )
-from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
@@ -147,8 +145,4 @@ def _library_version() -> str | None:
 
 
 def history_csv(history: list[ExchangeRecord]) -> str:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(HISTORY_COLUMNS), lineterminator="\n")
-    w.writeheader()
-    w.writerows(history_csv_rows(history))
-    return buf.getvalue()
+    return csv_text(HISTORY_COLUMNS, history_csv_rows(history))

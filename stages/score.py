@@ -17,8 +17,6 @@ report reads it beside those of extract and evaluate.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 from pathlib import Path
@@ -27,7 +25,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from pipeline.core.artifacts import ArtifactError, read_json, write_text_atomic
+from pipeline.core.artifacts import ArtifactError, csv_text, read_json, write_text_atomic
 from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import Member, load_population
 from pipeline.core.provenance import write_provenance
@@ -105,7 +103,9 @@ def score(
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "front.csv", front_csv(members, means))
     write_text_atomic(out / "metrics.json", json.dumps(finite(metrics), indent=2) + "\n")
-    write_text_atomic(out / "hypervolume.csv", _csv(list(history), list(zip(*(c.tolist() for c in history.values())))))
+    write_text_atomic(
+        out / "hypervolume.csv", csv_text(list(history), list(zip(*(c.tolist() for c in history.values()))))
+    )
     write_provenance(provenance, "score", "cpu")
 
 
@@ -133,17 +133,9 @@ def finite(obj):
     return obj
 
 
-def _csv(header: list[str], rows: list[list]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(header)
-    w.writerows(rows)
-    return buf.getvalue()
-
-
 def front_csv(members: list[Member], means: np.ndarray) -> str:
     """The non-dominated members sorted by obj0 (ties by the later objectives, then id):
     id, origin, iteration, obj<m>. Members with identical returns all appear."""
     ids = sorted(np.flatnonzero(pareto_mask(means)), key=lambda i: (*means[i], i))
     header = ["id", "origin", "iteration", *(f"obj{m}" for m in range(means.shape[1]))]
-    return _csv(header, [[int(i), members[i].origin, members[i].iteration, *map(float, means[i])] for i in ids])
+    return csv_text(header, [[int(i), members[i].origin, members[i].iteration, *map(float, means[i])] for i in ids])

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 from typing import Any, Optional
 
 import torch
 import typer
 
-from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.core.policyset import save_policy_set
@@ -210,13 +208,12 @@ def fitness_csv(result: PderlResult) -> str:
     """Per generation: generation, frames, updates, best, mean (population fitness on the run's
     objective), rl_fitness (the noisy RL episode's return); last row 'final': the final
     deterministic evaluation of the population and the RL actor."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["generation", "frames", "updates", "best", "mean", "rl_fitness"])
-    for r in result.history:
-        w.writerow([r.generation, r.frames, r.updates, f"{r.best:.6g}", f"{r.mean:.6g}", f"{r.rl_fitness:.6g}"])
+    rows = [
+        [r.generation, r.frames, r.updates, f"{r.best:.6g}", f"{r.mean:.6g}", f"{r.rl_fitness:.6g}"]
+        for r in result.history
+    ]
     fit = result.fitness
-    w.writerow(
+    rows.append(
         [
             "final",
             result.frames,
@@ -226,4 +223,4 @@ def fitness_csv(result: PderlResult) -> str:
             f"{result.rl_fitness:.6g}",
         ]
     )
-    return buf.getvalue()
+    return csv_text(["generation", "frames", "updates", "best", "mean", "rl_fitness"], rows)

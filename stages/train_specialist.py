@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import csv
-import io
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import torch
 import typer
 
-from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
@@ -239,12 +237,7 @@ def save_td3_specialist(
 def keep_best_csv(kb: KeepBest) -> str:
     """Every keep-best check as CSV: step, score (mean deterministic return on the specialist's
     own objective), kept (1 on the check whose actor policy.pt holds)."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["step", "score", "kept"])
-    for t, score in kb.checks:
-        w.writerow([t, f"{score:.6g}", int(t == kb.step)])
-    return buf.getvalue()
+    return csv_text(["step", "score", "kept"], ([t, f"{score:.6g}", int(t == kb.step)] for t, score in kb.checks))
 
 
 def kept_line(result: SpecialistResult) -> str:
@@ -266,9 +259,7 @@ def returns_csv(episodes, n_objectives: int) -> str:
     every env; the report and README map them to objective names.
     """
     cols = [f"obj{m}" for m in range(n_objectives)]
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["episode", "step", "length", "terminated", *cols])
-    for e in episodes:
-        w.writerow([e.episode, e.end_step, e.length, int(e.terminated), *(f"{x:.6g}" for x in e.returns)])
-    return buf.getvalue()
+    return csv_text(
+        ["episode", "step", "length", "terminated", *cols],
+        ([e.episode, e.end_step, e.length, int(e.terminated), *(f"{x:.6g}" for x in e.returns)] for e in episodes),
+    )

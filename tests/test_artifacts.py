@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import csv
 import errno
+import io
 import json
 import os
 import subprocess
@@ -14,7 +16,7 @@ import pytest
 import torch
 
 import pipeline.core.artifacts as art
-from pipeline.core.artifacts import atomic_path, disk_full_error, recover, write_text_atomic
+from pipeline.core.artifacts import atomic_path, csv_text, disk_full_error, recover, write_text_atomic
 from pipeline.core.buffer import load_buffer
 
 
@@ -187,3 +189,23 @@ def test_disk_full_is_found_behind_a_wrapping_error():
     assert disk_full_error(OSError(errno.EDQUOT, "Disk quota exceeded")) is not None
     assert disk_full_error(OSError(errno.EACCES, "Permission denied")) is None
     assert disk_full_error(RuntimeError("other")) is None
+
+
+def test_csv_text_header_rows_quoting_and_newline_line_ends():
+    text = csv_text(["id", "name", "x"], [[0, "a,b", 1.5], (1, 'say "hi"', None), {"x": "0.25", "id": 2, "name": "c"}])
+    assert text == 'id,name,x\n0,"a,b",1.5\n1,"say ""hi""",\n2,c,0.25\n'
+    assert "\r" not in text
+    assert list(csv.reader(io.StringIO(text))) == [
+        ["id", "name", "x"],
+        ["0", "a,b", "1.5"],
+        ["1", 'say "hi"', ""],
+        ["2", "c", "0.25"],
+    ]
+    assert csv_text(("a", "b"), []) == "a,b\n"
+
+
+def test_csv_text_refuses_a_mapping_row_whose_keys_differ_from_the_header():
+    with pytest.raises(ValueError, match=r"keys \['a', 'c'\] differ from the header \['a', 'b'\]"):
+        csv_text(["a", "b"], [{"a": 1, "c": 2}])
+    with pytest.raises(ValueError, match="differ from the header"):
+        csv_text(["a", "b"], [{"a": 1}])

@@ -16,6 +16,7 @@ raises `DiskFull`: one line naming the file, the temporary removed, the old arti
 
 from __future__ import annotations
 
+import csv
 import ctypes
 import ctypes.util
 import errno
@@ -25,7 +26,7 @@ import os
 import shutil
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import torch
 
@@ -181,6 +182,25 @@ def write_bytes_atomic(dest: str | Path, data: bytes) -> None:
 
 def write_text_atomic(dest: str | Path, text: str) -> None:
     write_bytes_atomic(dest, text.encode())
+
+
+def csv_text(header: Sequence[str], rows: Iterable[Sequence | Mapping[str, Any]]) -> str:
+    """The text of a CSV artifact: the header line, then one line per row, each ended by "\n".
+
+    A row is a sequence of values in header order, or a mapping with exactly the header's keys.
+    Values are written as the csv module writes them (str of each, None empty, a field holding a
+    comma, quote or line break quoted); callers format floats themselves where they want fewer digits.
+    """
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    for row in rows:
+        if isinstance(row, Mapping):
+            if set(row) != set(header):
+                raise ValueError(f"CSV row keys {sorted(row)} differ from the header {list(header)}")
+            row = [row[h] for h in header]
+        w.writerow(row)
+    return buf.getvalue()
 
 
 def torch_save_atomic(obj: Any, dest: str | Path) -> None:

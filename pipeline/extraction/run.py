@@ -17,8 +17,6 @@ child per iteration child c has the streams iteration c always had.
 
 from __future__ import annotations
 
-import csv
-import io
 from dataclasses import asdict
 from typing import Any, Callable, Sequence
 
@@ -26,6 +24,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.artifacts import csv_text
 from pipeline.core.drive import fmt_vec
 from pipeline.core.finite import TrainingDiverged
 from pipeline.core.nets import CriticEnsemble
@@ -83,11 +82,7 @@ def history_row(iteration: int, members: Sequence[Member]) -> dict[str, int]:
 
 def history_csv(rows: Sequence[dict]) -> str:
     """history.csv: population, front size and env samples after each iteration (0 = the start)."""
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_FIELDS, lineterminator="\n")
-    w.writeheader()
-    w.writerows(rows)
-    return buf.getvalue()
+    return csv_text(HISTORY_FIELDS, rows)
 
 
 class ExtractionRun:
