@@ -69,7 +69,7 @@ def save_specialist(slot: Path, meta: dict, objective: int, result, policy_meta:
     )
 
 
-def specialist_kind(meta: dict) -> str | None:
+def kind_from_meta(meta: dict) -> str | None:
     """'pderl' or 'td3' from a specialist artifact's recorded params; None if it records none."""
     params = meta.get("params")
     if not isinstance(params, dict):
@@ -192,7 +192,7 @@ def load_slot(
     if policies:  # read first: a missing specialist is reported by its policies' file
         set_path = policies_path(slot)
         pset = load_policy_set(set_path)
-        found = specialist_kind(pset.meta)
+        found = kind_from_meta(pset.meta)
         if kind is not None and found is not None and found != kind:
             raise ArtifactError(f"{set_path}: a {found} specialist, but --kind is {kind!r}")
         hidden = list(pset.meta["hidden_sizes"])
