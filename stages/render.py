@@ -17,7 +17,6 @@ from pipeline.core.population import member_actor
 from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.render import Film, choose_gl, clip_fps, clip_key, film_episode, make_render_env, write_clip
 from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.export import ExportParams
 from pipeline.params.methods import colour, label
 from pipeline.params.render import RenderParams
 from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
@@ -85,7 +84,7 @@ def render(
     """
     raw, env_p, cfg = read_params(params, "render", RenderParams)
     run_p = section(raw, "", RunParams, params)
-    exported = set(section(raw, "export", ExportParams, params).methods)
+    exported = set(run_p.export_methods)  # export.methods, as the generated list (always in the file)
     stray = [m for m in cfg.methods if m not in run_p.methods]
     if stray:
         raise ParamsError(f"{params}: render.methods lists {stray}, which methods = {run_p.methods} does not run")

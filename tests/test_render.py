@@ -300,3 +300,18 @@ def test_explorer_plays_the_clip_of_the_point_clicked(rendered, browser, tmp_pat
     shot = browser.call("Page.captureScreenshot", format="png")["data"]
     (tmp_path / "explorer.png").write_bytes(base64.b64decode(shot))
     assert (tmp_path / "explorer.png").stat().st_size > 5000
+
+
+def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rendered, tmp_path):
+    from pipeline.reporting.gallery import gallery_markdown
+
+    out = rendered / "report"
+    text = gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [0])
+    assert "[The front explorer](../render/explorer.html)" in text
+    # front sorted by objective 0: member 1 (lowest), 3 (middle), 0 (highest)
+    for i in (1, 3, 0):
+        assert f"(thumbs/mapex_td3_seed0_member_{i:04d}.png)" in text
+        assert (tmp_path / "thumbs" / f"mapex_td3_seed0_member_{i:04d}.png").stat().st_size > 100
+    assert text.index("member_0001.png") < text.index("member_0003.png") < text.index("member_0000.png")
+    assert "(../render/clips/mapex_td3/seed0/member_0003.mp4)" in text
+    assert gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [1]).count("thumbs/") == 0
