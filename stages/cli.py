@@ -24,6 +24,7 @@ COMMANDS = {
     "score": "stages.score",
     "report": "stages.report",
     "export": "stages.export",
+    "render": "stages.render",
     "mopderl": "stages.mopderl",
     "morld": "stages.morld",
     "sweep": "stages.sweep",

@@ -13,6 +13,7 @@ from pipeline.params import RunParams, section
 from pipeline.params.methods import label
 from pipeline.params.report import ReportParams
 from pipeline.reporting.figures import front_caption, front_figure, history_figure
+from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.report import report_markdown
 from pipeline.reporting.runs import Run, check_comparable, load_runs
 from stages.common import PARAMS_OPTION, check_min_return, read_params, reports_errors
@@ -28,6 +29,9 @@ def report(
         "(default: none; the provenance table then says 'not recorded')",
     ),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
+    render: Optional[Path] = typer.Option(
+        None, help="stage render's folder: the report links its explorer.html and shows thumbnails (default: none)"
+    ),
     params: Path = PARAMS_OPTION,
 ) -> None:
     """Write the experiment report: verdicts, metrics table, fronts, hypervolume curves, provenance.
@@ -46,7 +50,9 @@ def report(
     to reach each other's hypervolume (when both ran), one front figure per seed
     (front_seedS.png: starting policies apart from the rest; with 3 or more objectives every
     pair of objectives and a 3-D view), the hypervolume history
-    (hypervolume.png) and what produced each run (its stages' provenance). The folder is built beside OUT and renamed
+    (hypervolume.png) and what produced each run (its stages' provenance); with --render, a link
+    to stage render's explorer.html and thumbnails of each filmed front's ends and middle
+    (thumbs/). The folder is built beside OUT and renamed
     into place when complete.
     """
     raw, env_p, cfg = read_params(params, "report", ReportParams)
@@ -96,6 +102,9 @@ def report(
         for name, fig in figures.items():
             for fmt in cfg.formats:
                 fig.savefig(tmp / f"{name}.{fmt}", dpi=cfg.dpi)
+        gallery = gallery_markdown(render, out, tmp, methods, seeds) if render is not None else ""
+        if gallery:
+            text += "\n" + gallery
         (tmp / "report.md").write_text(text)
 
 

@@ -53,7 +53,16 @@ def hopper3(tmp_path_factory) -> Path:
     methods = ["mapex_td3", "warmup_only_td3"]
     root = make_repo(tmp_path_factory.mktemp("hopper3"), tiny_hopper(methods))
     out = run([DVC, "repro"], root)
-    assert ran(out) == {"train_specialist", "critic_fidelity", "extract", "warmup_only", "evaluate", "score", "report"}
+    assert ran(out) == {
+        "train_specialist",
+        "critic_fidelity",
+        "extract",
+        "warmup_only",
+        "evaluate",
+        "score",
+        "render",
+        "report",
+    }
     return root
 
 

@@ -34,6 +34,7 @@ KNOWN_SECTIONS = (
     "score",
     "report",
     "export",
+    "render",
     "mopderl",
     "morld",
 )

@@ -22,6 +22,7 @@ def section_models() -> dict[str, type[BaseModel]]:
     from pipeline.params.import_specialists import ImportSpecialistsParams
     from pipeline.params.mopderl import MopderlParams
     from pipeline.params.morld import MorldParams
+    from pipeline.params.render import RenderParams
     from pipeline.params.report import ReportParams
     from pipeline.params.score import ScoreParams
     from pipeline.params.td3 import TD3Params
@@ -44,4 +45,5 @@ def section_models() -> dict[str, type[BaseModel]]:
         "score": ScoreParams,
         "report": ReportParams,
         "export": ExportParams,
+        "render": RenderParams,
     }

@@ -79,17 +79,23 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
 TRACKED_NOTE = "  # named for DVC by `mapex sync-params` (stage warmup_only tracks each key it reads); edit freely\n"
 
 
+RENDER_NOTE = "# named for DVC by `mapex sync-params` (stage render tracks the section): no clips\n"
+
+
 def with_tracked_keys(text: str) -> str:
-    """`text` with every extract key of WARMUP_ONLY_KEYS present, at its default where missing.
+    """`text` with every extract key of WARMUP_ONLY_KEYS present, at its default where missing,
+    and a `render` section (`methods: []`, under RENDER_NOTE) where it has none.
 
     Stage warmup_only lists those keys one by one in dvc.yaml (so that changing an
     advantage-weighted key, which it does not read, leaves it up to date), and DVC refuses to
     run a stage whose listed params are missing from the file. Missing keys are appended to the
     extract section (created if absent) under TRACKED_NOTE; nothing else changes, and a file
-    without warm-up-only methods is returned as it is."""
+    without warm-up-only methods is returned as it is (but for the render section)."""
     from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 
     raw = yaml.safe_load(text) or {}
+    if "render" not in raw:  # stage render tracks the whole section: DVC needs it in the file
+        text = text + ("" if text.endswith("\n") or not text else "\n") + RENDER_NOTE + "render:\n  methods: []\n"
     if not any(str(m).startswith("warmup_only_") for m in raw.get("methods") or []):
         return text
     section = raw.get("extract")

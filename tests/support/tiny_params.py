@@ -57,11 +57,12 @@ def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, A
 
 def with_lists(params: dict) -> dict:
     """`params` with the run lists derived from its methods, seeds, imports and export methods,
-    and the extract keys stage warmup_only tracks at their defaults where missing (as
+    a render section where none, and the extract keys stage warmup_only tracks at their defaults where missing (as
     `mapex sync-params` writes them: DVC refuses a listed param that is not in the file)."""
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
     out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+    out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
     if out["warmup_from"]:
         fields = ExtractParams.model_fields
         out["extract"] = {k: fields[k].default for k in WARMUP_ONLY_KEYS} | (params.get("extract") or {})

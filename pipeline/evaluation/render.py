@@ -1,0 +1,235 @@
+"""Filming a policy: one deterministic episode rendered offscreen, written as an H.264 MP4 clip
+and a PNG thumbnail, with the episode's returns (stage render, docs/artifacts.md).
+
+MuJoCo draws offscreen through the OpenGL backend named by MUJOCO_GL. `choose_gl` picks one
+before anything imports mujoco's renderer: the one the user set, else EGL (Mesa's software EGL
+works with no GPU), else OSMesa; each is tried in a child process, so a backend that fails
+leaves this process clean for the next. Where none works, `RenderError` is one line naming
+MUJOCO_GL, what was tried and what to install.
+
+The clips are encoded by imageio-ffmpeg (its wheel carries its own ffmpeg) in one thread with
+the bit-exact flags, so the same frames give the same bytes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipeline.core.artifacts import TMP_SUFFIX, write_bytes_atomic
+from pipeline.core.envs import EnvError
+
+RENDER_VERSION = 1  # part of every clip's key: bump when the same inputs would film differently
+BACKENDS = ("egl", "osmesa")
+# PyOpenGL must load the same platform as MuJoCo's context (glfw needs no override).
+PYOPENGL_PLATFORM = {"egl": "egl", "osmesa": "osmesa"}
+_PROBE = "import mujoco; c = mujoco.GLContext(16, 16); c.make_current(); c.free(); print('ok')"
+
+
+class RenderError(EnvError):
+    """No OpenGL backend can draw MuJoCo frames offscreen here (the message says what to install)."""
+
+
+def _probe(backend: str) -> str | None:
+    """None if a fresh process can make a MuJoCo GL context with `backend`, else why not (one line)."""
+    env = dict(os.environ, MUJOCO_GL=backend)
+    if backend in PYOPENGL_PLATFORM:
+        env["PYOPENGL_PLATFORM"] = PYOPENGL_PLATFORM[backend]
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE], env=env, capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        return "no context within 60 s"
+    if done.returncode == 0 and done.stdout.strip().endswith("ok"):
+        return None
+    lines = [ln for ln in done.stderr.strip().splitlines() if ln.strip()]
+    return lines[-1][:160] if lines else f"exit code {done.returncode}"
+
+
+def gl_problem() -> str | None:
+    """None when some backend renders (and MUJOCO_GL then names it), else the one-line reason."""
+    given = os.environ.get("MUJOCO_GL")
+    tried = [given] if given else list(BACKENDS)
+    why = {}
+    for backend in tried:
+        why[backend] = _probe(backend)
+        if why[backend] is None:
+            os.environ["MUJOCO_GL"] = backend
+            if backend in PYOPENGL_PLATFORM:
+                os.environ.setdefault("PYOPENGL_PLATFORM", PYOPENGL_PLATFORM[backend])
+            return None
+    what = "; ".join(f"MUJOCO_GL={b}: {w}" for b, w in why.items())
+    hint = (
+        "unset MUJOCO_GL to let render try egl and osmesa, or "
+        if given
+        else "install Mesa's EGL (Debian/Ubuntu: apt-get install libegl1 libgl1-mesa-dri) or OSMesa (libosmesa6), or "
+    )
+    return f"no OpenGL backend can render MuJoCo offscreen ({what}); {hint}set render.methods: [] to skip the clips"
+
+
+def choose_gl() -> str:
+    """The MUJOCO_GL backend to render with (set in os.environ); RenderError where none works."""
+    problem = gl_problem()
+    if problem is not None:
+        raise RenderError(problem)
+    return os.environ["MUJOCO_GL"]
+
+
+@dataclass(frozen=True)
+class Film:
+    """How a clip is filmed (section `render` less the choice of fronts)."""
+
+    env_id: str
+    max_episode_steps: int
+    frames: int | None
+    every: int
+    fps: int | None
+    width: int
+    height: int
+    camera: str | int | None
+    episode_seed: int
+
+
+def make_render_env(film: Film):
+    """The env of `film`, drawing `width` x `height` RGB frames from its camera."""
+    kwargs: dict = {"render_mode": "rgb_array", "width": film.width, "height": film.height}
+    if isinstance(film.camera, str):
+        kwargs["camera_name"] = film.camera
+    elif isinstance(film.camera, int):
+        kwargs["camera_id"] = film.camera
+    import gymnasium as gym
+    import mo_gymnasium
+
+    try:
+        env = mo_gymnasium.make(film.env_id, max_episode_steps=film.max_episode_steps, **kwargs)
+    except (gym.error.Error, TypeError, ValueError) as exc:
+        raise EnvError(f"env.id = {film.env_id!r}: cannot build it to render ({exc})") from None
+    return env
+
+
+def clip_fps(film: Film, env) -> int:
+    """Frames per second: the params' fps, else the env's real time (its render_fps / every)."""
+    if film.fps is not None:
+        return film.fps
+    real = env.metadata.get("render_fps") or 30
+    return max(1, round(real / film.every))
+
+
+@dataclass(frozen=True)
+class Clip:
+    frames: np.ndarray  # (T, H, W, 3) uint8
+    returns: np.ndarray  # (n_objectives,) undiscounted return of the whole episode
+    steps: int  # env steps of the episode (the cap or termination)
+    rendered_steps: int  # env steps the frames cover
+
+
+@torch.no_grad()
+def film_episode(actor, env, film: Film, on_frame=None) -> Clip:
+    """One deterministic episode of `actor` from reset seed `film.episode_seed`, to its end (its
+    returns), with a frame after the reset and after every `film.every`-th step until
+    `film.frames` frames (all of the episode's when None). `on_frame()` is called per frame."""
+    obs, _ = env.reset(seed=film.episode_seed)
+    frames = [env.render()]
+    if on_frame:
+        on_frame()
+    want = film.frames
+    n_obj = env.unwrapped.reward_space.shape[0]
+    returns = np.zeros(n_obj)
+    steps = rendered = 0
+    done = False
+    while not done:
+        action = actor(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))[0].numpy()
+        obs, r, terminated, truncated, _ = env.step(action)
+        returns += r
+        steps += 1
+        done = terminated or truncated
+        if (want is None or len(frames) < want) and steps % film.every == 0:
+            frames.append(env.render())
+            rendered = steps
+            if on_frame:
+                on_frame()
+    return Clip(np.stack(frames).astype(np.uint8), returns, steps, rendered)
+
+
+def mp4_bytes(frames: np.ndarray, fps: int, path_hint: Path) -> bytes:
+    """`frames` (T, H, W, 3) uint8 as an H.264 MP4 (yuv420p, +faststart for browsers), bit-exact."""
+    import imageio_ffmpeg
+
+    t, h, w, _ = frames.shape
+    tmp = path_hint.with_name(path_hint.name + TMP_SUFFIX + ".mp4")
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        writer = imageio_ffmpeg.write_frames(
+            str(tmp),
+            (w, h),
+            fps=fps,
+            codec="libx264",
+            pix_fmt_out="yuv420p",
+            macro_block_size=2,
+            ffmpeg_log_level="error",
+            output_params=[
+                "-threads",
+                "1",
+                "-movflags",
+                "+faststart",
+                "-map_metadata",
+                "-1",
+                "-fflags",
+                "+bitexact",
+                "-flags:v",
+                "+bitexact",
+            ],  # fmt: skip
+        )
+        writer.send(None)
+        for frame in frames:
+            writer.send(np.ascontiguousarray(frame))
+        writer.close()
+        return tmp.read_bytes()
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def png_bytes(frame: np.ndarray) -> bytes:
+    import imageio.v3 as iio
+
+    return iio.imwrite("<bytes>", frame, extension=".png")
+
+
+def clip_key(member_actor: dict[str, torch.Tensor], hidden_sizes: list[int], meta: dict, film: Film) -> str:
+    """What a clip depends on, hashed: the actor's weights, the env and how it is filmed."""
+    h = hashlib.sha256()
+    spec = {k: meta.get(k) for k in ("env_id", "obs_dim", "act_dim", "action_low", "action_high")}
+    h.update(json.dumps([RENDER_VERSION, spec, list(hidden_sizes), film.__dict__], sort_keys=True).encode())
+    for name in sorted(member_actor):
+        tensor = member_actor[name].detach().cpu().contiguous()
+        h.update(name.encode())
+        h.update(str(tensor.dtype).encode())
+        h.update(tensor.view(torch.uint8).numpy().tobytes() if tensor.numel() else b"")
+    return h.hexdigest()
+
+
+def write_clip(clip: Clip, fps: int, mp4: Path, png: Path, record: Path, info: dict) -> dict:
+    """Write the clip's MP4, its thumbnail (the middle frame) and its record (`info` plus the
+    episode's returns, steps and frames), each atomically, the record last: a record stands
+    for a whole clip. Returns the record."""
+    write_bytes_atomic(mp4, mp4_bytes(clip.frames, fps, mp4))
+    png.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(png, png_bytes(clip.frames[len(clip.frames) // 2]))
+    doc = info | {
+        "returns": [float(x) for x in clip.returns],
+        "episode_steps": clip.steps,
+        "rendered_steps": clip.rendered_steps,
+        "frames": int(len(clip.frames)),
+        "fps": fps,
+        "width": int(clip.frames.shape[2]),
+        "height": int(clip.frames.shape[1]),
+    }
+    write_bytes_atomic(record, (json.dumps(doc, indent=2) + "\n").encode())
+    return doc

@@ -1,0 +1,177 @@
+"""Stage render: a clip of every front policy (MP4 + thumbnail + returns) and the explorer page."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from pipeline.core.artifacts import ArtifactError, write_text_atomic
+from pipeline.core.envs import objective_names
+from pipeline.core.population import member_actor
+from pipeline.core.provenance import write_provenance
+from pipeline.evaluation.render import Film, choose_gl, clip_fps, clip_key, film_episode, make_render_env, write_clip
+from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.methods import colour, label
+from pipeline.params.render import RenderParams
+from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
+
+INDEX_FORMAT = "mapex.render"
+INDEX_VERSION = 1
+
+
+def fronts_csv(panels: list[dict], n_obj: int) -> str:
+    """Every front member of every panel, one row each (the DVC plot of the fronts)."""
+    objs = [f"obj{m}" for m in range(n_obj)]
+    lines = [",".join(["method", "seed", "id", "origin", *objs, "clip"])]
+    for p in panels:
+        for pt in p["points"]:
+            if pt["on_front"]:
+                clip = pt["clip"]["mp4"] if pt["clip"] else ""
+                row = [
+                    p["method"],
+                    str(p["seed"]),
+                    str(pt["id"]),
+                    pt["origin"],
+                    *(repr(x) for x in pt["returns"]),
+                    clip,
+                ]
+                lines.append(",".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def prune(out: Path, keep: set[Path]) -> None:
+    """Remove what an earlier run left under OUT/clips and OUT/thumbs that this run does not list."""
+    for sub in ("clips", "thumbs"):
+        for path in sorted((out / sub).rglob("*"), reverse=True) if (out / sub).is_dir() else []:
+            if path.is_file() and path not in keep:
+                path.unlink()
+            elif path.is_dir() and not any(path.iterdir()):
+                path.rmdir()
+
+
+@reports_errors
+def render(
+    fronts: Path = typer.Option(..., help="root of the fronts, holding METHOD/seedS/population.pt"),
+    evaluated: Path = typer.Option(..., help="root of the evaluate outputs, holding METHOD/seedS/evaluated.csv"),
+    out: Path = typer.Option(..., help="output folder: explorer.html, fronts.csv, index.json, clips/, thumbs/"),
+    export_root: Path = typer.Option(
+        Path("data/export"), "--export", help="where stage export writes (linked from the page when export ran)"
+    ),
+    params: Path = PARAMS_OPTION,
+    provenance: Optional[Path] = PROVENANCE_OPTION,
+) -> None:
+    """Film every non-dominated member of the fronts of render.methods x render.seeds and write
+    the explorer page of every method and seed params.yaml runs.
+
+    Each member plays one deterministic episode from reset seed render.episode_seed, to its
+    end (the episode's returns), filmed offscreen (MUJOCO_GL: egl, else osmesa, unless set)
+    for its first render.frames frames at render.width x render.height. Per member:
+    OUT/clips/METHOD/seedS/member_<id>.mp4 (H.264) and .json (its episode's returns, steps,
+    frames, the clip's key), OUT/thumbs/METHOD/seedS/member_<id>.png (the middle frame).
+
+    A clip is rendered only when its record is missing or its key (the actor's weights, the
+    env, the render params) differs: OUT persists across runs (dvc.yaml: persist: true), and
+    what no front lists any more is removed. Every file is written whole (atomically), each
+    record after its clip. OUT/explorer.html (self-contained: open it from file://),
+    OUT/fronts.csv (the DVC plot) and OUT/index.json are rewritten last.
+    """
+    raw, env_p, cfg = read_params(params, "render", RenderParams)
+    run_p = section(raw, "", RunParams, params)
+    exported = set(run_p.export_methods)  # export.methods, as the generated list (always in the file)
+    stray = [m for m in cfg.methods if m not in run_p.methods]
+    if stray:
+        raise ParamsError(f"{params}: render.methods lists {stray}, which methods = {run_p.methods} does not run")
+    film_seeds = run_p.seeds if cfg.seeds is None else cfg.seeds
+    stray = [s for s in film_seeds if s not in run_p.seeds]
+    if stray:
+        raise ParamsError(f"{params}: render.seeds lists {stray}, which seeds = {run_p.seeds} does not run")
+    film = Film(
+        env_p.id, env_p.max_episode_steps, cfg.frames, cfg.every, cfg.fps, cfg.width, cfg.height, cfg.camera,
+        cfg.episode_seed,
+    )  # fmt: skip
+    runs = [
+        load_front_run(fronts / m / f"seed{s}" / "population.pt", evaluated / m / f"seed{s}")
+        for m in run_p.methods
+        for s in run_p.seeds
+    ]
+    for r in runs:
+        if r.meta["env_id"] != env_p.id:
+            raise ArtifactError(
+                f"{fronts / r.method / f'seed{r.seed}'}: made on {r.meta['env_id']}, env.id is {env_p.id}"
+            )
+    jobs = [(r, i) for r in runs if r.method in cfg.methods and r.seed in film_seeds for i in r.front]
+    out.mkdir(parents=True, exist_ok=True)
+    records: dict[tuple[str, int, int], dict] = {}
+    keep: set[Path] = set()
+    todo = []
+    for r, i in jobs:
+        stem = Path(r.method) / f"seed{r.seed}" / f"member_{i:04d}"
+        paths = (out / "clips" / f"{stem}.mp4", out / "thumbs" / f"{stem}.png", out / "clips" / f"{stem}.json")
+        keep.update(paths)
+        key = clip_key(r.members[i].actor, r.members[i].hidden_sizes, r.meta, film)
+        old = json.loads(paths[2].read_text()) if paths[2].is_file() else {}
+        if old.get("key") == key and paths[0].is_file() and paths[1].is_file():
+            records[(r.method, r.seed, i)] = old
+        else:
+            todo.append((r, i, key, paths))
+    backend, spent, frames = None, 0.0, 0
+    if todo:
+        backend = choose_gl()
+        env = make_render_env(film)
+        fps = clip_fps(film, env)
+        with progress(len(todo), "render", unit="clip") as bar:
+            for r, i, key, (mp4, png, rec) in todo:
+                t0 = time.perf_counter()
+                clip = film_episode(member_actor(r.members[i], r.meta), env, film)
+                spent += time.perf_counter() - t0
+                frames += len(clip.frames)
+                info = {"method": r.method, "seed": r.seed, "id": i, "episode_seed": film.episode_seed, "key": key}
+                records[(r.method, r.seed, i)] = write_clip(clip, fps, mp4, png, rec, info)
+                bar.set_postfix_str(f"{1000 * spent / frames:.0f} ms/frame ({backend})")
+                bar.update(1)
+        env.close()
+    prune(out, keep)
+    names = objective_names(env_p.id, runs[0].means.shape[1], env_p.objective_names)
+    panels = []
+    for r in runs:
+        points = []
+        for i in sorted(set(r.front) | {k for k, m in enumerate(r.members) if m.origin == "specialist"}):
+            rec = records.get((r.method, r.seed, i))
+            stem = f"{r.method}/seed{r.seed}/member_{i:04d}"
+            clip = None
+            if rec is not None:
+                clip = {"mp4": f"clips/{stem}.mp4", "thumb": f"thumbs/{stem}.png"}
+                clip |= {k: rec[k] for k in ("returns", "episode_steps", "frames", "fps")}
+            export = None
+            if r.method in exported and i in r.front:
+                export = os.path.relpath(export_root / r.method / f"seed{r.seed}" / f"member_{i:04d}.pt", out)
+            points.append(point_record(r, i, clip, export))
+        panels.append(
+            {
+                "method": r.method,
+                "label": label(r.method),
+                "colour": hex_colour(colour(r.method)),
+                "seed": r.seed,
+                "front": r.front,
+                "points": points,
+            }
+        )
+    index = {"format": INDEX_FORMAT, "format_version": INDEX_VERSION, "objectives": names, "panels": panels}
+    write_text_atomic(out / "index.json", json.dumps(index, indent=1) + "\n")
+    write_text_atomic(out / "fronts.csv", fronts_csv(panels, len(names)))
+    write_text_atomic(out / "explorer.html", explorer_html(panels, names, f"MAPEX fronts on {env_p.id}"))
+    for stale in (out / "clips", out / "thumbs"):
+        if stale.is_dir() and not any(stale.iterdir()):
+            shutil.rmtree(stale)
+    write_provenance(provenance, "render", "cpu")
+    rate = f", {1000 * spent / frames:.0f} ms per frame with MUJOCO_GL={backend}" if frames else ""
+    typer.echo(
+        f"render: {len(todo)} clip(s) rendered, {len(jobs) - len(todo)} kept{rate}; {out / 'explorer.html'}", err=True
+    )

@@ -1,0 +1,317 @@
+"""Stage render and the explorer page, as a user sees them: real frames from MuJoCo's offscreen
+renderer, and the page opened in a real headless browser (Debian's chromium) that clicks a point.
+
+Skips, saying why, where no OpenGL backend renders MuJoCo or no chromium is installed.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from pipeline.core.envs import env_spec, make_env
+from pipeline.core.nets import Actor
+from pipeline.core.population import Member, save_population
+from pipeline.evaluation.episodes import EvalResult
+from pipeline.evaluation.render import gl_problem
+
+ENV, STEPS = "mo-halfcheetah-v5", 30
+FRAMES, WIDTH, HEIGHT = 8, 64, 48
+
+
+@pytest.fixture(scope="module")
+def gl() -> str:
+    problem = gl_problem()
+    if problem is not None:
+        pytest.skip(f"no GL backend: {problem}")
+    return os.environ["MUJOCO_GL"]
+
+
+def write_front(root: Path, method: str = "mapex_td3", seed: int = 0) -> None:
+    """A population of 4 random actors (2 specialists, 2 children; member 2 dominated) and evaluate's
+    outputs for it, under root/fronts and root/evaluate."""
+    from stages.evaluate import evaluated_csv
+
+    env = make_env(ENV, STEPS)
+    spec = env_spec(env, ENV, STEPS)
+    env.close()
+    torch.manual_seed(seed)
+    meta = {"env_id": ENV, "n_objectives": 2, "seed": seed, "method": method, "params": {}}
+    meta |= {"obs_dim": spec.obs_dim, "act_dim": spec.act_dim}
+    meta |= {"action_low": list(spec.action_low), "action_high": list(spec.action_high)}
+    members = []
+    for i, ret in enumerate([[10.0, -50.0], [0.0, -5.0], [5.0, -60.0], [6.0, -20.0]]):
+        actor = Actor(spec.obs_dim, spec.act_dim, [8, 8], spec.action_low, spec.action_high)
+        for p in actor.parameters():  # large weights: actions far from zero, so the cheetah moves
+            torch.nn.init.normal_(p, std=1.0)
+        spec_member = i < 2
+        members.append(
+            Member(
+                origin="specialist" if spec_member else "child",
+                objective=i if spec_member else None,
+                iteration=0 if spec_member else i - 1,
+                parents=[] if spec_member else [0, 1],
+                target_weight=None if spec_member else [0.6, 0.8],
+                returns=ret,
+                returns_std=[0.0, 0.0],
+                eval_episodes=1,
+                env_samples=i,
+                hidden_sizes=[8, 8],
+                actor={k: v.clone() for k, v in actor.state_dict().items()},
+                policy_name="policy" if spec_member else None,
+            )
+        )
+    pop = root / "fronts" / method / f"seed{seed}" / "population.pt"
+    pop.parent.mkdir(parents=True)
+    save_population(pop, members, meta)
+    ev = root / "evaluate" / method / f"seed{seed}"
+    ev.mkdir(parents=True)
+    spread = np.array([1.0, 2.0])
+    results = [EvalResult(np.stack([np.array(m.returns) - spread, np.array(m.returns) + spread]), 0) for m in members]
+    (ev / "evaluated.csv").write_text(evaluated_csv(members, results))
+    record = {"env_id": ENV, "method": method, "seed": seed, "episodes": 2, "population": len(members)}
+    (ev / "evaluation.json").write_text(json.dumps(record | {"env_samples_evaluation": 0}))
+
+
+def params_file(root: Path, **render) -> Path:
+    p = {
+        "env": {"id": ENV, "max_episode_steps": STEPS},
+        "seeds": [0],
+        "methods": ["mapex_td3"],
+        "extract_variants": ["mapex"],
+        "export": {"methods": ["mapex_td3"]},
+        "export_methods": ["mapex_td3"],
+        "render": {"methods": ["mapex_td3"], "frames": FRAMES, "width": WIDTH, "height": HEIGHT} | render,
+    }
+    path = root / "params.yaml"
+    path.write_text(yaml.safe_dump(p))
+    return path
+
+
+def run_render(cli, root: Path, **render):
+    args = ["render", "--fronts", root / "fronts", "--evaluated", root / "evaluate", "--out", root / "render"]
+    return cli(*args, "--export", root / "export", "--params", params_file(root, **render))
+
+
+@pytest.fixture(scope="module")
+def rendered(gl, tmp_path_factory) -> Path:
+    from typer.testing import CliRunner
+
+    from stages.cli import app
+
+    root = tmp_path_factory.mktemp("render")
+    write_front(root)
+    args = ["render", "--fronts", root / "fronts", "--evaluated", root / "evaluate", "--out", root / "render"]
+    args += ["--export", root / "export", "--params", params_file(root)]
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, result.output
+    return root
+
+
+def test_render_films_every_front_member_with_real_frames(rendered):
+    import imageio.v3 as iio
+
+    clips = rendered / "render" / "clips" / "mapex_td3" / "seed0"
+    # members 0, 1 and 3 are non-dominated (2 is dominated by 0): one clip each, nothing for 2
+    assert sorted(p.name for p in clips.glob("*.mp4")) == ["member_0000.mp4", "member_0001.mp4", "member_0003.mp4"]
+    for stem in ("member_0000", "member_0001", "member_0003"):
+        frames = iio.imread(clips / f"{stem}.mp4")
+        assert frames.shape == (FRAMES, HEIGHT, WIDTH, 3), frames.shape
+        assert frames.std() > 5, "a blank clip"
+        moved = [np.abs(frames[k + 1].astype(int) - frames[k].astype(int)).mean() for k in range(FRAMES - 1)]
+        assert max(moved) > 0.5, f"{stem}: the frames do not change ({moved})"
+        thumb = iio.imread(rendered / "render" / "thumbs" / "mapex_td3" / "seed0" / f"{stem}.png")
+        assert thumb.shape == (HEIGHT, WIDTH, 3) and thumb.std() > 5
+        rec = json.loads((clips / f"{stem}.json").read_text())
+        assert rec["frames"] == FRAMES and rec["episode_steps"] == STEPS and len(rec["returns"]) == 2
+    # different policies from the same reset seed: different episodes
+    recs = [json.loads(p.read_text())["returns"] for p in sorted(clips.glob("*.json"))]
+    assert len({tuple(r) for r in recs}) == 3, recs
+    index = json.loads((rendered / "render" / "index.json").read_text())
+    (panel,) = index["panels"]
+    assert panel["front"] == [1, 3, 0]  # sorted by objective 0
+    point = {p["id"]: p for p in panel["points"]}[3]
+    assert point["export"] == "../export/mapex_td3/seed0/member_0003.pt" and point["parents"] == [0, 1]
+    assert point["std"] == [1.0, 2.0]
+    lines = (rendered / "render" / "fronts.csv").read_text().splitlines()
+    assert lines[0] == "method,seed,id,origin,obj0,obj1,clip" and len(lines) == 4
+
+
+def test_a_rerun_renders_only_what_is_missing_and_removes_what_no_front_lists(cli, rendered):
+    clips = rendered / "render" / "clips" / "mapex_td3" / "seed0"
+    before = {p.name: p.stat().st_mtime_ns for p in clips.iterdir()}
+    (clips / "member_0001.mp4").unlink()
+    (clips / "stale_0009.mp4").write_bytes(b"x")
+    result = run_render(cli, rendered)
+    assert result.exit_code == 0, result.output
+    assert "1 clip(s) rendered, 2 kept" in result.output
+    after = {p.name: p.stat().st_mtime_ns for p in clips.iterdir()}
+    assert "stale_0009.mp4" not in after
+    assert after["member_0000.mp4"] == before["member_0000.mp4"]  # untouched
+    assert after["member_0001.mp4"] != before["member_0001.mp4"]
+
+
+def test_render_refuses_a_method_that_does_not_run(cli, tmp_path):
+    write_front(tmp_path)
+    result = run_render(cli, tmp_path, methods=["morld"])
+    assert result.exit_code == 2
+    assert "render.methods lists ['morld']" in result.output
+
+
+def test_no_gl_backend_is_one_line_naming_mujoco_gl(monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", "no-such-backend")
+    problem = gl_problem()
+    assert problem is not None and "MUJOCO_GL=no-such-backend" in problem and "render.methods: []" in problem
+    assert "\n" not in problem
+
+
+# -- the page in a real browser ------------------------------------------------------------------
+
+
+def chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        found = shutil.which(name)
+        if found:
+            return found
+    return None
+
+
+class Browser:
+    """Headless chromium driven over the DevTools protocol on a pipe (--remote-debugging-pipe:
+    NUL-terminated JSON on fds 3 and 4), so no websocket library is needed."""
+
+    def __init__(self, exe: str, profile: Path):
+        to_child, self._write = os.pipe()
+        self._read, from_child = os.pipe()
+
+        def fds() -> None:
+            os.dup2(to_child, 3)
+            os.dup2(from_child, 4)
+
+        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run"]
+        flags += ["--disable-background-networking", "--disable-component-update", "--disable-sync"]
+        flags += ["--autoplay-policy=no-user-gesture-required", "--window-size=1100,800"]
+        self.proc = subprocess.Popen(
+            [exe, *flags, f"--user-data-dir={profile}", "--remote-debugging-pipe", "about:blank"],
+            preexec_fn=fds,
+            close_fds=False,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        os.close(to_child)
+        os.close(from_child)
+        self._buf, self._id, self.session = b"", 0, None
+        targets = self.call("Target.getTargets")["targetInfos"]
+        page = next(t for t in targets if t["type"] == "page")
+        self.session = self.call("Target.attachToTarget", targetId=page["targetId"], flatten=True)["sessionId"]
+
+    def call(self, method: str, **params):
+        self._id += 1
+        msg = {"id": self._id, "method": method, "params": params}
+        if self.session and not method.startswith("Target."):
+            msg["sessionId"] = self.session
+        os.write(self._write, json.dumps(msg).encode() + b"\0")
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            while b"\0" not in self._buf:
+                chunk = os.read(self._read, 1 << 16)
+                if not chunk:
+                    raise RuntimeError("chromium closed the DevTools pipe")
+                self._buf += chunk
+            raw, self._buf = self._buf.split(b"\0", 1)
+            reply = json.loads(raw)
+            if reply.get("id") == self._id:
+                if "error" in reply:
+                    raise RuntimeError(f"{method}: {reply['error']}")
+                return reply.get("result", {})
+        raise TimeoutError(method)
+
+    def js(self, expr: str):
+        result = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
+        if "exceptionDetails" in result:
+            raise RuntimeError(f"{expr}: {result['exceptionDetails']}")
+        return result["result"].get("value")
+
+    def wait(self, expr: str, timeout: float = 20):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            value = self.js(expr)
+            if value:
+                return value
+            time.sleep(0.1)
+        raise TimeoutError(f"{expr} stayed false for {timeout} s")
+
+    def close(self):
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+        os.close(self._write)
+        os.close(self._read)
+
+
+@pytest.fixture
+def browser(tmp_path):
+    exe = chromium()
+    if exe is None:
+        pytest.skip("no chromium: apt-get install chromium (make test installs it when run as root)")
+    b = Browser(exe, Path(tempfile.mkdtemp(dir=tmp_path, prefix="profile")))
+    yield b
+    b.close()
+
+
+def test_explorer_plays_the_clip_of_the_point_clicked(rendered, browser, tmp_path):
+    page = rendered / "render" / "explorer.html"
+    browser.call("Page.enable")
+    browser.call("Page.navigate", url=page.as_uri())
+    browser.wait("document.readyState === 'complete' && document.querySelectorAll('.pt').length > 0")
+    # one panel (one method, one seed), one projection for 2 objectives; specialists are stars
+    assert browser.js("document.querySelectorAll('section').length") == 1
+    assert browser.js("document.querySelectorAll('polygon.pt').length") == 2
+    key = "mapex_td3/0/3"
+    box = browser.js(
+        f"(() => {{ const r = document.querySelector('.pt[data-key=\"{key}\"]').getBoundingClientRect();"
+        " return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+    )
+    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
+        browser.call("Input.dispatchMouseEvent", type=kind, x=box[0], y=box[1], button="left", clickCount=1)
+    src = browser.wait("document.getElementById('clip').currentSrc")
+    assert src.endswith("clips/mapex_td3/seed0/member_0003.mp4"), src
+    # the clip really loads and decodes in the browser (H.264), and the table shows its record
+    state = browser.wait(
+        "(() => { const v = document.getElementById('clip');"
+        " return v.error ? 'error ' + v.error.code : (v.readyState >= 2 ? [v.videoWidth, v.videoHeight] : null); })()"
+    )
+    assert state == [WIDTH, HEIGHT], state
+    info = browser.js("document.getElementById('info').innerText")
+    assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
+    shot = browser.call("Page.captureScreenshot", format="png")["data"]
+    (tmp_path / "explorer.png").write_bytes(base64.b64decode(shot))
+    assert (tmp_path / "explorer.png").stat().st_size > 5000
+
+
+def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rendered, tmp_path):
+    from pipeline.reporting.gallery import gallery_markdown
+
+    out = rendered / "report"
+    text = gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [0])
+    assert "[The front explorer](../render/explorer.html)" in text
+    # front sorted by objective 0: member 1 (lowest), 3 (middle), 0 (highest)
+    for i in (1, 3, 0):
+        assert f"(thumbs/mapex_td3_seed0_member_{i:04d}.png)" in text
+        assert (tmp_path / "thumbs" / f"mapex_td3_seed0_member_{i:04d}.png").stat().st_size > 100
+    assert text.index("member_0001.png") < text.index("member_0003.png") < text.index("member_0000.png")
+    assert "(../render/clips/mapex_td3/seed0/member_0003.mp4)" in text
+    assert gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [1]).count("thumbs/") == 0
