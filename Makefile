@@ -53,7 +53,8 @@ test: install
 	@# a headless browser for tests/test_render.py's explorer test (Debian's chromium): installed
 	@# with apt when missing and root, else that test skips saying why
 	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
-	  && apt-get install -y -q chromium >> $(VENV)/install.log 2>&1; } || echo "no chromium: the explorer's browser test will skip"
+	  && { apt-get install -y -q chromium || { apt-get update -q && apt-get install -y -q chromium; }; } \
+	  >> $(VENV)/install.log 2>&1; } || echo "no chromium: the explorer's browser test will skip"
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The fast tier: the same suite less the files marked integration (pyproject.toml's markers).
