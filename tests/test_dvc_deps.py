@@ -177,3 +177,45 @@ def test_provenance_check_sees_a_record_read_downstream():
     assert option({"cmd": "mapex x --out data/a --provenance data/provenance/a.json"}, "provenance") == (
         "data/provenance/a.json"
     )
+
+
+def test_sync_puts_each_stages_deps_last_and_keeps_what_follows_the_stages(tmp_path):
+    """dvc.yaml for readers: matrix, cmd, params and outs first, then deps (data deps, then the
+    generated code deps); a top-level key after `stages:` (plots:) stays where it is."""
+    from pipeline.core.codedeps import CODE_MARKER, sync_dvc_yaml
+
+    text = (
+        "stages:\n"
+        "  score:\n"
+        "    cmd: mapex score\n"
+        "    deps:\n"
+        "      - data/evaluate\n"
+        "      - pipeline/stale.py\n"
+        "    params:\n"
+        "      - score\n"
+        "    outs:\n"
+        "      - data/score\n"
+        "\n"
+        "  report:\n"
+        "    cmd: mapex report\n"
+        "    deps:\n"
+        "      - data/score\n"
+        "    outs:\n"
+        "      - data/report\n"
+        "plots:\n"
+        "  - data/render/fronts.csv:\n"
+        "      x: obj0\n"
+    )
+    path = tmp_path / "dvc.yaml"
+    path.write_text(text)
+    assert sorted(sync_dvc_yaml(path)) == ["report", "score"]
+    synced = yaml.safe_load(path.read_text())
+    assert list(synced) == ["stages", "plots"] and synced["plots"] == [{"data/render/fronts.csv": {"x": "obj0"}}]
+    for name, data in (("score", "data/evaluate"), ("report", "data/score")):
+        stage = synced["stages"][name]
+        assert list(stage)[-1] == "deps"
+        assert stage["deps"][0] == data and "pipeline/stale.py" not in stage["deps"]
+        assert stage["deps"][1:] == sorted(set(module_closure(f"stages.{name}")) | {"stages/cli.py"})
+    assert path.read_text().count(CODE_MARKER) == 2
+    before = path.read_text()
+    assert sync_dvc_yaml(path) == [] and path.read_text() == before  # idempotent

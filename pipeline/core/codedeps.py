@@ -102,11 +102,14 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
     """
     path = path or ROOT / "dvc.yaml"
     lines = path.read_text().splitlines(keepends=True)
-    starts = [i for i, line in enumerate(lines) if _stage_line(line)]
-    out: list[str] = lines[: starts[0]] if starts else lines
+    # the `stages:` mapping runs to the next top-level key (plots:, vars:, ...) or the end
+    first = next((i for i, line in enumerate(lines) if line.rstrip() == "stages:"), len(lines))
+    last = next((i for i in range(first + 1, len(lines)) if lines[i].strip() and not lines[i][0].isspace()), len(lines))
+    starts = [i for i in range(first + 1, last) if _stage_line(lines[i])]
+    out: list[str] = lines[: starts[0]] if starts else list(lines)
     changed: list[str] = []
     for n, start in enumerate(starts):
-        end = starts[n + 1] if n + 1 < len(starts) else len(lines)
+        end = starts[n + 1] if n + 1 < len(starts) else last
         block = lines[start:end]
         tail: list[str] = []
         while block and not block[-1].strip():  # blank lines between stages stay between them
@@ -114,7 +117,7 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
         stage = block[0].strip()[:-1]
         at = next((i for i, line in enumerate(block) if line.rstrip() == "    deps:"), None)
         if at is None:
-            out += block + tail
+            out += block + tail + (lines[last:] if n + 1 == len(starts) else [])
             continue
         stop = at + 1
         while stop < len(block) and block[stop].startswith(("      - ", "      #")):  # entries and comments
@@ -127,6 +130,8 @@ def sync_dvc_yaml(path: Path | None = None) -> list[str]:
         if new != entries:
             changed.append(stage)
         out += block[:at] + block[stop:] + [block[at]] + new + tail
+        if n + 1 == len(starts):
+            out += lines[last:]  # what follows the stages
     path.write_text("".join(out))
     return changed
 
