@@ -51,7 +51,7 @@ def report_markdown(
         *(f"- {weak_sentence(w, names)}" for w in weak),
         *(
             [f"- {v.sentence}" for v in said]
-            or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]
+            or ["- No pair of comparable methods was run (see pipeline/reporting/verdicts.py VERDICT_PAIRS)."]
         ),
         "",
         *(
