@@ -21,7 +21,9 @@ class EnvParams(Strict):
     id: str = Field("mo-halfcheetah-v5", description="MO-Gymnasium env id (continuous Box actions, vector reward)")
     max_episode_steps: int = Field(750, gt=0, description="episode cap; the paper uses 750 steps")
     reference_point: list[float] | None = Field(
-        None, description="hypervolume reference point, one value per objective, worse than any policy scores"
+        None,
+        description="hypervolume reference point, one value per objective, worse than any policy scores; "
+        "null: the env's entry in presets/reference_points.yaml (read by stage score)",
     )
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
