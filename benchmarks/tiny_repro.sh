@@ -15,7 +15,9 @@ here=$(cd "$(dirname "$0")/.." && pwd)
 ref=${1:-HEAD}
 work=${2:-$(mktemp -d /tmp/tiny-repro.XXXXXX)}
 rm -rf "$work" && mkdir -p "$work"
-git -C "$here" archive "$ref" pipeline stages dvc.yaml | tar -x -C "$work"
+# presets/reference_points.yaml: the score stage's table (a DVC dep), where REF has it
+table=$(git -C "$here" ls-tree --name-only "$ref" presets/reference_points.yaml)
+git -C "$here" archive "$ref" pipeline stages dvc.yaml $table | tar -x -C "$work"
 python - "$work/params.yaml" "$work/pipeline/params/td3.py" <<PY
 import os, sys, yaml
 sys.path.insert(0, "$here/tests")

@@ -18,7 +18,7 @@ from pipeline.core.specialist import load_slots
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
-from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, method_name
+from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, TRAINED_KINDS, method_name
 from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
@@ -61,7 +61,7 @@ def extract(
     specialists: Path = typer.Option(
         ...,
         help="directory with, per objective K, obj{K}/policies.pt (a policy set, e.g. PDERL's) "
-        "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt",
+        "or policy.pt (one policy, TD3's), and buffer.zarr, critics.pt (not read by --variant warmup_only)",
     ),
     posthoc: Path = typer.Option(
         None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"
@@ -83,7 +83,8 @@ def extract(
     each evaluated; each iteration adds extract.children_per_iteration children (1 = Algorithm 1),
     each trained on its own hybrid buffer by mixed-advantage-weighted regression, with parents
     chosen from the whole population. The policies, buffer and critics of each objective must
-    agree on objective, seed and env. Progress is checkpointed after each iteration: killed and
+    agree on objective, seed and env. --variant warmup_only (epochs = 0) reads no critics, so
+    it also runs from specialists without critics.pt (imported ones). Progress is checkpointed after each iteration: killed and
     rerun with the same params and inputs, the stage resumes and ends with the same artifacts as
     an uninterrupted run; changed params, inputs or code start over. On SIGTERM the stage
     stops after the current iteration, its checkpoint written, with exit code 143.
@@ -113,6 +114,10 @@ def extract(
         section(raw, "", RunParams, params).objectives, spec.n_objectives, env_p.id, params, "extraction"
     )
     critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
+    # warm-up only (epochs = 0) reads no critics, so it runs from specialists without any
+    # (imported ones). Its recorded config keeps "joint" from the kinds trained here, as it always
+    # had (their artifacts stay bitwise the same), and says "none" from imported specialists.
+    reads_critics = variant != "warmup_only"
     meta = spec_meta(spec)
     slots = load_slots(
         specialists,
@@ -122,6 +127,7 @@ def extract(
         kind=kind,
         critics_mode=critics_mode,
         critics_root=posthoc if critics_mode == "posthoc" else specialists,
+        critics=reads_critics,
     )
     device = select_device(cfg.device)
     # env.reference_point is not in the config: it does not change what extraction computes
@@ -132,7 +138,7 @@ def extract(
         "seed": seed,
         "variant": variant,
         "kind": kind,
-        "critics": critics_mode,
+        "critics": critics_mode if reads_critics or kind in TRAINED_KINDS else "none",
     }
     method = method_name(variant, kind)
     ckpt = Checkpoint(

@@ -31,7 +31,7 @@ from pipeline.core.population import Member, load_population
 from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.evaluated import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated
 from pipeline.evaluation.metrics import hypervolume_history, population_summary
-from pipeline.params import ParamsError
+from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params.score import ScoreParams
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, read_params, reports_errors
 
@@ -43,12 +43,18 @@ def score(
     population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
     out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv)"),
+    reference_points: Path = typer.Option(
+        TABLE, help="the table of reference points per env, read when env.reference_point is null"
+    ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Score the re-evaluated population of one run: its front, metrics and hypervolume history.
 
-    Params: env.reference_point and section `score` (distinct_tol, utility_weights). Reads
+    Params: env.reference_point and section `score` (distinct_tol, utility_weights). Where
+    env.reference_point is null (the default), the point is the population's env's entry in
+    REFERENCE_POINTS (presets/reference_points.yaml); an env without one is a one-line error.
+    metrics.json records the point and where it came from (reference_point_source). Reads
     POPULATION (members' origin, iteration, extraction-time returns, env samples) and the
     evaluate stage's EVALUATED/evaluated.csv and evaluation.json, which must describe that
     population. The front is the non-dominated set of the re-evaluated mean returns; it is
@@ -64,7 +70,10 @@ def score(
     members, meta = load_population(population, META_KEYS)
     if not members:
         raise ArtifactError(f"{population}: population has no members")
-    ref = reference_point(env_p.reference_point, meta["n_objectives"], params)
+    resolved = resolve_reference_point(
+        env_p.reference_point, meta["env_id"], meta["n_objectives"], params, reference_points
+    )
+    ref = resolved.point
     record = read_json(evaluated / "evaluation.json", EVALUATION_KEYS)
     means = read_evaluated(evaluated / "evaluated.csv", members, meta["n_objectives"])
     check_same_run(evaluated / "evaluation.json", record, population, meta, len(members))
@@ -97,6 +106,7 @@ def score(
         **summary,
         "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
         "reference_point": ref.tolist(),
+        "reference_point_source": resolved.source,
         "distinct_tol": cfg.distinct_tol,
         "utility_weights": cfg.utility_weights,
     }
@@ -107,19 +117,6 @@ def score(
         out / "hypervolume.csv", csv_text(list(history), list(zip(*(c.tolist() for c in history.values()))))
     )
     write_provenance(provenance, "score", "cpu")
-
-
-def reference_point(ref: list[float] | None, n_objectives: int, params: Path) -> np.ndarray:
-    if ref is None:
-        raise ParamsError(
-            f"{params}: env.reference_point is missing; score needs one value per objective "
-            f"({n_objectives}), each worse than any policy scores (see docs/reference_points.md)"
-        )
-    if len(ref) != n_objectives:
-        raise ParamsError(
-            f"{params}: env.reference_point = {ref} has {len(ref)} values, the env has {n_objectives} objectives"
-        )
-    return np.asarray(ref, dtype=float)
 
 
 def finite(obj):

@@ -150,6 +150,24 @@ def test_zero_hidden_width_is_refused(specs, tmp_path, mapex, write_params):
     assert_refused(r, tmp_path, "extract.hidden_sizes.0 = 0", "greater than 0", one_line=False)
 
 
+def test_warmup_only_reads_no_critics(specs, tmp_path, mapex, write_params):
+    """Warm-up only (epochs = 0) runs from specialists without critics.pt, with exactly the
+    children it makes when the critics are there; MAPEX without them is one line naming the file."""
+    with_critics = extract(mapex, write_params, tmp_path, specs, name="with", variant="warmup_only")
+    assert with_critics.returncode == 0, with_critics.stderr
+    for k in (0, 1):
+        (specs / f"obj{k}" / "critics.pt").unlink()
+    r = extract(mapex, write_params, tmp_path, specs, name="without", variant="warmup_only")
+    assert r.returncode == 0, r.stderr
+    mw, meta_w = load_population(tmp_path / "with" / "population.pt")
+    mn, meta_n = load_population(tmp_path / "without" / "population.pt")
+    assert meta_n == meta_w and meta_n["params"]["extract"]["epochs"] == 0 and len(mn) == len(mw) == 4
+    for a, b in zip(mw, mn):
+        assert all(torch.equal(a.actor[k], b.actor[k]) for k in a.actor) and a.returns == b.returns
+    r = extract(mapex, write_params, tmp_path, specs, name="mapex")
+    assert_refused(r, tmp_path, "obj0/critics.pt: file not found", name="mapex")
+
+
 # ---------------------------------------------------------------- post-hoc critics
 
 

@@ -469,8 +469,9 @@ def test_export_writes_onnx_when_installed(cli, spec, tmp_path):
 
 
 def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
-    """import_specialist -> fit_critics -> extract_posthoc -> evaluate -> score -> export -> report
-    on a tiny preset; then replacing one model reruns its own chain and not the other's."""
+    """import_specialist -> fit_critics -> extract_posthoc, and warmup_only (no critics) ->
+    evaluate -> score -> export -> report on a tiny preset, whose report pairs MAPEX-PostHoc with
+    warm-up only in a verdict; then replacing one model reruns its own chain and not the other's."""
     import re
     import shutil
 
@@ -484,13 +485,15 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     for name in ("pipeline", "stages"):
         shutil.copytree(root / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(root / "dvc.yaml", repo / "dvc.yaml")
+    (repo / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
+    shutil.copy(root / "presets" / "reference_points.yaml", repo / "presets" / "reference_points.yaml")
     (repo / "models").mkdir()
     shutil.copy(sb3_models["td3"], repo / "models" / "speed.zip")
     shutil.copy(sb3_models["sac"], repo / "models" / "energy.zip")
     params = with_lists(
         {
             **TINY,
-            "methods": ["mapex_posthoc_imported"],
+            "methods": ["mapex_posthoc_imported", "warmup_only_imported"],
             "import_specialists": {
                 "policies": [
                     {"objective": 0, "file": "models/speed.zip", "format": "sb3"},
@@ -518,10 +521,24 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     run("git", "commit", "-qm", "imported")
     out = run(str(bin_dir / "dvc"), "repro")
     ran = set(re.findall(r"Running stage '([^']+)'", out))
-    assert {"import_specialist@0-policy0", "import_specialist@0-policy1", "extract_posthoc@0-imported", "report"} <= ran
+    assert {
+        "import_specialist@0-policy0",
+        "import_specialist@0-policy1",
+        "extract_posthoc@0-imported",
+        "warmup_only@0-imported",
+        "report",
+    } <= ran
     assert not any(s.startswith("train_specialist") for s in ran)  # nothing trained here
     report = (repo / "data" / "report" / "report.md").read_text()
     assert "MAPEX-PostHoc (imported)" in report and "collecting the imported specialists' buffers" in report
+    # the paired verdict an imported run gives, as a TD3 run does (warm-up only reads no critics)
+    assert "No pair of comparable methods was run" not in report
+    assert re.search(
+        r"the advantage-weighted phase \(MAPEX-PostHoc, imported\) (beat|lost to|tied with) warm-up only \(imported\)",
+        report,
+    ), report
+    _, warm = load_population(repo / "data/fronts/warmup_only_imported/seed0/population.pt")
+    assert warm["params"]["critics"] == "none" and warm["params"]["extract"]["epochs"] == 0
     doc = json.loads((repo / "data/export/mapex_posthoc_imported/seed0/front.json").read_text())
     assert doc["policies"] and all(
         (repo / "data/export/mapex_posthoc_imported/seed0" / p["file"]).is_file() for p in doc["policies"]
@@ -529,5 +546,10 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     # a new energy specialist in the same file: its import and fit rerun, the speed one's do not
     shutil.copy(sb3_models["td3"], repo / "models" / "energy.zip")
     again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
-    assert {"import_specialist@0-policy1", "fit_critics@0-imported-1", "extract_posthoc@0-imported"} <= again
+    assert {
+        "import_specialist@0-policy1",
+        "fit_critics@0-imported-1",
+        "extract_posthoc@0-imported",
+        "warmup_only@0-imported",
+    } <= again
     assert "import_specialist@0-policy0" not in again and "fit_critics@0-imported-0" not in again

@@ -284,6 +284,31 @@ def test_run_lists_are_derived_from_methods_and_checked():
         section({**ok, "posthoc_from": ["sac"]}, "", RunParams)
 
 
+def test_warmup_only_imported_adds_imported_to_warmup_from_outside_the_product():
+    imports = [{"objective": k, "file": f"models/td3_obj{k}.zip", "format": "sb3"} for k in (0, 1)]
+    lists = derived_lists(["mapex_posthoc_imported", "warmup_only_imported"], [0, 1], imports)
+    assert lists["warmup_from"] == ["imported"] and lists["posthoc_from"] == ["imported"]
+    assert lists["extract_from"] == [] and lists["extract_variants"] == [] and lists["td3_seeds"] == []
+    assert lists["imported_seeds"] == [0, 1]
+    # with TD3 methods beside it: the td3 product is unchanged and needs no warmup_only_td3 for it
+    both = derived_lists(["mapex_td3", "warmup_only_imported", "mapex_posthoc_imported"], [0], imports)
+    assert both["warmup_from"] == ["imported"] and both["extract_from"] == ["td3"]
+    assert both["extract_variants"] == ["mapex"]
+    full = derived_lists(["mapex_td3", "warmup_only_td3", "warmup_only_imported"], [0], imports)
+    assert full["warmup_from"] == ["td3", "imported"]
+    # the td3/pderl product rule still holds with an imported warm-up beside it
+    with pytest.raises(ValueError, match=r"so add \['warmup_only_pderl'\]"):
+        derived_lists(["mapex_td3", "warmup_only_td3", "mapex_pderl", "warmup_only_imported"], [0], imports)
+    # the validated section accepts the imported kind in warmup_from, and refuses a stale list
+    ok = {"seeds": [0], "methods": ["mapex_posthoc_imported", "warmup_only_imported"], **lists} | {
+        "imported_seeds": [0]
+    }
+    ctx = {"imports": imports}
+    assert RunParams.model_validate(ok, context=ctx).warmup_from == ["imported"]
+    with pytest.raises(ValueError, match=r"warmup_from = \[\], but .* make it \['imported'\]"):
+        RunParams.model_validate({**ok, "warmup_from": []}, context=ctx)
+
+
 def test_sync_params_writes_the_derived_block_and_keeps_the_rest():
     text = (
         "# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"

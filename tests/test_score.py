@@ -28,6 +28,8 @@ from typer.testing import CliRunner
 import pipeline.params as params_module
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, save_population
+from pipeline.evaluation.reference_points import resolve_reference_point
+from pipeline.params import ParamsError
 from stages.score import score
 
 ENV_ID = "mo-halfcheetah-v5"
@@ -361,10 +363,58 @@ def test_evaluated_csv_of_another_population(tmp_path):
     assert "evaluated.csv" in out and "row 4" in out
 
 
-@pytest.mark.parametrize("ref, needle", [(None, "missing"), ([-100.0], "1 values")])
-def test_bad_reference_point(run, ref, needle):
-    out = fails(run, write_params(run, ref=ref))
-    assert "env.reference_point" in out and needle in out
+def test_bad_reference_point(run):
+    out = fails(run, write_params(run, ref=[-100.0]))
+    assert "env.reference_point = [-100.0] has 1 values, the env has 2 objectives" in out
+
+
+REPO = Path(__file__).resolve().parents[1]
+TABLE = REPO / "presets" / "reference_points.yaml"
+
+
+@pytest.mark.parametrize(
+    "env_id, n, point",
+    [
+        ("mo-halfcheetah-v5", 2, [-100.0, -4500.0]),
+        ("mo-swimmer-v5", 2, [-50.0, -1500.0]),
+        ("mo-hopper-v5", 3, [-100.0, -3390.0, -1510.0]),
+    ],
+)
+def test_null_reference_point_is_the_envs_entry_in_the_table(env_id, n, point, tmp_path):
+    ref = resolve_reference_point(None, env_id, n, tmp_path / "params.yaml", TABLE)
+    assert ref.point.tolist() == point and ref.source.endswith(f"entry {env_id} (env.reference_point is null)")
+    # a point set in params wins over the table
+    given = resolve_reference_point([1.0] * n, env_id, n, tmp_path / "params.yaml", TABLE)
+    assert given.point.tolist() == [1.0] * n and given.source == "env.reference_point in params"
+
+
+def test_table_entry_of_the_wrong_length_names_the_table(tmp_path):
+    with pytest.raises(ParamsError, match=r"reference_points.yaml: mo-swimmer-v5 = \[-50.0, -1500.0\] .* has 2 values"):
+        resolve_reference_point(None, "mo-swimmer-v5", 3, tmp_path / "params.yaml", TABLE)
+
+
+def test_score_with_null_reference_point_scores_against_the_table(run, monkeypatch):
+    """The stage's default table is presets/reference_points.yaml of the repository root (DVC's cwd)."""
+    monkeypatch.chdir(REPO)
+    code, out = score_run(run, write_params(run, ref=None))
+    assert code == 0, out
+    m = json.loads((run / "out" / "metrics.json").read_text())
+    assert m["reference_point"] == [-100.0, -4500.0]
+    assert m["reference_point_source"] == (
+        "presets/reference_points.yaml, entry mo-halfcheetah-v5 (env.reference_point is null)"
+    )
+
+
+def test_score_of_an_env_without_an_entry_is_one_line(run):
+    table = run / "points.yaml"
+    table.write_text("mo-swimmer-v5: [-50.0, -1500.0]\n")
+    code, out = score_run(run, write_params(run, ref=None), "--reference-points", table)
+    assert code == 2 and not (run / "out").exists()
+    assert out.strip() == (
+        f"error: {run / 'params.yaml'}: env.reference_point is null and {table} has no entry for "
+        "'mo-halfcheetah-v5': set env.reference_point to 2 values, each worse than any policy scores "
+        "(docs/reference_points.md)"
+    )
 
 
 def test_unknown_score_param(run):

@@ -230,10 +230,12 @@ def load_slots(
     critics_root: Path | None = None,
     critics_mode: str = "joint",
     kind: str | None = None,
+    critics: bool = True,
 ) -> list[Slot]:
     """Every slot obj0 .. obj{n-1} of one seed's specialists under `spec_root`, each with its
     policy set and the critics CRITICS_ROOT/obj{k}/critics.pt (default: the slot's own), all
-    cross-checked (load_slot)."""
+    cross-checked (load_slot). With critics=False no critics file is read (nor needed): the
+    slots' `critic` is None (the warm-up-only variant, which trains no advantage-weighted epoch)."""
     critics_root = critics_root or spec_root
     return [
         load_slot(
@@ -242,7 +244,7 @@ def load_slots(
             seed=seed,
             spec_meta=spec_meta,
             policies=True,
-            critics=critics_root / f"obj{k}" / "critics.pt",
+            critics=critics_root / f"obj{k}" / "critics.pt" if critics else None,
             critics_mode=critics_mode,
             kind=kind,
         )

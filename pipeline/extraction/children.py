@@ -305,7 +305,7 @@ def stacked_awr(
 
 def train_stacked(
     children: Sequence[ChildStart],
-    critics: Sequence[CriticEnsemble],
+    critics: Sequence[CriticEnsemble] | None,
     cfg: ChildConfig,
     span: np.ndarray,
     rngs: Sequence[np.random.Generator],
@@ -316,7 +316,9 @@ def train_stacked(
     """Warm-up and AWR of K started children as one stacked ensemble; child j draws its
     minibatch rows from rngs[j] (host) or gens[j] (device), warm-up rows first, as `make_child`.
 
-    span: (m,) the population's objective ranges. Returns the trained stack and per-child stats.
+    span: (m,) the population's objective ranges. critics: None only when cfg.adv.epochs == 0
+    (they are read by the advantage-weighted epochs alone). Returns the trained stack and
+    per-child stats.
     """
     data = stack_hybrids([c.hybrid for c in children])
     if min(data.lengths) == 0:
@@ -351,7 +353,7 @@ def make_children(
     returns: np.ndarray,
     actors: Sequence[Actor],
     buffers: Sequence[dict[str, np.ndarray]],
-    critics: Sequence[CriticEnsemble],
+    critics: Sequence[CriticEnsemble] | None,
     cfg: ChildConfig,
     seeds: Sequence[ChildSeeds],
     device,
@@ -367,8 +369,13 @@ def make_children(
     stacked: train them as one `StackedActor` (None: unless K = 1 on a CPU, which runs the
     reference `make_child`). device_rows: draw minibatch rows on the device from each
     child's seeds.rows generator (None: on CUDA). gather: the critic lookup path (see
-    `critic_values`). Returns (actor on `device`, record) per child, in the order of `seeds`.
+    `critic_values`). critics may be None when cfg.adv.epochs == 0 (warm-up only reads none).
+    Returns (actor on `device`, record) per child, in the order of `seeds`.
     """
+    if critics is None and cfg.adv.epochs > 0:
+        raise ValueError(
+            f"{cfg.adv.epochs} advantage-weighted epochs need the specialists' critics, but none were given"
+        )
     device = torch.device(device)
     if stacked is None:
         stacked = len(seeds) > 1 or device.type == "cuda"

@@ -263,7 +263,7 @@ class AdvantageConfig:
 def advantage_weighted_regression(
     actor: Actor,
     hybrid: Hybrid,
-    critics: Sequence[CriticEnsemble],
+    critics: Sequence[CriticEnsemble] | None,
     weight: torch.Tensor,
     scale: torch.Tensor,
     cfg: AdvantageConfig,
@@ -274,7 +274,8 @@ def advantage_weighted_regression(
 
     Row b of a minibatch is weighted by omega computed from that same row's (s, a): the
     minibatch indices are drawn once and used for Q(s, a), Q(s, pi_new(s)) and the loss alike.
-    Returns summary statistics of the weights (mean, fraction clipped at omega_max).
+    Returns summary statistics of the weights (mean, fraction clipped at omega_max). With
+    cfg.epochs == 0 nothing is trained and no critic is read (critics may be None).
     """
     n = len(hybrid.obs)
     if cfg.epochs == 0 or n == 0:
@@ -400,7 +401,7 @@ def make_child(
     returns: np.ndarray,
     actors: Sequence[Actor],
     buffers: Sequence[dict[str, np.ndarray]],
-    critics: Sequence[CriticEnsemble],
+    critics: Sequence[CriticEnsemble] | None,
     cfg: ChildConfig,
     seeds: ChildSeeds,
     device,
@@ -409,6 +410,7 @@ def make_child(
     """One MAPEX iteration's training (Algorithm 1): parents, target weight, hybrid buffer,
     warm-up, AWR, with plain modules. Every random draw comes from `seeds` (seeds.rows unused:
     minibatch rows come from the numpy stream, also on CUDA, at one host-to-device copy each).
+    critics: None only when cfg.adv.epochs == 0 (warm-up only reads no critic).
     """
     rng = np.random.default_rng(seeds.numpy)
     child = start_child(returns, actors, buffers, cfg, rng, seeds.torch, device)

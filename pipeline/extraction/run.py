@@ -1,7 +1,8 @@
 """MAPEX Algorithm 1's outer loop as a run, shaped like the other algorithms' runs.
 
 `ExtractionRun` holds the population Pi (its members: every starting policy, then every
-child), the specialists' buffers D_k and critics Q^(k)_m, and the history of the run.
+child), the specialists' buffers D_k and critics Q^(k)_m (none for the warm-up-only variant,
+epochs = 0, which reads no critics), and the history of the run.
 `start()` evaluates the starting policies; each `step()` is one iteration of Algorithm 1's while
 loop: the whole population's returns choose parents and target weights, each of
 `children_per_iteration` children is trained on its own hybrid buffer
@@ -89,15 +90,17 @@ class ExtractionRun:
     """Algorithm 1 over one seed's specialists (see the module docstring).
 
     cfg: the resolved `extract` params (a variant's changes already applied, e.g. epochs 0 for
-    warmup_only). meta: env_id, obs_dim, act_dim, n_objectives, action_low, action_high (what
-    a child's actor is rebuilt from). envs: cfg.eval_episodes * cfg.children_per_iteration envs.
+    warmup_only). critics: Q^(k) per specialist, or None when cfg.epochs == 0 (warm-up only:
+    no child reads a critic, so specialists without critics, e.g. imported ones, will do).
+    meta: env_id, obs_dim, act_dim, n_objectives, action_low, action_high (what a child's actor
+    is rebuilt from). envs: cfg.eval_episodes * cfg.children_per_iteration envs.
     """
 
     def __init__(
         self,
         starts: Sequence[StartingPolicy],
         buffers: Sequence[dict[str, np.ndarray]],
-        critics: Sequence[CriticEnsemble],
+        critics: Sequence[CriticEnsemble] | None,
         cfg: ExtractParams,
         meta: dict[str, Any],
         seed: int,
@@ -105,7 +108,9 @@ class ExtractionRun:
         device: torch.device,
     ) -> None:
         self.starts, self.buffers, self.cfg, self.meta, self.seed = list(starts), list(buffers), cfg, meta, seed
-        self.critics = [c.to(device) for c in critics]
+        if critics is None and cfg.epochs > 0:
+            raise ValueError(f"extract.epochs = {cfg.epochs} trains with the critics, but none were given")
+        self.critics = None if critics is None else [c.to(device) for c in critics]
         self.envs, self.device = list(envs), device
         self.child_cfg = child_config(cfg)
         self.k = cfg.children_per_iteration
@@ -126,9 +131,15 @@ class ExtractionRun:
         device: torch.device,
     ) -> "ExtractionRun":
         """A run over the specialists' slots (pipeline.core.specialist.load_slots): every policy
-        of every slot's set starts the population; slot k gives D_k and Q^(k)."""
+        of every slot's set starts the population; slot k gives D_k and Q^(k) (slots read
+        without critics give none: cfg.epochs must be 0 then)."""
         starts = [p for s in slots for p in s.starts]
-        return cls(starts, [s.buffer for s in slots], [s.critic for s in slots], cfg, meta, seed, envs, device)
+        critics = [s.critic for s in slots]
+        if any(c is None for c in critics):
+            if any(c is not None for c in critics):
+                raise ValueError("some slots were read with critics and some without")
+            critics = None
+        return cls(starts, [s.buffer for s in slots], critics, cfg, meta, seed, envs, device)
 
     @property
     def n_start(self) -> int:

@@ -21,7 +21,9 @@ class EnvParams(Strict):
     id: str = Field("mo-halfcheetah-v5", description="MO-Gymnasium env id (continuous Box actions, vector reward)")
     max_episode_steps: int = Field(750, gt=0, description="episode cap; the paper uses 750 steps")
     reference_point: list[float] | None = Field(
-        None, description="hypervolume reference point, one value per objective, worse than any policy scores"
+        None,
+        description="hypervolume reference point, one value per objective, worse than any policy scores; "
+        "null: the env's entry in presets/reference_points.yaml (read by stage score)",
     )
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
@@ -47,7 +49,7 @@ class RunParams(Strict):
         ["mapex_td3", "warmup_only_td3"],
         min_length=1,
         description="what runs and is compared, one data/fronts/<method>/seedS each: <variant>_<kind> (variants mapex, "
-        "mapex_posthoc, warmup_only; kinds td3, pderl), mopderl, morld (pipeline/params/methods.py)",
+        "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld (pipeline/params/methods.py)",
     )
     # derived (generated block): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
@@ -72,7 +74,7 @@ class RunParams(Strict):
         ["mapex"],
         description="derived: variants stage extract runs from each kind, with the joint critics",
     )
-    warmup_from: list[Literal["td3", "pderl"]] | None = Field(
+    warmup_from: list[Literal["td3", "pderl", "imported"]] | None = Field(
         None,
         description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from; "
         "dvc.yaml needs it written, validation accepts it left out",

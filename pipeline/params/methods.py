@@ -40,6 +40,14 @@ METHODS: dict[str, Method] = {
             "tab:brown",
             "extract_posthoc",
         ),
+        Method(
+            "warmup_only_imported",
+            "warmup_only",
+            "imported",
+            "warm-up only (imported)",
+            "tab:pink",
+            "warmup_only",
+        ),
         Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
         Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
     )
@@ -48,7 +56,8 @@ METHODS: dict[str, Method] = {
 # Extraction variants (stage extract --variant): what each changes in section `extract`.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
 # The variants run from the specialists' own directories (stages extract and warmup_only), in
-# one product with the kinds of extract_from. mapex_posthoc reads critics fitted post hoc and
+# one product with the kinds of extract_from (the trained kinds; warmup_only_imported, which
+# reads no critics, is outside the product: stage warmup_only runs it when it is listed). mapex_posthoc reads critics fitted post hoc and
 # has its own stage (extract_posthoc), so that extraction with joint critics does not depend on
 # post-hoc critics: DVC deps cannot depend on a matrix value. warmup_only has its own stage too,
 # whose params are only the extract keys it reads (pipeline.params.extract.WARMUP_ONLY_KEYS):
@@ -56,7 +65,8 @@ EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
 JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
 # train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
-# only MAPEX-PostHoc extracts from them), under data/specialists/<kind>/seedS.
+# only MAPEX-PostHoc and warm-up only, which reads no critics, extract from them), under
+# data/specialists/<kind>/seedS.
 SPECIALIST_KINDS = ("td3", "pderl", "imported")
 # The kinds trained here with critics of their own (stage extract's joint variants read them).
 TRAINED_KINDS = ("td3", "pderl")
@@ -97,13 +107,15 @@ def derived_lists(
     """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
     `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
     imported_seeds, import_collect, import_buffered, extract_from, extract_variants (stage
-    extract's), warmup_from (stage warmup_only's kinds), posthoc_from, mopderl_seeds, morld_seeds, and export_methods from `export` (section
-    export's methods, each of which must be in `methods`). DVC cannot filter a matrix, so each
+    extract's), warmup_from (stage warmup_only's kinds), posthoc_from, mopderl_seeds,
+    morld_seeds, and export_methods from `export` (section export's methods, each of which must
+    be in `methods`). DVC cannot filter a matrix, so each
     producing stage needs a list of its own.
 
-    extract and warmup_only run every joint variant from every kind of `extract_from` (a
-    matrix), so their methods must form that whole product; raises
-    ValueError naming the missing method otherwise. Unknown methods raise ValueError too, and
+    extract and warmup_only run every joint variant from every trained kind of `extract_from`
+    (a matrix), so their methods from td3 and pderl specialists must form that whole product;
+    raises ValueError naming the missing method otherwise. warmup_only_imported is outside the
+    product: it adds "imported" to warmup_from alone. Unknown methods raise ValueError too, and
     so does an imported method without import_specialists.policies. extract_from also drives
     critic_fidelity (the joint critics' scores): with no joint-critic method it names the
     trained kinds the methods start from (td3 when none does, unless only imported
@@ -113,7 +125,7 @@ def derived_lists(
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
     chosen = [METHODS[m] for m in methods]
-    extract = [m for m in chosen if m.stage in ("extract", "warmup_only")]
+    extract = [m for m in chosen if m.stage in ("extract", "warmup_only") and m.kind in TRAINED_KINDS]
     kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in extract)]
     variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
     missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
@@ -158,7 +170,8 @@ def derived_lists(
         else [],
         "extract_from": kinds,
         "extract_variants": [v for v in variants if v != "warmup_only"],
-        "warmup_from": kinds if "warmup_only" in variants else [],
+        "warmup_from": (kinds if "warmup_only" in variants else [])
+        + (["imported"] if method_name("warmup_only", "imported") in methods else []),
         "posthoc_from": posthoc,
         "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
         "morld_seeds": list(seeds) if "morld" in methods else [],

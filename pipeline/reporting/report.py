@@ -34,6 +34,8 @@ def report_markdown(
     caption, files beside report.md), provenance, definitions."""
     seeds = sorted({r.seed for r in runs})
     ref = runs[0].metrics.get("reference_point")
+    # where the score stage took it from: env.reference_point, or the env's entry in the table
+    sources = sorted({str(r.metrics["reference_point_source"]) for r in runs if "reference_point_source" in r.metrics})
     said = verdicts(runs, min_difference, noise_sems)
     weak = weak_specialists(runs, weak_fraction, weak_min_return)
     own = own_returns_table(runs, names, weak)
@@ -43,7 +45,7 @@ def report_markdown(
         f"- methods: {', '.join(f'{label(v)} ({v})' for v in methods_in(runs))}",
         f"- seeds: {', '.join(map(str, seeds))}",
         f"- objectives: {', '.join(f'{i}: {n}' for i, n in enumerate(names))}",
-        f"- hypervolume reference point: {ref}",
+        f"- hypervolume reference point: {ref}" + (f" (from {'; '.join(sources)})" if sources else ""),
         *(f"- {k}: {v}" for k, v in context.items()),
         "",
         "## Verdicts",
@@ -51,7 +53,7 @@ def report_markdown(
         *(f"- {weak_sentence(w, names)}" for w in weak),
         *(
             [f"- {v.sentence}" for v in said]
-            or ["- No pair of comparable methods was run (see report.py VERDICT_PAIRS)."]
+            or ["- No pair of comparable methods was run (see pipeline/reporting/verdicts.py VERDICT_PAIRS)."]
         ),
         "",
         *(

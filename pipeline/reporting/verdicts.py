@@ -17,6 +17,7 @@ from pipeline.reporting.tables import fmt_num
 VERDICT_PAIRS = (
     ("mapex_pderl", "warmup_only_pderl", "the advantage-weighted phase (MAPEX)"),
     ("mapex_td3", "warmup_only_td3", "the advantage-weighted phase (MAPEX-TD3)"),
+    ("mapex_posthoc_imported", "warmup_only_imported", "the advantage-weighted phase (MAPEX-PostHoc, imported)"),
     ("mapex_posthoc_pderl", "mapex_pderl", "MAPEX-PostHoc (post-hoc critics)"),
     ("mapex_posthoc_td3", "mapex_td3", "MAPEX-TD3-PostHoc (post-hoc critics)"),
     ("mapex_pderl", "mapex_td3", "MAPEX (PDERL specialists)"),
