@@ -218,6 +218,19 @@ def test_collection_resumes_to_the_same_rows(sb3_models, spec):
 # -- the stage: bad inputs, each one line naming the file, nothing written ----------------------
 
 
+class GoesNaN(nn.Module):
+    """Finite on the import's probe batch (call 1), then NaN from its `after`-th call on."""
+
+    def __init__(self, act_dim: int, after: int):
+        super().__init__()
+        self.act_dim, self.after, self.calls = act_dim, after, 0
+
+    def forward(self, obs):
+        self.calls += 1
+        out = torch.zeros(obs.shape[0], self.act_dim)
+        return out * float("nan") if self.calls >= self.after else out
+
+
 def params_file(tmp_path: Path, rows: int = 60) -> Path:
     import yaml
 
@@ -252,6 +265,19 @@ def test_import_stage_writes_a_slot(cli, sb3_models, tmp_path):
     assert "provenance" not in attrs
     assert attrs["n_transitions"] == 60 and data["reward"].shape == (60, 2) and attrs["collection_frames"] == 60
     assert (out / "collect.csv").read_text().startswith("episode,obj0,obj1\n")
+
+
+def test_collection_stops_at_a_non_finite_action_naming_the_file_and_row(cli, spec, tmp_path):
+    path = tmp_path / "goes_nan.ts"
+    torch.jit.save(torch.jit.script(GoesNaN(spec.act_dim, after=12)), path)  # row 10: call 12
+    result, out = run_import(cli, tmp_path, path, "torchscript")
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert errors == [
+        f"error: {path}: the policy returned a non-finite action (nan, nan, nan) at row 10 "
+        "(episode 0, step 10); collection stopped, no buffer written"
+    ]
+    assert "Traceback" not in result.stderr and not (out / "buffer.zarr").exists()
 
 
 def test_import_refuses_a_discrete_action_model(cli, tmp_path):
