@@ -166,6 +166,30 @@ def test_torchscript_actor_imports_and_round_trips(spec, tmp_path):
     assert back.actor[ScriptedActor.KEY].numpy().tobytes() == path.read_bytes()
 
 
+def test_a_frozen_torchscript_policy_without_parameters_imports_and_evaluates(cli, spec, tmp_path):
+    """torch.jit.freeze turns the weights into constants: no parameters left. The import, the
+    slot it writes and an evaluation of that slot's policy all work."""
+    from pipeline.evaluation.episodes import evaluate_policies
+
+    torch.manual_seed(1)
+    frozen = torch.jit.freeze(torch.jit.script(OddPolicy(spec.obs_dim, spec.act_dim).eval()))
+    assert not list(frozen.parameters())
+    path = tmp_path / "frozen.ts"
+    torch.jit.save(frozen, path)
+    result, out = run_import(cli, tmp_path, path, "torchscript")
+    assert result.exit_code == 0, result.output
+    actor, meta = load_policy(out / "policy.pt")
+    assert isinstance(actor, ScriptedActor) and not list(actor.parameters())
+    x = torch.from_numpy(random_obs())
+    with torch.no_grad():
+        assert torch.equal(actor(x), frozen(x))
+    envs = [make_env(ENV, STEPS) for _ in range(2)]
+    (res,) = evaluate_policies([actor], envs, [[5, 6]])
+    assert res.returns.shape == (2, 2) and np.isfinite(res.returns).all() and res.env_samples == 2 * STEPS
+    for env in envs:
+        env.close()
+
+
 def test_collection_writes_the_rewards_the_env_returned(sb3_models, spec):
     """Replay the collected actions in a fresh env with the collection's seed: the same
     observations, reward vectors, terminations and truncations come back."""
