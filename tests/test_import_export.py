@@ -7,6 +7,7 @@ layout (its actor modules, saved as CleanRL's --save-model does: a tuple of stat
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import subprocess
@@ -23,7 +24,7 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import load_buffer
 from pipeline.core.checkpoint import load_policy
 from pipeline.core.envs import env_spec, make_env
-from pipeline.core.nets import Actor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
 from pipeline.core.population import Member, load_population, member_actor, save_population
 from pipeline.interop.collect import COLLECT_STREAM, CollectionRun
 from pipeline.interop.readers import read_policy
@@ -188,6 +189,66 @@ def test_a_frozen_torchscript_policy_without_parameters_imports_and_evaluates(cl
     assert res.returns.shape == (2, 2) and np.isfinite(res.returns).all() and res.env_samples == 2 * STEPS
     for env in envs:
         env.close()
+
+
+def exported_file(tmp_path: Path, spec, dynamic: bool = True) -> tuple[Path, nn.Module]:
+    """OddPolicy as a torch.export program (.pt2), its batch axis dynamic unless told."""
+    torch.manual_seed(3)
+    module = OddPolicy(spec.obs_dim, spec.act_dim).eval()
+    shapes = ({0: torch.export.Dim("batch")},) if dynamic else None
+    program = torch.export.export(module, (torch.zeros(2, spec.obs_dim),), dynamic_shapes=shapes)
+    path = tmp_path / ("policy.pt2" if dynamic else "static.pt2")
+    torch.export.save(program, path)
+    return path, module
+
+
+def test_torch_export_program_imports_round_trips_and_exports_as_itself(cli, spec, tmp_path):
+    path, module = exported_file(tmp_path, spec)
+    imported = read_policy(path, "torch_export", spec)
+    assert isinstance(imported.actor, ExportedActor) and imported.architecture == "torch_export"
+    assert imported.source["format"] == "torch_export" and imported.hidden_sizes == []
+    x = torch.from_numpy(random_obs())
+    with torch.no_grad():
+        np.testing.assert_allclose(imported.actor(x).numpy(), module(x).numpy(), atol=1e-6, rtol=0)
+    # the stage's slot, read back with weights_only=True, then evaluated
+    result, out = run_import(cli, tmp_path, path, "torch_export")
+    assert result.exit_code == 0, result.output
+    actor, meta = load_policy(out / "policy.pt")
+    assert isinstance(actor, ExportedActor) and meta["architecture"] == "torch_export"
+    assert actor.state_dict()[ExportedActor.KEY].numpy().tobytes() == path.read_bytes()
+    from pipeline.evaluation.episodes import evaluate_policies
+
+    envs = [make_env(ENV, STEPS)]
+    (res,) = evaluate_policies([copy.deepcopy(actor)], envs, [[0]])
+    assert np.isfinite(res.returns).all() and res.env_samples == STEPS
+    envs[0].close()
+    # as a population member: exported back as its own .pt2, with TorchScript traced from it
+    population = tiny_population(tmp_path, spec, with_program=path)
+    evaluated = fake_evaluation(tmp_path, population)
+    front = tmp_path / "export"
+    args = ["export", "--population", population, "--evaluated", evaluated, "--out", front]
+    result = cli(*args, "--params", params_file(tmp_path))
+    assert result.exit_code == 0, result.output
+    (p1,) = [p for p in json.loads((front / "front.json").read_text())["policies"] if p["id"] == 1]
+    assert (front / p1["pt2_file"]).read_bytes() == path.read_bytes()
+    with torch.no_grad():
+        traced, want = torch.jit.load(front / p1["file"])(x).numpy(), module(x).numpy()
+    np.testing.assert_allclose(traced, want, atol=1e-6, rtol=0)
+
+
+def test_import_refuses_a_bad_torch_export_file(cli, spec, tmp_path):
+    text = tmp_path / "notes.pt2"
+    text.write_text("not a program\n")
+    static, _ = exported_file(tmp_path, spec, dynamic=False)  # exported for a batch of 2 only
+    for path, says in (
+        (text, "not a torch.export program torch.export.load can read"),
+        (static, f"the policy fails on a batch of {spec.obs_dim}-d observations"),
+    ):
+        result, out = run_import(cli, tmp_path, path, "torch_export")
+        assert result.exit_code == 2, result.output
+        errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and errors[0].startswith(f"error: {path}: {says}"), errors
+        assert not out.exists() or not any(out.iterdir())
 
 
 def test_collection_writes_the_rewards_the_env_returned(sb3_models, spec):
@@ -402,7 +463,7 @@ def test_import_refuses_bounds_of_another_env(cli, spec, tmp_path):
 # -- export ---------------------------------------------------------------------------------------
 
 
-def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> Path:
+def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None, with_program: Path | None = None) -> Path:
     torch.manual_seed(2)
     meta = {
         "env_id": ENV,
@@ -422,6 +483,8 @@ def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> 
         state = {k: v.clone() for k, v in actor.state_dict().items()}
         if with_scripted is not None and i == 1:
             state = ScriptedActor.from_bytes(with_scripted.read_bytes()).state_dict()
+        if with_program is not None and i == 1:
+            state = ExportedActor.from_bytes(with_program.read_bytes()).state_dict()
         members.append(
             Member(
                 origin,
@@ -433,7 +496,7 @@ def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> 
                 [0.0, 0.0],
                 1,
                 i,
-                [] if i == 1 and with_scripted is not None else [8, 8],
+                [] if i == 1 and (with_scripted or with_program) is not None else [8, 8],
                 state,
                 "policy" if origin == "specialist" else None,
             )
@@ -472,7 +535,9 @@ def test_export_writes_the_front_as_torchscript_that_loads_without_the_project(c
     doc = json.loads((out / "front.json").read_text())
     assert [p["id"] for p in doc["policies"]] == [1, 3, 0]  # member 2 is dominated by 0; sorted by obj0
     assert doc["policies"][1]["parents"] == [0, 1] and doc["policies"][1]["returns_std"] == [1.0, 2.0]
-    assert (out / "front.csv").read_text().splitlines()[0].startswith("id,file,onnx_file,origin")
+    assert (out / "front.csv").read_text().splitlines()[0].startswith("id,file,onnx_file,pt2_file,origin")
+    # none for the TorchScript specialist (member 1): torch.export does not take TorchScript
+    assert [p["pt2_file"] for p in doc["policies"]] == [None, "member_0003.pt2", "member_0000.pt2"]
     members, meta = load_population(population)
     obs = random_obs(20)
     np.save(tmp_path / "obs.npy", obs)
@@ -483,13 +548,17 @@ def test_export_writes_the_front_as_torchscript_that_loads_without_the_project(c
         f"out, obs = {str(out)!r}, torch.from_numpy(np.load({str(tmp_path / 'obs.npy')!r}))\n"
         "doc = json.load(open(out + '/front.json'))\n"
         "res = {p['id']: torch.jit.load(out + '/' + p['file'])(obs).tolist() for p in doc['policies']}\n"
-        "print(json.dumps(res))\n"
+        "pt2 = {p['id']: torch.export.load(out + '/' + p['pt2_file']).module()(obs).tolist()\n"
+        "       for p in doc['policies'] if p['pt2_file']}\n"
+        "print(json.dumps({'ts': res, 'pt2': pt2}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    got = json.loads(r.stdout)
-    for pid, actions in got.items():
+    both = json.loads(r.stdout)
+    got = both["ts"]
+    assert sorted(both["pt2"]) == ["0", "3"]
+    for pid, actions in [*got.items(), *both["pt2"].items()]:
         with torch.no_grad():
             want = member_actor(members[int(pid)], meta)(torch.from_numpy(obs)).numpy()
         np.testing.assert_allclose(np.array(actions), want, atol=1e-6, rtol=0)
