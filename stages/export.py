@@ -1,4 +1,4 @@
-"""Stage export: a front's policies as self-contained TorchScript (and ONNX) files, with front.csv/json."""
+"""Stage export: a front's policies as self-contained TorchScript, torch.export (and ONNX) files, with front.csv/json."""
 
 from __future__ import annotations
 
@@ -14,13 +14,19 @@ from pipeline.core.pareto import pareto_mask
 from pipeline.core.population import load_population, member_actor
 from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.evaluated import EVALUATION_KEYS, META_KEYS, check_same_run, read_evaluated, read_std
-from pipeline.interop.export import check_export, onnx_available, onnx_bytes, torchscript_bytes
+from pipeline.interop.export import (
+    check_export,
+    onnx_available,
+    onnx_bytes,
+    torch_export_bytes,
+    torchscript_bytes,
+)
 from pipeline.params import ParamsError
 from pipeline.params.export import ExportParams
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
 
 FRONT_FORMAT = "mapex.front"
-FRONT_VERSION = 1
+FRONT_VERSION = 2  # 2: pt2_file (a torch.export program per policy)
 
 
 def front_csv(records: list[dict], n_obj: int) -> str:
@@ -29,6 +35,7 @@ def front_csv(records: list[dict], n_obj: int) -> str:
         "id",
         "file",
         "onnx_file",
+        "pt2_file",
         "origin",
         "objective",
         "policy_name",
@@ -44,6 +51,7 @@ def front_csv(records: list[dict], n_obj: int) -> str:
             r["id"],
             r["file"],
             r["onnx_file"] or "",
+            r["pt2_file"] or "",
             r["origin"],
             "" if r["objective"] is None else r["objective"],
             r["policy_name"] or "",
@@ -64,7 +72,7 @@ def export(
     population: Path = typer.Option(..., help="population.pt of a method (extract, mopderl or morld stage)"),
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
     out: Path = typer.Option(
-        ..., help="output directory: one TorchScript file per front policy, front.csv, front.json"
+        ..., help="output directory: TorchScript and torch.export files per front policy, front.csv, front.json"
     ),
     onnx: str = typer.Option(None, help="auto | yes | no (default: params export.onnx)"),
     params: Path = PARAMS_OPTION,
@@ -75,9 +83,11 @@ def export(
     The front is the non-dominated set of the re-evaluated mean returns (EVALUATED, as stage
     score computes it). Each of its policies is written as OUT/member_<id>.pt, a TorchScript
     module mapping a batch of observations (B, obs_dim) float32 to actions (B, act_dim) in the
-    env's bounds: `torch.jit.load(path)` reads it without this project. Each file is reloaded
-    and checked against the population's actor (largest action difference <= 1e-6). With the
-    optional onnx package (pip install -e ".[onnx]"), also OUT/member_<id>.onnx.
+    env's bounds: `torch.jit.load(path)` reads it without this project; and as
+    OUT/member_<id>.pt2, the same as a torch.export program (`torch.export.load(path).module()`;
+    none for a policy imported as TorchScript). Each file is reloaded and checked against the
+    population's actor (largest action difference <= 1e-6). With the optional onnx package
+    (pip install -e ".[onnx]"), also OUT/member_<id>.onnx.
 
     OUT/front.csv and OUT/front.json list, per policy: its file, its re-evaluated returns and
     their spread (std over the evaluation episodes), its extraction-time returns, its origin
@@ -113,9 +123,15 @@ def export(
             m = members[i]
             actor = member_actor(m, meta)
             name = f"member_{i:04d}"
-            data = torchscript_bytes(actor)
+            data = torchscript_bytes(actor, meta["obs_dim"])
             (tmp / f"{name}.pt").write_bytes(data)
             diff = check_export(out / f"{name}.pt", data, actor, meta["obs_dim"])
+            pt2_file, program = f"{name}.pt2", torch_export_bytes(actor, meta["obs_dim"])
+            if program is None:
+                pt2_file = None
+            else:
+                (tmp / pt2_file).write_bytes(program)
+                diff = max(diff, check_export(out / pt2_file, program, actor, meta["obs_dim"], kind="torch_export"))
             onnx_file = None
             if write_onnx:
                 onnx_file = f"{name}.onnx"
@@ -125,6 +141,7 @@ def export(
                     "id": i,
                     "file": f"{name}.pt",
                     "onnx_file": onnx_file,
+                    "pt2_file": pt2_file,
                     "origin": m.origin,
                     "objective": m.objective,
                     "policy_name": m.policy_name,
@@ -142,8 +159,8 @@ def export(
         doc = {
             "format": FRONT_FORMAT,
             "format_version": FRONT_VERSION,
-            "usage": "policy = torch.jit.load(file); action = policy(obs) with obs a float32 (B, obs_dim) tensor; "
-            "actions are in the env's bounds",
+            "usage": "policy = torch.jit.load(file) or torch.export.load(pt2_file).module(); action = policy(obs) "
+            "with obs a float32 (B, obs_dim) tensor; actions are in the env's bounds",
             "env": env | {"max_episode_steps": record.get("max_episode_steps")},
             "method": meta["method"],
             "seed": meta["seed"],

@@ -94,7 +94,15 @@ def collect(
     def fresh() -> CollectionRun:
         env = make_env(env_p.id, env_p.max_episode_steps)
         return CollectionRun(
-            actor, env, spec, cfg.collect_rows, cfg.exploration_noise, seed, objective, cfg.checkpoint_every
+            actor,
+            env,
+            spec,
+            cfg.collect_rows,
+            cfg.exploration_noise,
+            seed,
+            objective,
+            cfg.checkpoint_every,
+            source=str(policy_file),
         )
 
     who = f"import_specialist seed {seed} obj {objective}"

@@ -140,6 +140,40 @@ def test_train_specialist_stops_at_a_nan_critic(tmp_path, write_params, cli, mon
     assert all(torch.isfinite(v).all() for v in state["nets"]["critic"].values())
 
 
+def test_a_sigterm_checkpoint_of_a_diverged_state_is_not_written(tmp_path, write_params, cli, monkeypatch):
+    """SIGTERM at step 155, between the periodic checkpoints (140, 210) and before the check every
+    CHECK_EVERY updates (step 200), after a NaN went into a critic weight at step 150: the
+    SIGTERM checkpoint runs the full check, so the divergence line comes instead of a checkpoint
+    of the diverged state, and the last good one (step 140) stays."""
+    import os
+    import signal
+
+    params = write_params(tmp_path, {"env": HOPPER, "td3": AGENT, "train_specialist": TRAIN})
+    poison_critic_after(monkeypatch, 150, specialist=0)
+    poisoned = SpecialistsRun.step
+
+    def step_then_sigterm(self):
+        records = poisoned(self)
+        if self.t == 155:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return records
+
+    monkeypatch.setattr(SpecialistsRun, "step", step_then_sigterm)
+    out = tmp_path / "out"
+    result = cli("train-specialist", "--seed", 0, "--out", out, "--params", params)
+    ckpt = tmp_path / ".out.resume" / "specialist_state_obj0-obj1.pt"
+    assert result.exit_code == DIVERGED_EXIT, result.stderr
+    lines = error_lines(result.stderr)
+    assert len(lines) == 1 and re.fullmatch(
+        rf"error: train_specialist seed 0 obj 0: .* is NaN at step 155 \(the last good checkpoint is kept: {re.escape(str(ckpt))}\)",
+        lines[0],
+    ), lines
+    assert "checkpoint written" not in result.stderr
+    state = torch.load(ckpt, weights_only=True)["state"]
+    assert state["counters"]["t"] == 140
+    assert all(torch.isfinite(v).all() for v in state["nets"]["critic"].values())
+
+
 # Worker processes (train_specialist.processes > 1): the part raises in a spawned process, which
 # imports this function from this module.
 

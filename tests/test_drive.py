@@ -114,3 +114,25 @@ def test_hooks_run_after_every_step_and_run_to_end_is_the_bare_loop(tmp_path):
     assert seen == [1, 2, 3, 4, 5]
     run = run_to_end(Counter(), [lambda r: seen.append(-r.t)])
     assert run.started and run.finished and not run.closed and seen[5:] == [-1, -2, -3, -4, -5]
+
+
+def test_a_checkpoint_of_other_library_versions_is_not_resumed(tmp_path, monkeypatch):
+    """The "libraries changed" line is true: the fingerprint holds the numeric libraries' versions."""
+    import pipeline.core.resume as resume
+    from pipeline.core.provenance import NUMERIC_LIBRARIES, library_versions
+
+    assert {"torch", "numpy", "mujoco", "gymnasium"} <= set(NUMERIC_LIBRARIES)
+    config = {"seed": 0}
+    fp = resume.run_fingerprint("extract", config, "cpu")
+    assert resume.run_fingerprint("extract", config, "cpu") == fp
+    said = []
+    Checkpoint(tmp_path / "state.pt", fp, said.append).save({"t": 3})
+    for lib in ("torch", "mujoco"):
+        other = {**library_versions(), lib: "0.0.1"}
+        monkeypatch.setattr(resume, "library_versions", lambda other=other: other)
+        fp_other = resume.run_fingerprint("extract", config, "cpu")
+        assert fp_other != fp, lib
+        assert Checkpoint(tmp_path / "state.pt", fp_other, said.append).load() is None
+        assert "libraries changed" in said[-1]
+    monkeypatch.undo()
+    assert Checkpoint(tmp_path / "state.pt", fp, said.append).load() == {"t": 3}

@@ -7,6 +7,7 @@ layout (its actor modules, saved as CleanRL's --save-model does: a tuple of stat
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import subprocess
@@ -23,7 +24,7 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import load_buffer
 from pipeline.core.checkpoint import load_policy
 from pipeline.core.envs import env_spec, make_env
-from pipeline.core.nets import Actor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
 from pipeline.core.population import Member, load_population, member_actor, save_population
 from pipeline.interop.collect import COLLECT_STREAM, CollectionRun
 from pipeline.interop.readers import read_policy
@@ -166,6 +167,90 @@ def test_torchscript_actor_imports_and_round_trips(spec, tmp_path):
     assert back.actor[ScriptedActor.KEY].numpy().tobytes() == path.read_bytes()
 
 
+def test_a_frozen_torchscript_policy_without_parameters_imports_and_evaluates(cli, spec, tmp_path):
+    """torch.jit.freeze turns the weights into constants: no parameters left. The import, the
+    slot it writes and an evaluation of that slot's policy all work."""
+    from pipeline.evaluation.episodes import evaluate_policies
+
+    torch.manual_seed(1)
+    frozen = torch.jit.freeze(torch.jit.script(OddPolicy(spec.obs_dim, spec.act_dim).eval()))
+    assert not list(frozen.parameters())
+    path = tmp_path / "frozen.ts"
+    torch.jit.save(frozen, path)
+    result, out = run_import(cli, tmp_path, path, "torchscript")
+    assert result.exit_code == 0, result.output
+    actor, meta = load_policy(out / "policy.pt")
+    assert isinstance(actor, ScriptedActor) and not list(actor.parameters())
+    x = torch.from_numpy(random_obs())
+    with torch.no_grad():
+        assert torch.equal(actor(x), frozen(x))
+    envs = [make_env(ENV, STEPS) for _ in range(2)]
+    (res,) = evaluate_policies([actor], envs, [[5, 6]])
+    assert res.returns.shape == (2, 2) and np.isfinite(res.returns).all() and res.env_samples == 2 * STEPS
+    for env in envs:
+        env.close()
+
+
+def exported_file(tmp_path: Path, spec, dynamic: bool = True) -> tuple[Path, nn.Module]:
+    """OddPolicy as a torch.export program (.pt2), its batch axis dynamic unless told."""
+    torch.manual_seed(3)
+    module = OddPolicy(spec.obs_dim, spec.act_dim).eval()
+    shapes = ({0: torch.export.Dim("batch")},) if dynamic else None
+    program = torch.export.export(module, (torch.zeros(2, spec.obs_dim),), dynamic_shapes=shapes)
+    path = tmp_path / ("policy.pt2" if dynamic else "static.pt2")
+    torch.export.save(program, path)
+    return path, module
+
+
+def test_torch_export_program_imports_round_trips_and_exports_as_itself(cli, spec, tmp_path):
+    path, module = exported_file(tmp_path, spec)
+    imported = read_policy(path, "torch_export", spec)
+    assert isinstance(imported.actor, ExportedActor) and imported.architecture == "torch_export"
+    assert imported.source["format"] == "torch_export" and imported.hidden_sizes == []
+    x = torch.from_numpy(random_obs())
+    with torch.no_grad():
+        np.testing.assert_allclose(imported.actor(x).numpy(), module(x).numpy(), atol=1e-6, rtol=0)
+    # the stage's slot, read back with weights_only=True, then evaluated
+    result, out = run_import(cli, tmp_path, path, "torch_export")
+    assert result.exit_code == 0, result.output
+    actor, meta = load_policy(out / "policy.pt")
+    assert isinstance(actor, ExportedActor) and meta["architecture"] == "torch_export"
+    assert actor.state_dict()[ExportedActor.KEY].numpy().tobytes() == path.read_bytes()
+    from pipeline.evaluation.episodes import evaluate_policies
+
+    envs = [make_env(ENV, STEPS)]
+    (res,) = evaluate_policies([copy.deepcopy(actor)], envs, [[0]])
+    assert np.isfinite(res.returns).all() and res.env_samples == STEPS
+    envs[0].close()
+    # as a population member: exported back as its own .pt2, with TorchScript traced from it
+    population = tiny_population(tmp_path, spec, with_program=path)
+    evaluated = fake_evaluation(tmp_path, population)
+    front = tmp_path / "export"
+    args = ["export", "--population", population, "--evaluated", evaluated, "--out", front]
+    result = cli(*args, "--params", params_file(tmp_path))
+    assert result.exit_code == 0, result.output
+    (p1,) = [p for p in json.loads((front / "front.json").read_text())["policies"] if p["id"] == 1]
+    assert (front / p1["pt2_file"]).read_bytes() == path.read_bytes()
+    with torch.no_grad():
+        traced, want = torch.jit.load(front / p1["file"])(x).numpy(), module(x).numpy()
+    np.testing.assert_allclose(traced, want, atol=1e-6, rtol=0)
+
+
+def test_import_refuses_a_bad_torch_export_file(cli, spec, tmp_path):
+    text = tmp_path / "notes.pt2"
+    text.write_text("not a program\n")
+    static, _ = exported_file(tmp_path, spec, dynamic=False)  # exported for a batch of 2 only
+    for path, says in (
+        (text, "not a torch.export program torch.export.load can read"),
+        (static, f"the policy fails on a batch of {spec.obs_dim}-d observations"),
+    ):
+        result, out = run_import(cli, tmp_path, path, "torch_export")
+        assert result.exit_code == 2, result.output
+        errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+        assert len(errors) == 1 and errors[0].startswith(f"error: {path}: {says}"), errors
+        assert not out.exists() or not any(out.iterdir())
+
+
 def test_collection_writes_the_rewards_the_env_returned(sb3_models, spec):
     """Replay the collected actions in a fresh env with the collection's seed: the same
     observations, reward vectors, terminations and truncations come back."""
@@ -218,6 +303,19 @@ def test_collection_resumes_to_the_same_rows(sb3_models, spec):
 # -- the stage: bad inputs, each one line naming the file, nothing written ----------------------
 
 
+class GoesNaN(nn.Module):
+    """Finite on the import's probe batch (call 1), then NaN from its `after`-th call on."""
+
+    def __init__(self, act_dim: int, after: int):
+        super().__init__()
+        self.act_dim, self.after, self.calls = act_dim, after, 0
+
+    def forward(self, obs):
+        self.calls += 1
+        out = torch.zeros(obs.shape[0], self.act_dim)
+        return out * float("nan") if self.calls >= self.after else out
+
+
 def params_file(tmp_path: Path, rows: int = 60) -> Path:
     import yaml
 
@@ -252,6 +350,19 @@ def test_import_stage_writes_a_slot(cli, sb3_models, tmp_path):
     assert "provenance" not in attrs
     assert attrs["n_transitions"] == 60 and data["reward"].shape == (60, 2) and attrs["collection_frames"] == 60
     assert (out / "collect.csv").read_text().startswith("episode,obj0,obj1\n")
+
+
+def test_collection_stops_at_a_non_finite_action_naming_the_file_and_row(cli, spec, tmp_path):
+    path = tmp_path / "goes_nan.ts"
+    torch.jit.save(torch.jit.script(GoesNaN(spec.act_dim, after=12)), path)  # row 10: call 12
+    result, out = run_import(cli, tmp_path, path, "torchscript")
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert errors == [
+        f"error: {path}: the policy returned a non-finite action (nan, nan, nan) at row 10 "
+        "(episode 0, step 10); collection stopped, no buffer written"
+    ]
+    assert "Traceback" not in result.stderr and not (out / "buffer.zarr").exists()
 
 
 def test_import_refuses_a_discrete_action_model(cli, tmp_path):
@@ -352,7 +463,7 @@ def test_import_refuses_bounds_of_another_env(cli, spec, tmp_path):
 # -- export ---------------------------------------------------------------------------------------
 
 
-def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> Path:
+def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None, with_program: Path | None = None) -> Path:
     torch.manual_seed(2)
     meta = {
         "env_id": ENV,
@@ -372,6 +483,8 @@ def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> 
         state = {k: v.clone() for k, v in actor.state_dict().items()}
         if with_scripted is not None and i == 1:
             state = ScriptedActor.from_bytes(with_scripted.read_bytes()).state_dict()
+        if with_program is not None and i == 1:
+            state = ExportedActor.from_bytes(with_program.read_bytes()).state_dict()
         members.append(
             Member(
                 origin,
@@ -383,7 +496,7 @@ def tiny_population(tmp_path: Path, spec, with_scripted: Path | None = None) -> 
                 [0.0, 0.0],
                 1,
                 i,
-                [] if i == 1 and with_scripted is not None else [8, 8],
+                [] if i == 1 and (with_scripted or with_program) is not None else [8, 8],
                 state,
                 "policy" if origin == "specialist" else None,
             )
@@ -422,7 +535,9 @@ def test_export_writes_the_front_as_torchscript_that_loads_without_the_project(c
     doc = json.loads((out / "front.json").read_text())
     assert [p["id"] for p in doc["policies"]] == [1, 3, 0]  # member 2 is dominated by 0; sorted by obj0
     assert doc["policies"][1]["parents"] == [0, 1] and doc["policies"][1]["returns_std"] == [1.0, 2.0]
-    assert (out / "front.csv").read_text().splitlines()[0].startswith("id,file,onnx_file,origin")
+    assert (out / "front.csv").read_text().splitlines()[0].startswith("id,file,onnx_file,pt2_file,origin")
+    # none for the TorchScript specialist (member 1): torch.export does not take TorchScript
+    assert [p["pt2_file"] for p in doc["policies"]] == [None, "member_0003.pt2", "member_0000.pt2"]
     members, meta = load_population(population)
     obs = random_obs(20)
     np.save(tmp_path / "obs.npy", obs)
@@ -433,13 +548,17 @@ def test_export_writes_the_front_as_torchscript_that_loads_without_the_project(c
         f"out, obs = {str(out)!r}, torch.from_numpy(np.load({str(tmp_path / 'obs.npy')!r}))\n"
         "doc = json.load(open(out + '/front.json'))\n"
         "res = {p['id']: torch.jit.load(out + '/' + p['file'])(obs).tolist() for p in doc['policies']}\n"
-        "print(json.dumps(res))\n"
+        "pt2 = {p['id']: torch.export.load(out + '/' + p['pt2_file']).module()(obs).tolist()\n"
+        "       for p in doc['policies'] if p['pt2_file']}\n"
+        "print(json.dumps({'ts': res, 'pt2': pt2}))\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
-    got = json.loads(r.stdout)
-    for pid, actions in got.items():
+    both = json.loads(r.stdout)
+    got = both["ts"]
+    assert sorted(both["pt2"]) == ["0", "3"]
+    for pid, actions in [*got.items(), *both["pt2"].items()]:
         with torch.no_grad():
             want = member_actor(members[int(pid)], meta)(torch.from_numpy(obs)).numpy()
         np.testing.assert_allclose(np.array(actions), want, atol=1e-6, rtol=0)

@@ -50,3 +50,21 @@ def test_write_provenance_writes_a_record_only_where_asked(tmp_path):
     assert {"git_commit", "git_dirty", "versions", "python", "torch_threads"} <= set(record)
     assert record["versions"]["torch"] == torch.__version__
     assert [p.name for p in path.parent.iterdir()] == ["seed0.json"]  # written atomically, no .partial left
+
+
+def test_torch_floor_refuses_the_weights_only_bypass_and_admits_the_makefile_pin():
+    """pyproject's torch range starts at 2.6 (CVE-2025-32434: weights_only=True bypassable
+    below it) and still admits the build the Makefile installs, so pip installs nothing more."""
+    import re
+    import tomllib
+    from pathlib import Path
+
+    from packaging.requirements import Requirement
+
+    root = Path(__file__).resolve().parents[1]
+    deps = tomllib.loads((root / "pyproject.toml").read_text())["project"]["dependencies"]
+    (torch_req,) = [Requirement(d) for d in deps if Requirement(d).name == "torch"]
+    pin = re.search(r"^TORCH_SPEC \?= torch==(\S+)$", (root / "Makefile").read_text(), re.M).group(1)
+    assert torch_req.specifier.contains(pin) and torch_req.specifier.contains(f"{pin}+cpu")
+    for old in ("2.3.0", "2.5.1"):
+        assert not torch_req.specifier.contains(old), old

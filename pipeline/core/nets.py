@@ -80,14 +80,15 @@ class ScriptedActor(nn.Module):
         # parameters non-leaf), on the device the original is on
         bounds = (self.centre - self.scale, self.centre + self.scale) if hasattr(self, "scale") else (None, None)
         bounds = tuple(None if b is None else b.cpu() for b in bounds)
-        out = ScriptedActor.from_bytes(self._bytes, *bounds) if self.module is not None else ScriptedActor(*bounds)
+        cls = type(self)
+        out = cls.from_bytes(self._bytes, *bounds) if self.module is not None else cls(*bounds)
         device = self.scale.device if hasattr(self, "scale") else None
         out.train(self.training)
         return out.to(device) if device is not None else out
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if self.module is None:
-            raise RuntimeError("ScriptedActor holds no module yet (load_state_dict first)")
+            raise RuntimeError(f"{type(self).__name__} holds no module yet (load_state_dict first)")
         return self.module(obs)
 
     def state_dict(self, *args, **kwargs) -> dict[str, torch.Tensor]:  # noqa: D102 (see the class)
@@ -97,13 +98,39 @@ class ScriptedActor(nn.Module):
         import io
 
         if set(state_dict) != {self.KEY}:
-            raise RuntimeError(f"a ScriptedActor state dict holds exactly {self.KEY!r}, got {sorted(state_dict)}")
+            raise RuntimeError(
+                f"a {type(self).__name__} state dict holds exactly {self.KEY!r}, got {sorted(state_dict)}"
+            )
         data = state_dict[self.KEY].cpu().numpy().tobytes()
-        self.module, self._bytes = (
-            torch.jit.load(io.BytesIO(data), map_location="cpu"),
-            data,
-        )  # on the CPU, like every artifact
+        self.module, self._bytes = self._load(io.BytesIO(data)), data  # on the CPU, like every artifact
         return torch.nn.modules.module._IncompatibleKeys([], [])
+
+    @staticmethod
+    def _load(f) -> nn.Module:
+        """The module of a file's bytes (`f` a file object)."""
+        return torch.jit.load(f, map_location="cpu")
+
+
+class ExportedActor(ScriptedActor):
+    """A deterministic policy brought in as a `torch.export` program (`torch.export.save` of an
+    ExportedProgram, a `.pt2` file, mapping (B, obs_dim) observations to actions (B, act_dim)
+    inside the env's bounds; its batch axis exported as dynamic).
+
+    Like `ScriptedActor`, its state dict is the file itself, as one uint8 tensor under
+    "torch_export", kept byte for byte; the module it runs is the program's
+    `torch.export.load(...).module()`. Such a module refuses `train()`/`eval()`; this one
+    records the mode without passing it on (a program's graph has no training mode).
+    """
+
+    KEY = "torch_export"
+
+    @staticmethod
+    def _load(f) -> nn.Module:
+        return torch.export.load(f).module()
+
+    def train(self, mode: bool = True) -> "ExportedActor":
+        self.training = bool(mode)
+        return self
 
 
 class CriticEnsemble(nn.Module):

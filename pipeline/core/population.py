@@ -23,8 +23,9 @@ population.pt (format "mapex.population", version 3), loadable with torch.load(w
         env_samples    cumulative env samples spent on evaluation once this policy was evaluated
         hidden_sizes   the actor's hidden widths
         actor          state dict of pipeline.core.nets.Actor (of nets.ScriptedActor, {"torchscript":
-                       the file's bytes}, for a starting policy imported as TorchScript; its
-                       hidden_sizes are then [])
+                       the file's bytes}, for a starting policy imported as TorchScript; of
+                       nets.ExportedActor, {"torch_export": the .pt2 file's bytes}, for one
+                       imported as a torch.export program; its hidden_sizes are then [])
 
 Older versions still load: version 2 named the method `variant` in its meta (read as
 `method`); version 1 (before policy sets) also lacks `policy_name`, its starting policies
@@ -44,7 +45,7 @@ from typing import Any, Sequence
 import torch
 
 from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.core.nets import Actor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
 
 FORMAT = "mapex.population"
 FORMAT_VERSION = 3
@@ -71,11 +72,13 @@ MEMBER_KEYS = tuple(f.name for f in fields(Member))
 
 
 def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
-    """Rebuild a member's actor (eval mode, CPU): an `Actor`, or a `ScriptedActor` for a
-    starting policy imported as TorchScript (its state dict holds the TorchScript file)."""
-    if ScriptedActor.KEY in member.actor:
-        data = member.actor[ScriptedActor.KEY].numpy().tobytes()
-        return ScriptedActor.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
+    """Rebuild a member's actor (eval mode, CPU): an `Actor`, or a `ScriptedActor` (an
+    `ExportedActor`) for a starting policy imported as TorchScript (as a torch.export program):
+    its state dict holds the file."""
+    for cls in (ScriptedActor, ExportedActor):
+        if cls.KEY in member.actor:
+            data = member.actor[cls.KEY].numpy().tobytes()
+            return cls.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
     actor = Actor(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
     actor.load_state_dict(member.actor)
     return actor.eval()

@@ -31,6 +31,10 @@ from pipeline.core.artifacts import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[2]
 LIBRARIES = ("mapex", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "zarr")
+# The third-party libraries whose versions can change a run's numbers (or its saved state's
+# layout); a checkpoint written under other versions is not resumed (pipeline.core.resume).
+# mapex itself is not among them: its code is fingerprinted file by file.
+NUMERIC_LIBRARIES = tuple(lib for lib in LIBRARIES if lib != "mapex")
 
 
 def _version(dist: str) -> str | None:
@@ -38,6 +42,11 @@ def _version(dist: str) -> str | None:
         return metadata.version(dist)
     except metadata.PackageNotFoundError:
         return None
+
+
+def library_versions(libs: tuple[str, ...] = NUMERIC_LIBRARIES) -> dict[str, str | None]:
+    """The installed version of each of `libs` (None where one is not installed)."""
+    return {lib: _version(lib) for lib in libs}
 
 
 @functools.lru_cache(maxsize=None)

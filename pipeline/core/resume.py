@@ -4,8 +4,9 @@ Every run the stages drive (TD3 specialists, PDERL, MOPDERL, MORL/D, MAPEX extra
 library object with `state_dict()` and `load_state_dict(state)`. A stage checkpoints it with
 a `Checkpoint` under `run_fingerprint(...)`, the one rule for what a run depends on: its
 params, its input files, every code file the stage imports (`closure_files`, the same list
-DVC's deps hold, so no hand-kept list can miss one), the device and the torch thread count
-(which can change the last bits of results). A rerun resumes (`resume`) only if the
+DVC's deps hold, so no hand-kept list can miss one), the device, the torch thread count and
+the versions of the numeric libraries (`provenance.NUMERIC_LIBRARIES`: torch, numpy, mujoco,
+gymnasium, ...), each of which can change the last bits of results. A rerun resumes (`resume`) only if the
 fingerprint matches and the state fits the run; anything else starts over, saying why.
 
 A checkpoint file holds {"format": "mapex.checkpoint", "format_version", "fingerprint",
@@ -31,6 +32,7 @@ from typing import Any, Callable, Sequence, TypeVar
 
 from pipeline.core.artifacts import TMP_SUFFIX, ArtifactError, atomic_path, torch_load_checked, torch_save_atomic
 from pipeline.core.codedeps import closure_files
+from pipeline.core.provenance import library_versions
 from pipeline.core.signals import Stopped, stop_requested
 
 # Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
@@ -58,11 +60,18 @@ def fingerprint(config: dict[str, Any], files: Sequence[str | Path]) -> str:
 def run_fingerprint(stage: str, config: dict[str, Any], device, inputs: Sequence[str | Path] = ()) -> str:
     """The fingerprint of a run of stage `stage` (its module stages/<stage>.py): `config` (the
     params it reads and its seed and objectives; not settings that change nothing saved, such
-    as checkpoint_every), the device it resolved to, the torch thread count, the bytes of its
-    input files and of every code file the stage imports."""
+    as checkpoint_every), the device it resolved to, the torch thread count, the versions of
+    the numeric libraries (a checkpoint of another torch or mujoco is not resumed: its run
+    would not continue bit for bit), the bytes of its input files and of every code file the
+    stage imports."""
     import torch
 
-    full = {**config, "device": str(device), "threads": torch.get_num_threads()}
+    full = {
+        **config,
+        "device": str(device),
+        "threads": torch.get_num_threads(),
+        "libraries": library_versions(),
+    }
     return fingerprint(full, [*inputs, *closure_files(f"stages.{stage}")])
 
 

@@ -9,6 +9,7 @@ batched forward per step instead of K.
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -34,6 +35,14 @@ class EvalResult:
     @property
     def std(self) -> np.ndarray:
         return self.returns.std(axis=0)
+
+
+def actor_device(actor: torch.nn.Module) -> torch.device:
+    """The device `actor` runs on: that of its first parameter, else of its first buffer (a
+    TorchScript policy saved after `torch.jit.freeze` has no parameters: its weights are
+    constants, and `ScriptedActor` holds the env's bounds as buffers), else the CPU."""
+    first = next(itertools.chain(actor.parameters(), actor.buffers()), None)
+    return torch.device("cpu") if first is None else first.device
 
 
 def eval_seeds(run_seed: int, stream: int, policy_index: int, episodes: int) -> list[int]:
@@ -65,7 +74,7 @@ def evaluate_policies(
     slots = [(i, s) for i, policy_seeds in enumerate(seeds) for s in policy_seeds]
     if len(slots) > len(envs):
         raise ValueError(f"{len(slots)} episodes asked for but only {len(envs)} envs given")
-    device = next(actors[0].parameters()).device
+    device = actor_device(actors[0])
     # One policy: called on its active envs' observations only (the unbatched code path, so a
     # lone policy's returns are bit for bit what they were before batching existed).
     stacked = StackedActor(actors).to(device) if len(actors) > 1 else None

@@ -25,6 +25,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import ReplayBuffer
 from pipeline.core.drive import fmt_vec
 from pipeline.core.envs import EnvSpec
@@ -49,9 +50,11 @@ class CollectionRun:
         seed: int,
         objective: int,
         checkpoint_every: int = 0,
+        source: str = "the imported policy",
     ):
-        """checkpoint_every: rows between two periodic checkpoints (0: none; `checkpoint_due`)."""
-        self.actor, self.env, self.spec = actor.eval(), env, spec
+        """checkpoint_every: rows between two periodic checkpoints (0: none; `checkpoint_due`);
+        source: the policy's file, named when the policy returns a non-finite action."""
+        self.actor, self.env, self.spec, self.source = actor.eval(), env, spec, source
         self.rows, self.noise = int(rows), float(noise)
         s_np, s_env, s_space = derive_seeds(seed, objective, COLLECT_STREAM, n=3)
         self.rng = np.random.default_rng(s_np)
@@ -97,8 +100,17 @@ class CollectionRun:
         self.env.close()
 
     def action(self) -> np.ndarray:
+        """The policy's action for the current observation, plus exploration noise, clipped to the
+        bounds; ArtifactError naming the file and the row if the policy's action is not finite
+        (clipping would keep a NaN, and the env would be stepped with it)."""
         with torch.no_grad():
             a = self.actor(torch.as_tensor(self.obs, dtype=torch.float32)[None])[0].numpy().astype(np.float32)
+        if not np.isfinite(a).all():
+            bad = ", ".join(f"{x:g}" for x in a[~np.isfinite(a)][:3])
+            raise ArtifactError(
+                f"{self.source}: the policy returned a non-finite action ({bad}) at row {self.t} "
+                f"(episode {self.episode}, step {self.ep_step}); collection stopped, no buffer written"
+            )
         if self.noise > 0:
             half = (self.high - self.low) / 2
             a = a + self.rng.normal(0.0, self.noise, size=a.shape).astype(np.float32) * half

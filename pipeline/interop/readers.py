@@ -1,5 +1,5 @@
-"""Readers for specialists trained elsewhere: Stable-Baselines3 zips, CleanRL checkpoints and
-TorchScript actors, each turned into a deterministic policy of this project (docs/import_export.md).
+"""Readers for specialists trained elsewhere: Stable-Baselines3 zips, CleanRL checkpoints,
+TorchScript actors and torch.export programs (.pt2), each turned into a deterministic policy of this project (docs/import_export.md).
 
 Nothing here imports SB3 or CleanRL, and nothing unpickles: an SB3 `model.zip` is read from its
 `data` JSON (the algorithm, the spaces' shapes and bounds, the policy's keyword arguments) and
@@ -18,7 +18,9 @@ objects) is refused with a message naming the file; so is anything that does not
 
 All of these are exactly `pipeline.core.nets.Actor` (ReLU MLP, tanh, centre + scale), so the
 imported weights are copied into one and everything downstream reads them as it reads its own.
-A TorchScript file becomes a `ScriptedActor` holding the file's bytes.
+A TorchScript file becomes a `ScriptedActor` holding the file's bytes; a `.pt2` file of
+`torch.export.save` an `ExportedActor` holding its bytes (the program's batch axis must be
+exported as dynamic: the checks below run it on a batch of 4).
 """
 
 from __future__ import annotations
@@ -42,16 +44,16 @@ from torch import nn
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
-from pipeline.core.nets import Actor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
 
-FORMATS = ("sb3", "cleanrl", "torchscript")
+FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
 
 
 class ImportedPolicy(NamedTuple):
     actor: Actor | ScriptedActor  # eval mode, CPU
-    architecture: str  # "mlp" (an Actor) or "torchscript"
-    hidden_sizes: list[int]  # [] for TorchScript
+    architecture: str  # "mlp" (an Actor), "torchscript" (a ScriptedActor) or "torch_export" (an ExportedActor)
+    hidden_sizes: list[int]  # [] for TorchScript and torch.export programs
     source: dict[str, Any]  # format, algorithm, file, sha256, library version where known
 
 
@@ -302,6 +304,23 @@ def read_torchscript(path: Path, spec: EnvSpec) -> tuple[ScriptedActor, _Declare
     )
 
 
+def read_torch_export(path: Path, spec: EnvSpec) -> tuple[ExportedActor, _Declared, dict[str, Any]]:
+    data = path.read_bytes()
+    try:
+        actor = ExportedActor.from_bytes(data, spec.action_low, spec.action_high)
+    except Exception as exc:  # torch.export.load raises many kinds on a file that is not a program
+        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
+        raise ArtifactError(
+            f"{path}: not a torch.export program torch.export.load can read ({first}); expected a .pt2 file "
+            "of torch.export.save"
+        ) from None
+    return (
+        actor.eval(),
+        _Declared(None, None, None, None),
+        {"algorithm": None, "library": "torch.export", "library_version": None},
+    )
+
+
 # -- checks against the env ---------------------------------------------------------------------
 
 
@@ -355,12 +374,18 @@ def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
         raise ArtifactError(f"{path}: no such file (expected a {fmt} model)")
     if fmt == "torchscript":
         actor, declared, source = read_torchscript(path, spec)
+    elif fmt == "torch_export":
+        actor, declared, source = read_torch_export(path, spec)
     else:
         actor, declared, source = (read_sb3 if fmt == "sb3" else read_cleanrl)(path)
     _check_env(path, actor, declared, spec)
-    architecture = "torchscript" if isinstance(actor, ScriptedActor) else "mlp"
-    hidden = (
-        [] if architecture == "torchscript" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    architecture = (
+        "torch_export"
+        if isinstance(actor, ExportedActor)
+        else "torchscript"
+        if isinstance(actor, ScriptedActor)
+        else "mlp"
     )
+    hidden = [] if architecture != "mlp" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
     source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
     return ImportedPolicy(actor, architecture, hidden, source)

@@ -21,9 +21,10 @@ from pipeline.params.common import Strict
 class ImportedPolicyEntry(Strict):
     objective: int = Field(..., ge=0, description="the objective this specialist was trained for (its slot obj{k})")
     file: str = Field(..., min_length=1, description="the policy file, relative to the repository root (a DVC dep)")
-    format: Literal["sb3", "cleanrl", "torchscript"] = Field(
+    format: Literal["sb3", "cleanrl", "torchscript", "torch_export"] = Field(
         ...,
-        description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: torch.jit.save",
+        description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: "
+        "torch.jit.save; torch_export: a .pt2 file of torch.export.save (batch axis dynamic)",
     )
     buffer: str | None = Field(
         None,

@@ -153,6 +153,7 @@ class SpecialistsRun:
         self._terminated = np.zeros(n, bool)
         self._truncated = np.zeros(n, bool)
         self.t = 0  # env steps taken by each specialist
+        self.full_check_at = -1  # the step of the last full finiteness check that passed
         self.n_updates = 0
         # keep-best: every check's (step, score) and the best snapshot ({step, score, actor,
         # actor_target}, CPU state dicts) per specialist; the evaluation envs are built at the first check
@@ -251,6 +252,8 @@ class SpecialistsRun:
         is the env step of the check."""
         bad = first_nonfinite(finite_named(self.update, full))
         if bad is None:
+            if full:
+                self.full_check_at = self.t
             return
         s = diverged_specialist(self.update)
         if s is not None:
@@ -302,7 +305,13 @@ class SpecialistsRun:
         (torch.load(weights_only=True) reads it back).
 
         The buffer rows are not copied when a full ring already lies on the CPU: they are the
-        live ring, so save (or copy) the state before the next `step`."""
+        live ring, so save (or copy) the state before the next `step`.
+
+        Every state passes `check_finite(full=True)` first (TrainingDiverged otherwise), the
+        one a periodic checkpoint's step already ran or, for a checkpoint that is not due (on
+        SIGTERM), one run here: no saved state is a diverged one."""
+        if self.full_check_at != self.t:
+            self.check_finite(full=True)
         cuda = self.device.type == "cuda"
         return {
             "format": STATE_FORMAT,
