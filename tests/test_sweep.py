@@ -178,11 +178,12 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert set(items) == set(listed.stdout.split())
     assert items["critic_fidelity@0-td3-1"].upstream == ("train_specialist@0",)
     assert items["critic_fidelity@0-td3-1"].pull == ()  # exact output deps: `dvc repro --pull` fetches them
-    # the report reads the evaluations, the scores and the extractions' provenance records
+    # the report reads the evaluations, the scores, the extractions' provenance records and the clips
     assert items["report"].upstream == (
         "evaluate@0-mapex_td3",
         "evaluate@0-warmup_only_td3",
         "extract@0-td3-mapex",
+        "render",
         "score@0-mapex_td3",
         "score@0-warmup_only_td3",
         "warmup_only@0-td3",
