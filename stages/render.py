@@ -77,8 +77,8 @@ def render(
     frames, the clip's key), OUT/thumbs/METHOD/seedS/member_<id>.png (the middle frame).
 
     A clip is rendered only when its record is missing or its key (the actor's weights, the
-    env, the render params) differs: OUT persists across runs (dvc.yaml: persist: true), and
-    what no front lists any more is removed. Every file is written whole (atomically), each
+    env, the render params) differs, and what no front lists any more is removed (run by hand;
+    under dvc repro, DVC clears OUT first and its run-cache restores earlier renders). Every file is written whole (atomically), each
     record after its clip. OUT/explorer.html (self-contained: open it from file://),
     OUT/fronts.csv (the DVC plot) and OUT/index.json are rewritten last.
     """

@@ -338,7 +338,7 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster)
     out = result.output
     assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
     assert "mo-hopper-2obj-v5 extract@0-td3-mapex: ran" in out  # by its retry
-    assert "mo-hopper-2obj-v5: done (10 ran, 0 restored)" in out
+    assert "mo-hopper-2obj-v5: done (11 ran, 0 restored)" in out  # 10 stage items and render
     ws = base / "work" / "mo-hopper-2obj-v5"
     assert (ws / "data" / "report" / "report.md").is_file()
     # the lock equals a plain serial `dvc repro` of the commit with the cell's params, byte for byte
