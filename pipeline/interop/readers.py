@@ -21,6 +21,15 @@ imported weights are copied into one and everything downstream reads them as it 
 A TorchScript file becomes a `ScriptedActor` holding the file's bytes; a `.pt2` file of
 `torch.export.save` an `ExportedActor` holding its bytes (the program's batch axis must be
 exported as dynamic: the checks below run it on a batch of 4).
+
+An MLP trained under SB3's `VecNormalize(norm_obs=True)` comes with the observation statistics
+file SB3 saves beside it (pipeline.interop.vecnorm reads it without running its code); with
+it, the actor becomes a `NormalizedActor`, which normalises raw observations as the policy saw
+them. An SB3 TD3/DDPG/SAC zip also tells whether its policy was trained on normalised
+observations: it keeps the last observation of training twice, as the policy saw it
+(`_last_obs`) and as the env gave it (`_last_original_obs`), equal unless a VecNormalize stood
+between them (SB3's off-policy `_store_transition`). `read_policy` warns when the two differ and
+no statistics were given, and when the statistics given do not turn one into the other.
 """
 
 from __future__ import annotations
@@ -44,7 +53,8 @@ from torch import nn
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
-from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
+from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
 
 FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
@@ -52,9 +62,12 @@ SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Polic
 
 class ImportedPolicy(NamedTuple):
     actor: Actor | ScriptedActor  # eval mode, CPU
-    architecture: str  # "mlp" (an Actor), "torchscript" (a ScriptedActor) or "torch_export" (an ExportedActor)
+    # "mlp" (an Actor), "normalized_mlp" (a NormalizedActor), "torchscript" (a ScriptedActor) or
+    # "torch_export" (an ExportedActor)
+    architecture: str
     hidden_sizes: list[int]  # [] for TorchScript and torch.export programs
-    source: dict[str, Any]  # format, algorithm, file, sha256, library version where known
+    source: dict[str, Any]  # format, algorithm, file, sha256, library version where known; normalize
+    warnings: tuple[str, ...] = ()  # one line each: what makes the import likely wrong (the stage prints them)
 
 
 class _Declared(NamedTuple):
@@ -167,6 +180,29 @@ def _parse_bounds(text: Any) -> np.ndarray | None:
         return None
 
 
+def _serialized_array(path: Path, data: dict, key: str) -> np.ndarray | None:
+    """The float array a serialized SB3 entry holds (read through the restricted unpickler of
+    pipeline.interop.vecnorm); None where it holds anything else or cannot be read."""
+    entry = data.get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get(":serialized:"), str):
+        return None
+    try:
+        value = restricted_loads(base64.b64decode(entry[":serialized:"]), path, f"data[{key!r}]")
+    except (ArtifactError, binascii.Error, ValueError):
+        return None
+    return value if isinstance(value, np.ndarray) and value.dtype.kind == "f" else None
+
+
+def _last_observations(path: Path, data: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the last observation as the policy saw it, as the env gave it), saved by SB3's
+    off-policy algorithms as `_last_obs` and `_last_original_obs`; None where either is missing
+    (a model saved before learning) or they are not arrays of one shape."""
+    seen, raw = _serialized_array(path, data, "_last_obs"), _serialized_array(path, data, "_last_original_obs")
+    if seen is None or raw is None or seen.shape != raw.shape:
+        return None
+    return seen.astype(np.float64), raw.astype(np.float64)
+
+
 def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     try:
         zf = zipfile.ZipFile(path)
@@ -253,7 +289,8 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape)
     )
     declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
-    return actor, declared, {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
+    info = {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
+    return actor, declared, info | {"last_obs": _last_observations(path, data)}
 
 
 # -- CleanRL ------------------------------------------------------------------------------------
@@ -363,29 +400,98 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
         )
 
 
-def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
-    """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`; raises
+# -- observation statistics ---------------------------------------------------------------------
+
+NORMALIZABLE = ("sb3", "cleanrl")  # the formats read into an `Actor`, which statistics can precede
+
+
+def normalized(path: Path, actor: Actor, stats: ObsStatistics, spec: EnvSpec) -> Actor:
+    """`actor` preceded by the statistics (a `NormalizedActor` with its weights), or `actor`
+    itself where they say the policy saw raw observations (norm_obs false)."""
+    if not stats.norm_obs:
+        return actor
+    if stats.mean.shape != (spec.obs_dim,):
+        raise ArtifactError(
+            f"{path}: statistics of {stats.mean.shape[0]}-d observations; env {spec.env_id} has {spec.obs_dim} "
+            "(the statistics of another env?)"
+        )
+    hidden = [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    low, high = (actor.centre - actor.scale), (actor.centre + actor.scale)
+    out = NormalizedActor(spec.obs_dim, spec.act_dim, hidden, low, high, stats.mean, stats.std, stats.clip_obs)
+    out.load_state_dict(actor.state_dict() | {k: v for k, v in out.state_dict().items() if k.startswith("obs_")})
+    return out.eval()
+
+
+def normalization_warnings(
+    path: Path, stats_path: Path | None, stats: ObsStatistics | None, last: tuple[np.ndarray, np.ndarray] | None
+) -> list[str]:
+    """What SB3's saved last observations say of the statistics (see the module's docstring):
+    a line if the model saw normalised observations and no statistics (or ones saying
+    norm_obs false) were given, or if the statistics given do not reproduce what it saw."""
+    if last is None:
+        return []
+    seen, raw = last
+    if stats is None or not stats.norm_obs:
+        gap = float(np.abs(seen - raw).max())
+        if gap <= 1e-6 * max(1.0, float(np.abs(raw).max())):
+            return []
+        given = "without observation statistics" if stats is None else f"with {stats_path}, which says norm_obs false,"
+        return [
+            f"{path}: warning: its policy was trained on normalised observations (SB3 kept its last one both "
+            f"normalised and raw; they differ by up to {gap:.3g}); imported {given} it acts on raw ones it never saw "
+            "and behaves wrongly: name its vecnormalize.pkl in import_specialists.policies[].normalize"
+        ]
+    gap = float(np.abs(stats.normalize(raw).astype(np.float32) - seen).max())
+    if gap <= 1e-4:
+        return []
+    return [
+        f"{path}: warning: {stats_path} does not turn the model's last raw observation into the normalised one it "
+        f"saw (differs by up to {gap:.3g}): statistics of another model, or of another point of its training?"
+    ]
+
+
+def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path | None = None) -> ImportedPolicy:
+    """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`, with the
+    observation statistics of SB3 VecNormalize file `normalize` (None: none) baked in; raises
     ArtifactError naming the file for a missing or unreadable file, a format it is not, a
-    policy that only unpickling could read, discrete actions, or dims and bounds of another env."""
+    policy that only unpickling could read, discrete actions, dims and bounds of another env,
+    statistics refused by pipeline.interop.vecnorm or for another env, or statistics for a
+    TorchScript or torch.export policy (whose input transform is its own code)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise ArtifactError(f"{path}: format {fmt!r}; expected one of {list(FORMATS)}")
     if not path.is_file():
         raise ArtifactError(f"{path}: no such file (expected a {fmt} model)")
+    if normalize is not None and fmt not in NORMALIZABLE:
+        raise ArtifactError(
+            f"{normalize}: observation statistics for a {fmt} policy; normalise inside the saved module instead "
+            f"(statistics are read for {', '.join(NORMALIZABLE)} models)"
+        )
+    stats = read_vecnormalize(normalize) if normalize is not None else None
     if fmt == "torchscript":
         actor, declared, source = read_torchscript(path, spec)
     elif fmt == "torch_export":
         actor, declared, source = read_torch_export(path, spec)
     else:
         actor, declared, source = (read_sb3 if fmt == "sb3" else read_cleanrl)(path)
+    last = source.pop("last_obs", None)
+    if stats is not None:
+        actor = normalized(Path(normalize), actor, stats, spec)
     _check_env(path, actor, declared, spec)
     architecture = (
         "torch_export"
         if isinstance(actor, ExportedActor)
         else "torchscript"
         if isinstance(actor, ScriptedActor)
+        else "normalized_mlp"
+        if isinstance(actor, NormalizedActor)
         else "mlp"
     )
-    hidden = [] if architecture != "mlp" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    hidden = (
+        [] if not isinstance(actor, Actor) else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    )
     source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
-    return ImportedPolicy(actor, architecture, hidden, source)
+    if stats is not None:
+        source["normalize"] = {"file": str(normalize), "sha256": file_sha256(Path(normalize)), **stats.record()}
+    warnings = normalization_warnings(path, None if normalize is None else Path(normalize), stats, last)
+    return ImportedPolicy(actor, architecture, hidden, source, tuple(warnings))
