@@ -17,7 +17,7 @@ from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.interop.collect import CollectionRun
-from pipeline.interop.readers import FORMATS, read_policy
+from pipeline.interop.readers import FORMATS, input_scale_warning, read_policy
 from pipeline.params import EnvParams, ParamsError
 from pipeline.params.import_specialists import ImportSpecialistsParams
 from pipeline.params.methods import normalize_file
@@ -176,6 +176,8 @@ def import_specialist(
     for line in imported.warnings:
         typer.echo(line, err=True)
 
+    late_warnings: list[str | None] = []  # what the observations say, printed once the progress bar is done
+
     def write(data: dict[str, np.ndarray], origin: dict, collected: int, returns: list[list[float]] | None) -> None:
         """The slot's artifacts; `returns`: the collected episodes' (None: the buffer was given)."""
         meta = spec_meta(spec) | {
@@ -204,6 +206,8 @@ def import_specialist(
         )
         save_policy(out / "policy.pt", imported.actor, meta)
         write_text_atomic(out / "collect.csv", episodes_csv(returns or [], spec.n_objectives))
+        normalizes = imported.architecture == "normalized_mlp"
+        late_warnings.append(input_scale_warning(file, imported.input_scales, data["obs"], normalizes))
         if returns is not None:
             mean = np.mean(returns, axis=0).tolist() if returns else None
             typer.echo(
@@ -219,4 +223,6 @@ def import_specialist(
     else:
         save = lambda run: write(run.data(), {"buffer": "collected"}, run.t, run.returns)  # noqa: E731
         collect(out, imported.actor, spec, env_p, cfg, seed, objective, [file, *([stats] if stats else [])], save)
+    for line in filter(None, late_warnings):
+        typer.echo(line, err=True)
     write_provenance(provenance, "import_specialist", "cpu")

@@ -25,11 +25,21 @@ exported as dynamic: the checks below run it on a batch of 4).
 An MLP trained under SB3's `VecNormalize(norm_obs=True)` comes with the observation statistics
 file SB3 saves beside it (pipeline.interop.vecnorm reads it without running its code); with
 it, the actor becomes a `NormalizedActor`, which normalises raw observations as the policy saw
-them. An SB3 TD3/DDPG/SAC zip also tells whether its policy was trained on normalised
-observations: it keeps the last observation of training twice, as the policy saw it
-(`_last_obs`) and as the env gave it (`_last_original_obs`), equal unless a VecNormalize stood
-between them (SB3's off-policy `_store_transition`). `read_policy` warns when the two differ and
-no statistics were given, and when the statistics given do not turn one into the other.
+them. Two signs in an SB3 TD3/DDPG/SAC zip tell whether that is needed (docs/import_export.md):
+
+- Without statistics: the scale of each input the networks saw in training. Adam's second
+  moment of the critic's first-layer weights (critic.optimizer.pth, loaded with
+  weights_only=True), averaged over the layer's units, grows with the square of each input's
+  scale, so its square root per observation dim is the profile of input scales training saw (up
+  to one factor). Under VecNormalize that profile is flat (every input about unit scale); on raw
+  observations it follows the raw scales, which span orders of magnitude in MuJoCo (positions
+  ~0.1, velocities ~10). `input_scale_warning` compares it with the raw scales of the
+  observations collected (or handed in) and warns when it is much flatter than they are.
+- With statistics: SB3's off-policy algorithms keep the last observation of training twice, as
+  the policy saw it (`_last_obs`) and as the env gave it (`_last_original_obs`); under a
+  VecNormalize both are of the same step, so the statistics must turn one into the other
+  (`normalization_warnings`; without a VecNormalize the two are consecutive raw observations,
+  so they say nothing there).
 """
 
 from __future__ import annotations
@@ -68,6 +78,9 @@ class ImportedPolicy(NamedTuple):
     hidden_sizes: list[int]  # [] for TorchScript and torch.export programs
     source: dict[str, Any]  # format, algorithm, file, sha256, library version where known; normalize
     warnings: tuple[str, ...] = ()  # one line each: what makes the import likely wrong (the stage prints them)
+    # per observation dim, the scale of the inputs the first layer saw in training, up to one
+    # factor (SB3: from the critic's Adam state); None where the file does not tell
+    input_scales: np.ndarray | None = None
 
 
 class _Declared(NamedTuple):
@@ -203,6 +216,21 @@ def _last_observations(path: Path, data: dict) -> tuple[np.ndarray, np.ndarray] 
     return seen.astype(np.float64), raw.astype(np.float64)
 
 
+def _input_scales(path: Path, optimizer_bytes: bytes | None, obs_dim: int, act_dim: int) -> np.ndarray | None:
+    """sqrt of Adam's exp_avg_sq of the critic's first-layer weight, averaged over its units, for
+    each observation input (see the module's docstring); None where the zip has no such state."""
+    if optimizer_bytes is None:
+        return None
+    try:
+        state = _weights_only(path, optimizer_bytes, "critic.optimizer.pth")
+        first = state["state"][0]["exp_avg_sq"]  # the first parameter: qf0's first Linear weight
+    except (ArtifactError, KeyError, IndexError, TypeError):
+        return None
+    if not isinstance(first, torch.Tensor) or first.ndim != 2 or first.shape[1] != obs_dim + act_dim:
+        return None
+    return first.double().mean(dim=0).sqrt().numpy()[:obs_dim]
+
+
 def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     try:
         zf = zipfile.ZipFile(path)
@@ -218,6 +246,7 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         try:
             data = json.loads(zf.read("data"))
             policy_bytes = zf.read("policy.pth")
+            critic_opt = zf.read("critic.optimizer.pth") if "critic.optimizer.pth" in names else None
             version = (
                 zf.read("_stable_baselines3_version").decode().strip()
                 if "_stable_baselines3_version" in names
@@ -290,7 +319,8 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     )
     declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
     info = {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
-    return actor, declared, info | {"last_obs": _last_observations(path, data)}
+    scales = _input_scales(path, critic_opt, declared.obs_dim, declared.act_dim)
+    return actor, declared, info | {"last_obs": _last_observations(path, data), "input_scales": scales}
 
 
 # -- CleanRL ------------------------------------------------------------------------------------
@@ -423,24 +453,13 @@ def normalized(path: Path, actor: Actor, stats: ObsStatistics, spec: EnvSpec) ->
 
 
 def normalization_warnings(
-    path: Path, stats_path: Path | None, stats: ObsStatistics | None, last: tuple[np.ndarray, np.ndarray] | None
+    path: Path, stats_path: Path, stats: ObsStatistics, last: tuple[np.ndarray, np.ndarray] | None
 ) -> list[str]:
-    """What SB3's saved last observations say of the statistics (see the module's docstring):
-    a line if the model saw normalised observations and no statistics (or ones saying
-    norm_obs false) were given, or if the statistics given do not reproduce what it saw."""
-    if last is None:
+    """A line if statistics that normalise (norm_obs true) do not turn the model's last raw
+    observation into the normalised one it saw (SB3's `_last_original_obs`, `_last_obs`)."""
+    if last is None or not stats.norm_obs:
         return []
     seen, raw = last
-    if stats is None or not stats.norm_obs:
-        gap = float(np.abs(seen - raw).max())
-        if gap <= 1e-6 * max(1.0, float(np.abs(raw).max())):
-            return []
-        given = "without observation statistics" if stats is None else f"with {stats_path}, which says norm_obs false,"
-        return [
-            f"{path}: warning: its policy was trained on normalised observations (SB3 kept its last one both "
-            f"normalised and raw; they differ by up to {gap:.3g}); imported {given} it acts on raw ones it never saw "
-            "and behaves wrongly: name its vecnormalize.pkl in import_specialists.policies[].normalize"
-        ]
     gap = float(np.abs(stats.normalize(raw).astype(np.float32) - seen).max())
     if gap <= 1e-4:
         return []
@@ -448,6 +467,34 @@ def normalization_warnings(
         f"{path}: warning: {stats_path} does not turn the model's last raw observation into the normalised one it "
         f"saw (differs by up to {gap:.3g}): statistics of another model, or of another point of its training?"
     ]
+
+
+FLATTER = 0.5  # warn when the profile of input scales training saw is this much flatter than the raw one
+
+
+def input_scale_warning(path: Path, input_scales: np.ndarray | None, obs: np.ndarray, normalized: bool) -> str | None:
+    """A line if the policy in `path` was likely trained on normalised observations and is
+    imported without statistics that normalise (`normalized` false): the spread (std over observation dims) of the
+    log input scales its training saw is under FLATTER times their spread relative to the raw
+    scales of `obs` (N, obs_dim), the observations it was collected (or handed in) with.
+    None when statistics normalise, when the file gives no input scales (CleanRL, TorchScript,
+    torch.export) or when fewer than 2 dims have non-zero scales on both sides."""
+    if input_scales is None or normalized or len(obs) == 0:
+        return None
+    raw = np.sqrt(np.mean(np.square(obs.astype(np.float64)), axis=0))
+    keep = (input_scales > 0) & (raw > 0)
+    if keep.sum() < 2:
+        return None
+    seen = np.log(input_scales[keep])
+    flat, versus_raw = float(np.std(seen)), float(np.std(seen - np.log(raw[keep])))
+    if not flat < FLATTER * versus_raw:
+        return None
+    return (
+        f"{path}: warning: likely trained on normalised observations (the inputs its training saw were all of "
+        f"about one scale: log-scale spread {flat:.2f} over the observation dims, against {versus_raw:.2f} relative "
+        "to the raw observations collected); imported without statistics it acts on raw observations it never saw "
+        "and behaves wrongly: name its vecnormalize.pkl in import_specialists.policies[].normalize"
+    )
 
 
 def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path | None = None) -> ImportedPolicy:
@@ -474,7 +521,7 @@ def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path
         actor, declared, source = read_torch_export(path, spec)
     else:
         actor, declared, source = (read_sb3 if fmt == "sb3" else read_cleanrl)(path)
-    last = source.pop("last_obs", None)
+    last, scales = source.pop("last_obs", None), source.pop("input_scales", None)
     if stats is not None:
         actor = normalized(Path(normalize), actor, stats, spec)
     _check_env(path, actor, declared, spec)
@@ -493,5 +540,5 @@ def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path
     source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
     if stats is not None:
         source["normalize"] = {"file": str(normalize), "sha256": file_sha256(Path(normalize)), **stats.record()}
-    warnings = normalization_warnings(path, None if normalize is None else Path(normalize), stats, last)
-    return ImportedPolicy(actor, architecture, hidden, source, tuple(warnings))
+    warnings = normalization_warnings(path, Path(normalize), stats, last) if stats is not None else []
+    return ImportedPolicy(actor, architecture, hidden, source, tuple(warnings), scales)
