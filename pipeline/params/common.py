@@ -82,6 +82,9 @@ class RunParams(Strict):
     posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
     )
+    interpolate_from: list[Literal["td3", "pderl", "imported"]] = Field(
+        [], description="derived: kinds of specialists the interpolation baseline mixes (stage interpolate)"
+    )
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
     export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
@@ -99,7 +102,7 @@ class RunParams(Strict):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
 
-    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "methods")
+    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "interpolate_from", "methods")
     @classmethod
     def _unique(cls, v: list[str] | None) -> list[str] | None:
         if v is not None and len(set(v)) != len(v):
