@@ -263,6 +263,7 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "morld_seeds": [],
         "export_methods": [],
         "warmup_from": [],
+        "interpolate_from": [],
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(
