@@ -49,7 +49,8 @@ class RunParams(Strict):
         ["mapex_td3", "warmup_only_td3"],
         min_length=1,
         description="what runs and is compared, one data/fronts/<method>/seedS each: <variant>_<kind> (variants mapex, "
-        "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld (pipeline/params/methods.py)",
+        "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld, interpolate_<kind> "
+        "(pipeline/params/methods.py)",
     )
     # derived (generated block): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
