@@ -10,7 +10,7 @@ import typer
 from pipeline.baselines.interpolate import interpolate as interpolate_policies
 from pipeline.baselines.interpolate import mixing_weights, starts_problem
 from pipeline.core.artifacts import ArtifactError
-from pipeline.core.envs import env_spec, make_env, spec_meta
+from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
@@ -89,16 +89,30 @@ def interpolate(
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(episodes)]
-    spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
-    require_every_objective(
-        section(raw, "", RunParams, params).objectives, spec.n_objectives, env_p.id, params, "interpolation"
-    )
-    meta = spec_meta(spec)
-    starts = load_starts(specialists, spec.n_objectives, seed, meta, kind)
-    problem = starts_problem(starts)
-    if problem is not None:  # e.g. imported specialists of different nets
-        raise ArtifactError(f"{specialists}: cannot interpolate: {problem}")
-    method = method_name("interpolate", kind)
+    try:
+        spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
+        if spec.n_objectives < 2:
+            raise EnvError(f"env.id = {env_p.id!r} has 1 objective; interpolation mixes 2 or more specialists")
+        objectives = section(raw, "", RunParams, params).objectives
+        require_every_objective(objectives, spec.n_objectives, env_p.id, params, "interpolation")
+        meta = spec_meta(spec)
+        starts = load_starts(specialists, spec.n_objectives, seed, meta, kind)
+        problem = starts_problem(starts)
+        if problem is not None:  # e.g. imported specialists of different nets
+            raise ArtifactError(f"{specialists}: cannot interpolate: {problem}")
+        total = len(starts) + len(mixing_weights(spec.n_objectives, policies))
+        with progress(total, f"interpolate {kind} seed {seed}", unit="policy") as bar:
+
+            def shown(member) -> None:
+                bar.set_postfix_str(f"{member.origin} return {fmt_vec(member.returns)}", refresh=False)
+                bar.update(1)
+
+            members = interpolate_policies(
+                starts, spec.n_objectives, policies, ext.children_per_iteration, episodes, seed, envs, shown
+            )
+    finally:
+        for env in envs:
+            env.close()
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "interpolate": {"policies": policies, "eval_episodes": episodes},
@@ -106,19 +120,6 @@ def interpolate(
         "seed": seed,
         "kind": kind,
     }
-    total = len(starts) + len(mixing_weights(spec.n_objectives, policies))
-    with progress(total, f"interpolate {kind} seed {seed}", unit="policy") as bar:
-
-        def shown(member) -> None:
-            bar.set_postfix_str(f"{member.origin} return {fmt_vec(member.returns)}", refresh=False)
-            bar.update(1)
-
-        try:
-            members = interpolate_policies(
-                starts, spec.n_objectives, policies, ext.children_per_iteration, episodes, seed, envs, shown
-            )
-        finally:
-            for env in envs:
-                env.close()
-    save_population(out / "population.pt", members, {**meta, "seed": seed, "method": method, "params": config})
+    run_meta = meta | {"seed": seed, "method": method_name("interpolate", kind), "params": config}
+    save_population(out / "population.pt", members, run_meta)
     write_provenance(provenance, "interpolate", "cpu")
