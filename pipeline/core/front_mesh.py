@@ -195,3 +195,103 @@ def mesh_edges(facets: np.ndarray) -> np.ndarray:
     k = f.shape[1]
     pairs = [f[:, [i, j]] for i in range(k) for j in range(i + 1, k)]
     return canonical(np.concatenate(pairs))
+
+
+def graph_minimax(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(n, n) minimax path distances in the graph on the rows of `points` (n, m) with edges
+    `edges` (E, 2), each as long as the Euclidean distance between its ends: for a and b, the
+    least possible longest edge of a path from a to b in the graph; inf where there is no path,
+    0 on the diagonal. Kruskal's order: edges by length, and the first edge to join two
+    components gives every pair across them its length (the values do not depend on how ties
+    are ordered)."""
+    p = np.asarray(points, dtype=float)
+    n = len(p)
+    out = np.full((n, n), np.inf)
+    np.fill_diagonal(out, 0.0)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    if len(e) == 0:
+        return out
+    length = np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1)
+    root = list(range(n))
+    members = {i: [i] for i in range(n)}
+    for j in np.argsort(length, kind="stable").tolist():
+        a, b = root[e[j, 0]], root[e[j, 1]]
+        if a == b:
+            continue
+        if len(members[a]) < len(members[b]):
+            a, b = b, a
+        out[np.ix_(members[a], members[b])] = length[j]
+        out[np.ix_(members[b], members[a])] = length[j]
+        for i in members[b]:
+            root[i] = a
+        members[a].extend(members.pop(b))
+    return out
+
+
+def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The part of the mesh over `points` (n, m) that lies on the front's surface: a mask (F,)
+    of the facets (F, k) kept, and the loose edges (E, 2) (see below).
+
+    The mesh triangulates the convex hull of the projected front, so where the front is curved
+    and thin (an arc) it also covers the region between the front and the chord of its hull,
+    with facets joining far-apart points across it. Those are eroded from the outside:
+
+    - A ridge (a facet's face of k - 1 vertices) is *exposed* once fewer than 2 kept facets
+      share it: at first the hull's boundary, then the faces each dropped facet uncovers.
+    - An edge (a, b) *bridges* when a path of exposed edges (ridges' edges) joins a to b with
+      every step shorter than |ab| / ratio: the front goes around the region the straight edge
+      cuts across, through points that are themselves on the boundary. (graph_minimax)
+    - A kept facet is dropped when one of its ridges is exposed with it as the only kept facet
+      and has a bridging edge; repeated until none is. Dropping only adds exposed edges, and
+      an edge that bridges keeps bridging as edges are added, so the result does not depend on
+      the order of removal.
+
+    The path must run along the boundary: where the front is two-dimensional, the points that
+    join a and b lie inside it, the hull edge (a, b) is bridged by no boundary path, and the
+    facets along the hull stay (a strip between two specialists and the nearest children is a
+    gap to fill). Holes enclosed by kept facets are never exposed, so they stay gaps too.
+
+    Loose edges: the edges of dropped facets that do not bridge and are no edge of a kept
+    facet; where the mesh was eroded down to a thin part of the front they are the steps
+    between neighbouring points along it. In canonical order (low, high), lexicographic.
+
+    `ratio` None, no facet, or facets of 2 vertices (whose ridges are single points): every
+    facet is kept, no loose edge. No fallback here: the mask may be all False.
+    """
+    f = np.asarray(facets, dtype=np.int64)
+    keep = np.ones(len(f), dtype=bool)
+    none = np.zeros((0, 2), dtype=np.int64)
+    if ratio is None or len(f) == 0 or f.shape[1] < 3:
+        return keep, none
+    k = f.shape[1]
+    p = np.asarray(points, dtype=float)
+    owners: dict[tuple[int, ...], list[int]] = {}  # ridge -> the facets sharing it
+    for i, row in enumerate(f.tolist()):
+        for drop in range(k):
+            owners.setdefault(tuple(row[:drop] + row[drop + 1 :]), []).append(i)
+
+    def pairs(ridge: tuple[int, ...]) -> list[tuple[int, int]]:
+        return [(ridge[i], ridge[j]) for i in range(len(ridge)) for j in range(i + 1, len(ridge))]
+
+    while True:
+        live = {r: [i for i in own if keep[i]] for r, own in owners.items()}
+        exposed = canonical(np.array([e for r, own in live.items() if len(own) < 2 for e in pairs(r)]).reshape(-1, 2))
+        minimax = graph_minimax(p, exposed)
+
+        def bridges(a: int, b: int) -> bool:
+            return bool(np.linalg.norm(p[a] - p[b]) > ratio * minimax[a, b])
+
+        drop = sorted({own[0] for r, own in live.items() if len(own) == 1 and any(bridges(a, b) for a, b in pairs(r))})
+        if not drop:
+            break
+        keep[drop] = False
+    covered = {tuple(e) for e in mesh_edges(f[keep]).tolist()}
+    loose = [e for e in mesh_edges(f[~keep]).tolist() if tuple(e) not in covered and not bridges(*e)]
+    return keep, np.array(loose, dtype=np.int64).reshape(-1, 2)
+
+
+def regular_simplex_volume(length: np.ndarray, d: int) -> np.ndarray:
+    """The d-dimensional volume of the regular d-simplex with edges of `length`:
+    length^d sqrt(d + 1) / (d! sqrt(2^d)). d = 1: the length itself; d = 2: sqrt(3) / 4 length^2
+    (the equilateral triangle)."""
+    return np.asarray(length, dtype=float) ** d * math.sqrt(d + 1) / (math.factorial(d) * math.sqrt(2.0**d))

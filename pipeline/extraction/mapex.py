@@ -332,6 +332,7 @@ class ChildConfig:
     warmup_lr: float
     warmup_batch_size: int
     adv: AdvantageConfig
+    facet_bridge_ratio: float | None = None  # N >= 3: which facets the roulette draws from (gaps.front_gaps)
 
 
 class ChildSeeds(NamedTuple):
@@ -380,7 +381,7 @@ def start_child(
     returns: (n, m) mean returns of the population; actors: its n policies. Draws from `rng`
     in a fixed order (parents, then hybrid rows); torch's global generator is left untouched.
     """
-    parents = select_parents(returns, rng)
+    parents = select_parents(returns, rng, cfg.facet_bridge_ratio)
     w = target_weight(returns, parents, cfg.weight_norm)
     hybrid = build_hybrid(buffers, w, cfg.child_buffer_size, rng, device)
     a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs)
