@@ -251,9 +251,13 @@ def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tupl
     facets along the hull stay (a strip between two specialists and the nearest children is a
     gap to fill). Holes enclosed by kept facets are never exposed, so they stay gaps too.
 
-    Loose edges: the edges of dropped facets that do not bridge and are no edge of a kept
-    facet; where the mesh was eroded down to a thin part of the front they are the steps
-    between neighbouring points along it. In canonical order (low, high), lexicographic.
+    Loose edges: the edges of dropped facets that are no edge of a kept facet and whose ends no
+    path of exposed edges joins in shorter steps (their length is their minimax distance: they
+    are edges of the exposed edges' minimum spanning forest). Where the mesh was eroded down to
+    a thin part of the front they are the steps between neighbouring points along it; a long
+    edge of a dropped facet that the front goes around is not one. The shortest edge of the
+    mesh is always either kept in a facet or loose, so facets and loose edges are never both
+    empty. In canonical order (low, high), lexicographic.
 
     `ratio` None, no facet, or facets of 2 vertices (whose ridges are single points): every
     facet is kept, no loose edge. No fallback here: the mask may be all False.
@@ -269,24 +273,47 @@ def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tupl
     for i, row in enumerate(f.tolist()):
         for drop in range(k):
             owners.setdefault(tuple(row[:drop] + row[drop + 1 :]), []).append(i)
+    live = {r: len(own) for r, own in owners.items()}  # kept facets sharing each ridge
 
     def pairs(ridge: tuple[int, ...]) -> list[tuple[int, int]]:
         return [(ridge[i], ridge[j]) for i in range(len(ridge)) for j in range(i + 1, len(ridge))]
 
+    exposed = {e for r, n in live.items() if n < 2 for e in pairs(r)}
     while True:
-        live = {r: [i for i in own if keep[i]] for r, own in owners.items()}
-        exposed = canonical(np.array([e for r, own in live.items() if len(own) < 2 for e in pairs(r)]).reshape(-1, 2))
-        minimax = graph_minimax(p, exposed)
+        # Minimax distances along the exposed edges as they are now. Dropping facets below only
+        # adds exposed edges, which can only shorten these distances, so an edge found to bridge
+        # with them bridges still: facets can be dropped at once, and the distances are
+        # recomputed when nothing more can be (the fixed point is reached when, freshly
+        # computed, they make no boundary ridge bridge).
+        minimax = graph_minimax(p, np.array(sorted(exposed), dtype=np.int64).reshape(-1, 2))
 
-        def bridges(a: int, b: int) -> bool:
-            return bool(np.linalg.norm(p[a] - p[b]) > ratio * minimax[a, b])
+        def bridging(ridge: tuple[int, ...]) -> bool:
+            return any(np.linalg.norm(p[a] - p[b]) > ratio * minimax[a, b] for a, b in pairs(ridge))
 
-        drop = sorted({own[0] for r, own in live.items() if len(own) == 1 and any(bridges(a, b) for a, b in pairs(r))})
-        if not drop:
+        queue = [r for r, n in live.items() if n == 1 and bridging(r)]
+        if not queue:
             break
-        keep[drop] = False
+        while queue:
+            ridge = queue.pop()
+            if live[ridge] != 1:
+                continue  # its last kept facet is already gone
+            i = next(j for j in owners[ridge] if keep[j])
+            keep[i] = False
+            row = f[i].tolist()
+            for drop in range(k):
+                other = tuple(row[:drop] + row[drop + 1 :])
+                live[other] -= 1
+                exposed.update(pairs(other))
+                if live[other] == 1 and bridging(other):
+                    queue.append(other)
     covered = {tuple(e) for e in mesh_edges(f[keep]).tolist()}
-    loose = [e for e in mesh_edges(f[~keep]).tolist() if tuple(e) not in covered and not bridges(*e)]
+    # a step between neighbours: no path of exposed edges joins its ends in shorter steps (its
+    # length is their minimax distance: an edge of the exposed edges' minimum spanning forest)
+    loose = [
+        e
+        for e in mesh_edges(f[~keep]).tolist()
+        if tuple(e) not in covered and not np.linalg.norm(p[e[0]] - p[e[1]]) > minimax[e[0], e[1]]
+    ]
     return keep, np.array(loose, dtype=np.int64).reshape(-1, 2)
 
 
