@@ -12,7 +12,11 @@ N >= 3 (an extension: the paper leaves it to future work): the front is triangul
 (pipeline.core.front_mesh: its points projected onto the hyperplane orthogonal to (1, ..., 1),
 then Delaunay), one facet is drawn by roulette on its (N - 1)-dimensional volume, and its N
 vertices are the parents (`front_facets`, `select_facet_parents`). For N = 2 this rule gives the
-same edges as the paper's. Degenerate fronts (docs/n_objectives.md):
+same edges as the paper's. With `extract.facet_bridge_ratio` (default 3; a further extension)
+the roulette draws only from the gaps on the front's surface (`front_gaps`): facets spanning
+the region between a thin curved front and its convex hull are eroded from the outside, and the
+steps along what is left of such a front are gaps of 2 parents. Degenerate fronts
+(docs/n_objectives.md):
 - duplicate return vectors (after normalisation): one point, the lowest policy id, is kept;
 - projections of lower affine rank r < N - 1 (fewer than N points, collinear for N = 3,
   coplanar for N = 4, ...): triangulated in their affine hull, so a facet, and the parents,

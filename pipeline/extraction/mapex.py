@@ -21,7 +21,9 @@ Deviations from the paper, each a param unless it is a necessary reading:
 - N >= 3 objectives: the paper defines the gap for N = 2 only and leaves N >= 3 to future
   work; the facet rule above is this project's extension (docs/n_objectives.md), with
   documented fallbacks for degenerate fronts (fewer parents on a front of lower affine rank,
-  the per-objective best policies on a front of one point). N = 2 is unchanged.
+  the per-objective best policies on a front of one point), and `facet_bridge_ratio`: only
+  the gaps on the front's surface are drawn (facets across a thin curved front's hull are
+  left out; its steps are 2-parent gaps). N = 2 is unchanged.
 - A front of one point (no gap of positive size): the policies best on each objective are the
   parents (a case the paper does not cover).
 - `advantage_norm`: `none` mixes the raw advantages A_m with a weight w computed from
