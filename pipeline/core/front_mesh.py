@@ -197,21 +197,27 @@ def mesh_edges(facets: np.ndarray) -> np.ndarray:
     return canonical(np.concatenate(pairs))
 
 
-def graph_minimax(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """(n, n) minimax path distances in the graph on the rows of `points` (n, m) with edges
-    `edges` (E, 2), each as long as the Euclidean distance between its ends: for a and b, the
-    least possible longest edge of a path from a to b in the graph; inf where there is no path,
-    0 on the diagonal. Kruskal's order: edges by length, and the first edge to join two
-    components gives every pair across them its length (the values do not depend on how ties
-    are ordered)."""
+def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The Euclidean length (E,) of each edge (E, 2) between rows of `points` (n, m)."""
     p = np.asarray(points, dtype=float)
-    n = len(p)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    return np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1)
+
+
+def graph_minimax(points: np.ndarray, edges: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
+    """(n, n) minimax path distances in the graph on the rows of `points` (n, m) with edges
+    `edges` (E, 2), each as long as `lengths` (default: the Euclidean distance between its
+    ends): for a and b, the least possible longest edge of a path from a to b in the graph; inf
+    where there is no path, 0 on the diagonal. Kruskal's order: edges by length, and the first
+    edge to join two components gives every pair across them its length (the values do not
+    depend on how ties are ordered, and each is one of `lengths` exactly)."""
+    n = len(points)
     out = np.full((n, n), np.inf)
     np.fill_diagonal(out, 0.0)
     e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     if len(e) == 0:
         return out
-    length = np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1)
+    length = edge_lengths(points, e) if lengths is None else np.asarray(lengths, dtype=float)
     root = list(range(n))
     members = {i: [i] for i in range(n)}
     for j in np.argsort(length, kind="stable").tolist():
@@ -269,6 +275,9 @@ def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tupl
         return keep, none
     k = f.shape[1]
     p = np.asarray(points, dtype=float)
+    all_edges = mesh_edges(f)
+    # every length computed once, so that a step's length and its minimax distance are one float
+    length = dict(zip(map(tuple, all_edges.tolist()), edge_lengths(p, all_edges).tolist()))
     owners: dict[tuple[int, ...], list[int]] = {}  # ridge -> the facets sharing it
     for i, row in enumerate(f.tolist()):
         for drop in range(k):
@@ -285,10 +294,11 @@ def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tupl
         # with them bridges still: facets can be dropped at once, and the distances are
         # recomputed when nothing more can be (the fixed point is reached when, freshly
         # computed, they make no boundary ridge bridge).
-        minimax = graph_minimax(p, np.array(sorted(exposed), dtype=np.int64).reshape(-1, 2))
+        graph = sorted(exposed)
+        minimax = graph_minimax(p, np.array(graph, dtype=np.int64).reshape(-1, 2), [length[e] for e in graph])
 
         def bridging(ridge: tuple[int, ...]) -> bool:
-            return any(np.linalg.norm(p[a] - p[b]) > ratio * minimax[a, b] for a, b in pairs(ridge))
+            return any(length[(a, b)] > ratio * minimax[a, b] for a, b in pairs(ridge))
 
         queue = [r for r, n in live.items() if n == 1 and bridging(r)]
         if not queue:
@@ -312,7 +322,7 @@ def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tupl
     loose = [
         e
         for e in mesh_edges(f[~keep]).tolist()
-        if tuple(e) not in covered and not np.linalg.norm(p[e[0]] - p[e[1]]) > minimax[e[0], e[1]]
+        if tuple(e) not in covered and not length[tuple(e)] > minimax[e[0], e[1]]
     ]
     return keep, np.array(loose, dtype=np.int64).reshape(-1, 2)
 

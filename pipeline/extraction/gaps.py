@@ -36,6 +36,7 @@ from typing import Sequence
 import numpy as np
 
 from pipeline.core.front_mesh import (
+    edge_lengths,
     first_unique,
     regular_simplex_volume,
     simplex_volumes,
@@ -141,9 +142,7 @@ def front_gaps(returns: np.ndarray, bridge_ratio: float | None = None) -> tuple[
     if bridge_ratio is None or len(facets) == 0 or facets.shape[1] < 3:
         return [tuple(int(i) for i in f) for f in facets], sizes
     keep, loose = surface(norm, local, bridge_ratio)
-    loose_sizes = regular_simplex_volume(
-        np.linalg.norm(norm[loose[:, 0]] - norm[loose[:, 1]], axis=1), facets.shape[1] - 1
-    )
+    loose_sizes = regular_simplex_volume(edge_lengths(norm, loose), facets.shape[1] - 1)
     gaps = [tuple(int(i) for i in f) for f in facets[keep]] + [tuple(int(i) for i in ids[e]) for e in loose]
     gap_sizes = np.concatenate([sizes[keep], loose_sizes])
     if not gap_sizes.sum() > 0:  # the rule never removes the last gap: the whole mesh
