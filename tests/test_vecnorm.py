@@ -155,3 +155,21 @@ def test_params_take_normalize_for_mlp_formats_only():
         ImportedPolicyEntry(**(base | {"format": "torchscript"}), normalize="s.pkl")
     with pytest.raises(ValueError):
         ImportedPolicyEntry(**base, normalize=True)
+
+
+def test_interpolation_mixes_normalized_actors_of_the_same_statistics_only():
+    from pipeline.baselines.interpolate import architecture_problem, mix_actors
+
+    a = normalized_actor()
+    torch.manual_seed(1)
+    b = NormalizedActor(OBS, ACT, [8], [-1, -2], [1, 2], a.obs_mean, a.obs_std, 2.0).eval()
+    obs = torch.randn(10, OBS) * 4
+    vertex = mix_actors([a, b], [0.0, 1.0])  # w = e_1: actor b's weights and the shared statistics
+    assert type(vertex) is NormalizedActor
+    with torch.no_grad():
+        torch.testing.assert_close(vertex(obs), b(obs), rtol=0, atol=0)
+    mean, var = stats(seed=5)
+    other = NormalizedActor(OBS, ACT, [8], [-1, -2], [1, 2], mean, np.sqrt(var), 2.0)
+    assert "differ in their observation statistics" in architecture_problem([a, other], ["obj0", "obj1"])
+    plain = Actor(OBS, ACT, [8], [-1, -2], [1, 2])
+    assert "obj0 normalise observations" in architecture_problem([a, plain], ["obj0", "obj1"])
