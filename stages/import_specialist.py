@@ -17,9 +17,10 @@ from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.interop.collect import CollectionRun
-from pipeline.interop.readers import FORMATS, read_policy
+from pipeline.interop.readers import FORMATS, input_scale_warning, read_policy
 from pipeline.params import EnvParams, ParamsError
 from pipeline.params.import_specialists import ImportSpecialistsParams
+from pipeline.params.methods import normalize_file
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress_send, read_params, reports_errors
 
 CHECKPOINT_NAME = "collect.ckpt.pt"
@@ -75,17 +76,18 @@ def collect(
     cfg: ImportSpecialistsParams,
     seed: int,
     objective: int,
-    policy_file: Path,
+    inputs: list[Path],
     save: Callable[[CollectionRun], None],
 ) -> None:
-    """Roll the imported policy out (resuming from OUT's checkpoint when one fits), then `save(run)`."""
+    """Roll the imported policy out (resuming from OUT's checkpoint when one fits), then `save(run)`;
+    `inputs`: the policy file, then its statistics file if any (both in the resume fingerprint)."""
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
         "import_specialists": cfg.model_dump(include={"collect_rows", "exploration_noise"}),
         "seed": seed,
         "objective": objective,
     }
-    fp = run_fingerprint("import_specialist", config, "cpu", [policy_file])
+    fp = run_fingerprint("import_specialist", config, "cpu", inputs)
     ckpt = Checkpoint(checkpoint_dir(out, inside=False) / CHECKPOINT_NAME, fp, lambda line: typer.echo(line, err=True))
     probe = make_env(env_p.id, env_p.max_episode_steps)
     problem = env_checkpoint_problem(probe)
@@ -102,7 +104,7 @@ def collect(
             seed,
             objective,
             cfg.checkpoint_every,
-            source=str(policy_file),
+            source=str(inputs[0]),
         )
 
     who = f"import_specialist seed {seed} obj {objective}"
@@ -129,6 +131,11 @@ def import_specialist(
     buffer: Path | None = typer.Option(
         None, help="a buffer.zarr of this policy's transitions with every objective's reward; omitted: collect one"
     ),
+    normalize: str = typer.Option(
+        "auto",
+        help="SB3 VecNormalize statistics the policy was trained with (a vecnormalize.pkl), baked into it; "
+        "none: none; auto: the file rl-zoo3 saves beside an sb3 model, if any",
+    ),
     seed: int = typer.Option(0, help="run seed: it fixes the collection's noise and episode starts"),
     out: Path = typer.Option(..., help="the slot directory to write (policy.pt, buffer.zarr, collect.csv)"),
     params: Path = PARAMS_OPTION,
@@ -147,6 +154,10 @@ def import_specialist(
     OUT/collect.csv (each collected episode's return vector). A long collection checkpoints
     every checkpoint_every rows and on SIGTERM; a rerun resumes it. Post-hoc critics for every
     objective come next (stage fit_critics), then MAPEX-PostHoc (docs/import_export.md).
+    With --normalize (an SB3 or CleanRL MLP), the observation statistics of SB3's VecNormalize
+    are read without running the pickle's code and put before the actor's first layer, so the
+    slot's policy, like every export of it, takes raw observations; a line warns when an SB3
+    model was trained on normalised observations and imported without them.
     With --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
     """
     _, env_p, cfg = read_params(params, "import_specialists", ImportSpecialistsParams)
@@ -155,7 +166,17 @@ def import_specialist(
     env.close()
     if not 0 <= objective < spec.n_objectives:
         raise ParamsError(f"--objective {objective}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
-    imported = read_policy(file, format, spec)
+    stats = normalize_file({"file": str(file), "format": format}) if normalize == "auto" else normalize
+    stats = None if stats in (None, "none") else Path(stats)
+    imported = read_policy(file, format, spec, stats)
+    if stats is not None:
+        typer.echo(
+            f"import_specialist obj {objective}: observation statistics of {stats} baked into the policy", err=True
+        )
+    for line in imported.warnings:
+        typer.echo(line, err=True)
+
+    late_warnings: list[str | None] = []  # what the observations say, printed once the progress bar is done
 
     def write(data: dict[str, np.ndarray], origin: dict, collected: int, returns: list[list[float]] | None) -> None:
         """The slot's artifacts; `returns`: the collected episodes' (None: the buffer was given)."""
@@ -185,6 +206,8 @@ def import_specialist(
         )
         save_policy(out / "policy.pt", imported.actor, meta)
         write_text_atomic(out / "collect.csv", episodes_csv(returns or [], spec.n_objectives))
+        normalizes = imported.architecture == "normalized_mlp"
+        late_warnings.append(input_scale_warning(file, imported.input_scales, data["obs"], normalizes))
         if returns is not None:
             mean = np.mean(returns, axis=0).tolist() if returns else None
             typer.echo(
@@ -199,5 +222,7 @@ def import_specialist(
         write(data, origin, 0, None)
     else:
         save = lambda run: write(run.data(), {"buffer": "collected"}, run.t, run.returns)  # noqa: E731
-        collect(out, imported.actor, spec, env_p, cfg, seed, objective, file, save)
+        collect(out, imported.actor, spec, env_p, cfg, seed, objective, [file, *([stats] if stats else [])], save)
+    for line in filter(None, late_warnings):
+        typer.echo(line, err=True)
     write_provenance(provenance, "import_specialist", "cpu")

@@ -27,7 +27,7 @@ from typing import Callable, Sequence
 import gymnasium as gym
 import torch
 
-from pipeline.core.nets import Actor
+from pipeline.core.nets import Actor, NormalizedActor
 from pipeline.core.population import Member, actor_state
 from pipeline.core.specialist import StartingPolicy
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
@@ -82,10 +82,18 @@ def mixing_weights(n_objectives: int, policies: int) -> list[list[float]]:
 def architecture_problem(actors: Sequence[torch.nn.Module], names: Sequence[str]) -> str | None:
     """Why the actors' weights cannot be mixed (None if they can): each must be an MLP `Actor`
     (not a TorchScript or torch.export program, whose weights are not open to mixing), all with
-    the same parameter names and shapes and the same action bounds."""
+    the same parameter names and shapes and the same action bounds; `NormalizedActor`s (imported
+    with observation statistics) mix with each other only, and only with the same statistics
+    (weights that read inputs of different scales do not mix)."""
     for actor, name in zip(actors, names):
-        if type(actor) is not Actor:
+        if type(actor) not in (Actor, NormalizedActor):
             return f"{name} is a {type(actor).__name__} (a program brought in whole), which has no weights to mix"
+    if len({type(a) for a in actors}) > 1:
+        normalized = [n for a, n in zip(actors, names) if isinstance(a, NormalizedActor)]
+        return (
+            f"{', '.join(normalized)} normalise observations with statistics and the others do not: their weights "
+            "read inputs of different scales"
+        )
     ref, ref_name = actors[0].state_dict(), names[0]
     for actor, name in zip(actors[1:], names[1:]):
         state = actor.state_dict()
@@ -95,9 +103,10 @@ def architecture_problem(actors: Sequence[torch.nn.Module], names: Sequence[str]
                 f"{ref_name} has layers {shapes(ref)} and {name} {shapes(state)}: "
                 "interpolation needs actors of one architecture"
             )
-        buffers = [k for k, _ in actor.named_buffers()]
-        if any(not torch.equal(state[k], ref[k]) for k in buffers):
-            return f"{ref_name} and {name} differ in their action bounds ({', '.join(buffers)})"
+        differ = [k for k, _ in actor.named_buffers() if not torch.equal(state[k], ref[k])]
+        if differ:
+            what = "observation statistics" if any(k.startswith("obs_") for k in differ) else "action bounds"
+            return f"{ref_name} and {name} differ in their {what} ({', '.join(differ)})"
     return None
 
 
@@ -105,7 +114,8 @@ def architecture_problem(actors: Sequence[torch.nn.Module], names: Sequence[str]
 def mix_actors(actors: Sequence[Actor], weights: Sequence[float]) -> Actor:
     """A new actor with parameters sum_i weights[i] * theta_i (float32, in order; a zero weight
     adds nothing, so a vertex w = e_k reproduces actor k's parameters exactly). Buffers (the
-    action bounds) are the first actor's; every actor must pass `architecture_problem`."""
+    action bounds; a `NormalizedActor`'s statistics) are the first actor's, and so is its class;
+    every actor must pass `architecture_problem`."""
     if len(actors) != len(weights) or not actors:
         raise ValueError(f"{len(actors)} actors and {len(weights)} weights")
     problem = architecture_problem(actors, [f"actor {i}" for i in range(len(actors))])
@@ -113,7 +123,7 @@ def mix_actors(actors: Sequence[Actor], weights: Sequence[float]) -> Actor:
         raise ValueError(problem)
     first = actors[0]
     with torch.random.fork_rng(devices=[]):  # building an Actor draws an init we overwrite
-        out = Actor(
+        out = type(first)(
             first.net[0].in_features,
             first.net[-1].out_features,
             [m.out_features for m in first.net if isinstance(m, torch.nn.Linear)][:-1],

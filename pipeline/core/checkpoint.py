@@ -3,10 +3,11 @@
 policy.pt  (format "mapex.policy", version 1)
     meta:          env_id, obs_dim, act_dim, n_objectives, action_low, action_high,
                    hidden_sizes, objective (the specialist's objective, or None for a child), seed, params;
-                   an imported policy also architecture ("mlp", "torchscript" or "torch_export") and source
-                   (docs/import_export.md)
-    actor:         state dict of `nets.Actor` (of `nets.ScriptedActor` where architecture is
-                   "torchscript", of `nets.ExportedActor` where it is "torch_export")
+                   an imported policy also architecture ("mlp", "normalized_mlp", "torchscript" or
+                   "torch_export") and source (docs/import_export.md)
+    actor:         state dict of `nets.Actor` (of `nets.NormalizedActor` where architecture is
+                   "normalized_mlp", of `nets.ScriptedActor` where it is "torchscript", of
+                   `nets.ExportedActor` where it is "torch_export")
     actor_target:  state dict of the TD3 target actor (absent for extracted children)
 
 critics.pt (format "mapex.critics", version 1)
@@ -29,7 +30,7 @@ from typing import Any
 import torch
 
 from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.core.nets import Actor, CriticEnsemble, ExportedActor, ScriptedActor
+from pipeline.core.nets import Actor, CriticEnsemble, ExportedActor, NormalizedActor, ScriptedActor
 
 POLICY_FORMAT = "mapex.policy"
 CRITICS_FORMAT = "mapex.critics"
@@ -70,12 +71,15 @@ def actor_from_meta(meta: dict[str, Any]) -> Actor | ScriptedActor:
     """An empty actor of the architecture `meta` records, to load a state dict into: the MLP
     `Actor` of meta's hidden_sizes, or a `ScriptedActor` where meta["architecture"] is
     "torchscript", an `ExportedActor` where it is "torch_export" (a policy imported as
-    TorchScript or as a torch.export program, docs/import_export.md)."""
+    TorchScript or as a torch.export program, docs/import_export.md), a `NormalizedActor`
+    where it is "normalized_mlp" (one imported with the observation statistics it was trained
+    with)."""
     if meta.get("architecture") == "torchscript":
         return ScriptedActor(meta["action_low"], meta["action_high"])
     if meta.get("architecture") == "torch_export":
         return ExportedActor(meta["action_low"], meta["action_high"])
-    return Actor(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
+    cls = NormalizedActor if meta.get("architecture") == "normalized_mlp" else Actor
+    return cls(meta["obs_dim"], meta["act_dim"], meta["hidden_sizes"], meta["action_low"], meta["action_high"])
 
 
 def load_policy(path: str | Path, target: bool = False):

@@ -40,6 +40,40 @@ class Actor(nn.Module):
         return self.centre + self.scale * torch.tanh(self.net(obs))
 
 
+class NormalizedActor(Actor):
+    """An `Actor` that normalises its raw observations first, with frozen statistics, as SB3's
+    `VecNormalize` did for the policy it trained: z = clip((obs - mean) / std, -clip, clip),
+    std = sqrt(var + epsilon), then the MLP, tanh, centre + scale (docs/import_export.md).
+
+    The statistics are buffers in its state dict (`obs_mean`, `obs_std`, `obs_clip`), so every
+    artifact and export of it (TorchScript, .pt2, ONNX) takes raw observations. They are kept
+    and applied in float64, SB3's arithmetic, and z is cast back to the observations' dtype
+    before the first layer: on the same raw observations the MLP sees exactly what SB3's
+    policy saw. Built empty (statistics 0, 1, inf) to load a state dict into.
+    """
+
+    def __init__(
+        self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], low, high, mean=None, std=None, clip=None
+    ):
+        super().__init__(obs_dim, act_dim, hidden_sizes, low, high)
+        f64 = torch.float64
+        self.register_buffer(
+            "obs_mean", torch.zeros(obs_dim, dtype=f64) if mean is None else torch.as_tensor(mean, dtype=f64)
+        )
+        self.register_buffer(
+            "obs_std", torch.ones(obs_dim, dtype=f64) if std is None else torch.as_tensor(std, dtype=f64)
+        )
+        self.register_buffer("obs_clip", torch.tensor(math.inf if clip is None else float(clip), dtype=f64))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        z = (obs.to(torch.float64) - self.obs_mean) / self.obs_std
+        z = torch.minimum(torch.maximum(z, -self.obs_clip), self.obs_clip)
+        return self.centre + self.scale * torch.tanh(self.net(z.to(obs.dtype)))
+
+
+NORMALIZED_KEYS = ("obs_mean", "obs_std", "obs_clip")  # what a NormalizedActor's state dict adds to an Actor's
+
+
 def hidden_sizes_of(actor: Actor) -> list[int]:
     """The hidden layer widths an `Actor` was built with (its `hidden_sizes`)."""
     return [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
@@ -248,6 +282,9 @@ class StackedActor(nn.Module):
 
     def __init__(self, actors: Sequence[Actor]):
         super().__init__()
+        if any(isinstance(a, NormalizedActor) for a in actors):
+            # stacked weights hold no input statistics: a normalised actor would run without them
+            raise ValueError("a NormalizedActor cannot be stacked (its observation statistics would be dropped)")
         linears = [[m for m in a.net if isinstance(m, nn.Linear)] for a in actors]
         self.hidden_sizes = [lin.out_features for lin in linears[0][:-1]]
         self.weights = nn.ParameterList(

@@ -22,7 +22,9 @@ population.pt (format "mapex.population", version 3), loadable with torch.load(w
         eval_episodes  number of evaluation episodes
         env_samples    cumulative env samples spent on evaluation once this policy was evaluated
         hidden_sizes   the actor's hidden widths
-        actor          state dict of pipeline.core.nets.Actor (of nets.ScriptedActor, {"torchscript":
+        actor          state dict of pipeline.core.nets.Actor (with obs_mean, obs_std and obs_clip, of
+                       nets.NormalizedActor, for a starting policy imported with observation
+                       statistics; of nets.ScriptedActor, {"torchscript":
                        the file's bytes}, for a starting policy imported as TorchScript; of
                        nets.ExportedActor, {"torch_export": the .pt2 file's bytes}, for one
                        imported as a torch.export program; its hidden_sizes are then [])
@@ -45,7 +47,7 @@ from typing import Any, Sequence
 import torch
 
 from pipeline.core.artifacts import ArtifactError, torch_load_checked, torch_save_atomic
-from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
+from pipeline.core.nets import NORMALIZED_KEYS, Actor, ExportedActor, NormalizedActor, ScriptedActor
 
 FORMAT = "mapex.population"
 FORMAT_VERSION = 3
@@ -72,14 +74,16 @@ MEMBER_KEYS = tuple(f.name for f in fields(Member))
 
 
 def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
-    """Rebuild a member's actor (eval mode, CPU): an `Actor`, or a `ScriptedActor` (an
-    `ExportedActor`) for a starting policy imported as TorchScript (as a torch.export program):
-    its state dict holds the file."""
+    """Rebuild a member's actor (eval mode, CPU): an `Actor`; a `NormalizedActor` for a
+    starting policy imported with observation statistics (its state dict holds them); or a
+    `ScriptedActor` (an `ExportedActor`) for one imported as TorchScript (as a torch.export
+    program): its state dict holds the file."""
     for cls in (ScriptedActor, ExportedActor):
         if cls.KEY in member.actor:
             data = member.actor[cls.KEY].numpy().tobytes()
             return cls.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
-    actor = Actor(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
+    cls = NormalizedActor if NORMALIZED_KEYS[0] in member.actor else Actor
+    actor = cls(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
     actor.load_state_dict(member.actor)
     return actor.eval()
 

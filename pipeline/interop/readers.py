@@ -21,6 +21,25 @@ imported weights are copied into one and everything downstream reads them as it 
 A TorchScript file becomes a `ScriptedActor` holding the file's bytes; a `.pt2` file of
 `torch.export.save` an `ExportedActor` holding its bytes (the program's batch axis must be
 exported as dynamic: the checks below run it on a batch of 4).
+
+An MLP trained under SB3's `VecNormalize(norm_obs=True)` comes with the observation statistics
+file SB3 saves beside it (pipeline.interop.vecnorm reads it without running its code); with
+it, the actor becomes a `NormalizedActor`, which normalises raw observations as the policy saw
+them. Two signs in an SB3 TD3/DDPG/SAC zip tell whether that is needed (docs/import_export.md):
+
+- Without statistics: the scale of each input the networks saw in training. Adam's second
+  moment of the critic's first-layer weights (critic.optimizer.pth, loaded with
+  weights_only=True), averaged over the layer's units, grows with the square of each input's
+  scale, so its square root per observation dim is the profile of input scales training saw (up
+  to one factor). Under VecNormalize that profile is flat (every input about unit scale); on raw
+  observations it follows the raw scales, which span orders of magnitude in MuJoCo (positions
+  ~0.1, velocities ~10). `input_scale_warning` compares it with the raw scales of the
+  observations collected (or handed in) and warns when it is much flatter than they are.
+- With statistics: SB3's off-policy algorithms keep the last observation of training twice, as
+  the policy saw it (`_last_obs`) and as the env gave it (`_last_original_obs`); under a
+  VecNormalize both are of the same step, so the statistics must turn one into the other
+  (`normalization_warnings`; without a VecNormalize the two are consecutive raw observations,
+  so they say nothing there).
 """
 
 from __future__ import annotations
@@ -44,7 +63,8 @@ from torch import nn
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
-from pipeline.core.nets import Actor, ExportedActor, ScriptedActor
+from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
+from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
 
 FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
@@ -52,9 +72,15 @@ SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Polic
 
 class ImportedPolicy(NamedTuple):
     actor: Actor | ScriptedActor  # eval mode, CPU
-    architecture: str  # "mlp" (an Actor), "torchscript" (a ScriptedActor) or "torch_export" (an ExportedActor)
+    # "mlp" (an Actor), "normalized_mlp" (a NormalizedActor), "torchscript" (a ScriptedActor) or
+    # "torch_export" (an ExportedActor)
+    architecture: str
     hidden_sizes: list[int]  # [] for TorchScript and torch.export programs
-    source: dict[str, Any]  # format, algorithm, file, sha256, library version where known
+    source: dict[str, Any]  # format, algorithm, file, sha256, library version where known; normalize
+    warnings: tuple[str, ...] = ()  # one line each: what makes the import likely wrong (the stage prints them)
+    # per observation dim, the scale of the inputs the first layer saw in training, up to one
+    # factor (SB3: from the critic's Adam state); None where the file does not tell
+    input_scales: np.ndarray | None = None
 
 
 class _Declared(NamedTuple):
@@ -167,6 +193,44 @@ def _parse_bounds(text: Any) -> np.ndarray | None:
         return None
 
 
+def _serialized_array(path: Path, data: dict, key: str) -> np.ndarray | None:
+    """The float array a serialized SB3 entry holds (read through the restricted unpickler of
+    pipeline.interop.vecnorm); None where it holds anything else or cannot be read."""
+    entry = data.get(key)
+    if not isinstance(entry, dict) or not isinstance(entry.get(":serialized:"), str):
+        return None
+    try:
+        value = restricted_loads(base64.b64decode(entry[":serialized:"]), path, f"data[{key!r}]")
+    except (ArtifactError, binascii.Error, ValueError):
+        return None
+    return value if isinstance(value, np.ndarray) and value.dtype.kind == "f" else None
+
+
+def _last_observations(path: Path, data: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(the last observation as the policy saw it, as the env gave it), saved by SB3's
+    off-policy algorithms as `_last_obs` and `_last_original_obs`; None where either is missing
+    (a model saved before learning) or they are not arrays of one shape."""
+    seen, raw = _serialized_array(path, data, "_last_obs"), _serialized_array(path, data, "_last_original_obs")
+    if seen is None or raw is None or seen.shape != raw.shape:
+        return None
+    return seen.astype(np.float64), raw.astype(np.float64)
+
+
+def _input_scales(path: Path, optimizer_bytes: bytes | None, obs_dim: int, act_dim: int) -> np.ndarray | None:
+    """sqrt of Adam's exp_avg_sq of the critic's first-layer weight, averaged over its units, for
+    each observation input (see the module's docstring); None where the zip has no such state."""
+    if optimizer_bytes is None:
+        return None
+    try:
+        state = _weights_only(path, optimizer_bytes, "critic.optimizer.pth")
+        first = state["state"][0]["exp_avg_sq"]  # the first parameter: qf0's first Linear weight
+    except (ArtifactError, KeyError, IndexError, TypeError):
+        return None
+    if not isinstance(first, torch.Tensor) or first.ndim != 2 or first.shape[1] != obs_dim + act_dim:
+        return None
+    return first.double().mean(dim=0).sqrt().numpy()[:obs_dim]
+
+
 def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     try:
         zf = zipfile.ZipFile(path)
@@ -182,6 +246,7 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         try:
             data = json.loads(zf.read("data"))
             policy_bytes = zf.read("policy.pth")
+            critic_opt = zf.read("critic.optimizer.pth") if "critic.optimizer.pth" in names else None
             version = (
                 zf.read("_stable_baselines3_version").decode().strip()
                 if "_stable_baselines3_version" in names
@@ -253,7 +318,9 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape)
     )
     declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
-    return actor, declared, {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
+    info = {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
+    scales = _input_scales(path, critic_opt, declared.obs_dim, declared.act_dim)
+    return actor, declared, info | {"last_obs": _last_observations(path, data), "input_scales": scales}
 
 
 # -- CleanRL ------------------------------------------------------------------------------------
@@ -363,29 +430,115 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
         )
 
 
-def read_policy(path: str | Path, fmt: str, spec: EnvSpec) -> ImportedPolicy:
-    """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`; raises
+# -- observation statistics ---------------------------------------------------------------------
+
+NORMALIZABLE = ("sb3", "cleanrl")  # the formats read into an `Actor`, which statistics can precede
+
+
+def normalized(path: Path, actor: Actor, stats: ObsStatistics, spec: EnvSpec) -> Actor:
+    """`actor` preceded by the statistics (a `NormalizedActor` with its weights), or `actor`
+    itself where they say the policy saw raw observations (norm_obs false)."""
+    if not stats.norm_obs:
+        return actor
+    if stats.mean.shape != (spec.obs_dim,):
+        raise ArtifactError(
+            f"{path}: statistics of {stats.mean.shape[0]}-d observations; env {spec.env_id} has {spec.obs_dim} "
+            "(the statistics of another env?)"
+        )
+    hidden = [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    low, high = (actor.centre - actor.scale), (actor.centre + actor.scale)
+    out = NormalizedActor(spec.obs_dim, spec.act_dim, hidden, low, high, stats.mean, stats.std, stats.clip_obs)
+    out.load_state_dict(actor.state_dict() | {k: v for k, v in out.state_dict().items() if k.startswith("obs_")})
+    return out.eval()
+
+
+def normalization_warnings(
+    path: Path, stats_path: Path, stats: ObsStatistics, last: tuple[np.ndarray, np.ndarray] | None
+) -> list[str]:
+    """A line if statistics that normalise (norm_obs true) do not turn the model's last raw
+    observation into the normalised one it saw (SB3's `_last_original_obs`, `_last_obs`)."""
+    if last is None or not stats.norm_obs:
+        return []
+    seen, raw = last
+    gap = float(np.abs(stats.normalize(raw).astype(np.float32) - seen).max())
+    if gap <= 1e-4:
+        return []
+    return [
+        f"{path}: warning: {stats_path} does not turn the model's last raw observation into the normalised one it "
+        f"saw (differs by up to {gap:.3g}): statistics of another model, or of another point of its training?"
+    ]
+
+
+FLATTER = 0.5  # warn when the profile of input scales training saw is this much flatter than the raw one
+
+
+def input_scale_warning(path: Path, input_scales: np.ndarray | None, obs: np.ndarray, normalized: bool) -> str | None:
+    """A line if the policy in `path` was likely trained on normalised observations and is
+    imported without statistics that normalise (`normalized` false): the spread (std over observation dims) of the
+    log input scales its training saw is under FLATTER times their spread relative to the raw
+    scales of `obs` (N, obs_dim), the observations it was collected (or handed in) with.
+    None when statistics normalise, when the file gives no input scales (CleanRL, TorchScript,
+    torch.export) or when fewer than 2 dims have non-zero scales on both sides."""
+    if input_scales is None or normalized or len(obs) == 0:
+        return None
+    raw = np.sqrt(np.mean(np.square(obs.astype(np.float64)), axis=0))
+    keep = (input_scales > 0) & (raw > 0)
+    if keep.sum() < 2:
+        return None
+    seen = np.log(input_scales[keep])
+    flat, versus_raw = float(np.std(seen)), float(np.std(seen - np.log(raw[keep])))
+    if not flat < FLATTER * versus_raw:
+        return None
+    return (
+        f"{path}: warning: likely trained on normalised observations (the inputs its training saw were all of "
+        f"about one scale: log-scale spread {flat:.2f} over the observation dims, against {versus_raw:.2f} relative "
+        "to the raw observations collected); imported without statistics it acts on raw observations it never saw "
+        "and behaves wrongly: name its vecnormalize.pkl in import_specialists.policies[].normalize"
+    )
+
+
+def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path | None = None) -> ImportedPolicy:
+    """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`, with the
+    observation statistics of SB3 VecNormalize file `normalize` (None: none) baked in; raises
     ArtifactError naming the file for a missing or unreadable file, a format it is not, a
-    policy that only unpickling could read, discrete actions, or dims and bounds of another env."""
+    policy that only unpickling could read, discrete actions, dims and bounds of another env,
+    statistics refused by pipeline.interop.vecnorm or for another env, or statistics for a
+    TorchScript or torch.export policy (whose input transform is its own code)."""
     path = Path(path)
     if fmt not in FORMATS:
         raise ArtifactError(f"{path}: format {fmt!r}; expected one of {list(FORMATS)}")
     if not path.is_file():
         raise ArtifactError(f"{path}: no such file (expected a {fmt} model)")
+    if normalize is not None and fmt not in NORMALIZABLE:
+        raise ArtifactError(
+            f"{normalize}: observation statistics for a {fmt} policy; normalise inside the saved module instead "
+            f"(statistics are read for {', '.join(NORMALIZABLE)} models)"
+        )
+    stats = read_vecnormalize(normalize) if normalize is not None else None
     if fmt == "torchscript":
         actor, declared, source = read_torchscript(path, spec)
     elif fmt == "torch_export":
         actor, declared, source = read_torch_export(path, spec)
     else:
         actor, declared, source = (read_sb3 if fmt == "sb3" else read_cleanrl)(path)
+    last, scales = source.pop("last_obs", None), source.pop("input_scales", None)
+    if stats is not None:
+        actor = normalized(Path(normalize), actor, stats, spec)
     _check_env(path, actor, declared, spec)
     architecture = (
         "torch_export"
         if isinstance(actor, ExportedActor)
         else "torchscript"
         if isinstance(actor, ScriptedActor)
+        else "normalized_mlp"
+        if isinstance(actor, NormalizedActor)
         else "mlp"
     )
-    hidden = [] if architecture != "mlp" else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    hidden = (
+        [] if not isinstance(actor, Actor) else [m.out_features for m in actor.net if isinstance(m, nn.Linear)][:-1]
+    )
     source = {"format": fmt, **source, "file": path.name, "sha256": file_sha256(path)}
-    return ImportedPolicy(actor, architecture, hidden, source)
+    if stats is not None:
+        source["normalize"] = {"file": str(normalize), "sha256": file_sha256(Path(normalize)), **stats.record()}
+    warnings = normalization_warnings(path, Path(normalize), stats, last) if stats is not None else []
+    return ImportedPolicy(actor, architecture, hidden, source, tuple(warnings), scales)

@@ -2,7 +2,9 @@
 
 Each entry of `policies` names the policy file of one objective, its format (an SB3 model.zip
 of TD3, DDPG or SAC; a CleanRL TD3, DDPG or SAC checkpoint; a TorchScript actor) and
-optionally a buffer of its own in the project's Zarr format, with every objective's reward.
+optionally a buffer of its own in the project's Zarr format, with every objective's reward,
+and the observation statistics of a model trained under SB3's VecNormalize (`normalize`; found
+beside an SB3 model in rl-zoo3's layout when not given, pipeline.params.methods.normalize_file).
 Without one, stage import_specialist collects `collect_rows` transitions of the policy in the
 MO env with TD3's Gaussian exploration noise. Post-hoc critics for every objective are then
 fitted on that buffer (stage fit_critics) and MAPEX-PostHoc extracts from them (method
@@ -31,6 +33,22 @@ class ImportedPolicyEntry(Strict):
         description="optional: a buffer.zarr of this policy's transitions in the project's format (full reward "
         "vectors); null: collect one",
     )
+    normalize: str | Literal[False] | None = Field(
+        None,
+        description="optional: the observation statistics of a model trained under SB3's VecNormalize "
+        "(vecnormalize.pkl, a DVC dep); null: the one rl-zoo3 saves beside an sb3 model, if any; false: none",
+    )
+
+    @model_validator(mode="after")
+    def _normalizable(self) -> "ImportedPolicyEntry":
+        if isinstance(self.normalize, str) and self.format not in ("sb3", "cleanrl"):
+            raise ValueError(
+                f"normalize = {self.normalize!r} for a {self.format} policy: statistics are read for sb3 and cleanrl "
+                "models; a TorchScript or torch.export policy normalises inside its own module"
+            )
+        if isinstance(self.normalize, str) and not self.normalize.strip():
+            raise ValueError("normalize is an empty path; give the statistics file, or false for none")
+        return self
 
 
 class ImportSpecialistsParams(Strict):

@@ -10,6 +10,8 @@ nothing), its `stage` the dvc.yaml stage that writes its front.
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
 from typing import NamedTuple
 
 
@@ -105,6 +107,54 @@ def specialist_kind(method: str) -> str | None:
     return m.kind if m else None
 
 
+def statistics_beside(model: str) -> str | None:
+    """The SB3 VecNormalize statistics saved beside model file `model` in rl-zoo3's layout, if
+    one is there (relative paths are taken from the working directory, the repository root):
+
+    - `<prefix>_vecnormalize_<N>_steps.pkl` beside a checkpoint `<prefix>_<N>_steps.zip` (SB3's
+      CheckpointCallback with save_vecnormalize, which rl-zoo3 uses: the statistics of that step);
+    - `<stem>/vecnormalize.pkl` beside `<stem>.zip` (rl-zoo3's run folder `<algo>/<env>_<n>/`
+      holds the final model `<env>.zip` and its statistics in `<env>/vecnormalize.pkl`);
+    - `<env>/vecnormalize.pkl` beside any other model of a run folder `<env>_<n>` (its
+      best_model.zip, whose statistics rl-zoo3 saves there too).
+
+    The first that exists, as a path of the same form as `model`; None if none does. A file
+    under any other name (the Hugging Face Hub's vec_normalize.pkl) must be named in `normalize`:
+    a folder may hold several models and one statistics file, and a wrong guess would be silent.
+    """
+    p = Path(model)
+    candidates = []
+    step = re.fullmatch(r"(.+)_(\d+)_steps", p.stem)
+    if step:
+        candidates.append(p.with_name(f"{step.group(1)}_vecnormalize_{step.group(2)}_steps.pkl"))
+    candidates.append(p.parent / p.stem / "vecnormalize.pkl")
+    run = re.fullmatch(r"(.+)_\d+", p.parent.name)
+    if run:
+        candidates.append(p.parent / run.group(1) / "vecnormalize.pkl")
+    return next((c.as_posix() for c in candidates if c.is_file()), None)
+
+
+def normalize_file(entry: dict) -> str | None:
+    """The observation statistics file of import entry `entry` (import_specialists.policies[],
+    as a dict): its `normalize` path; None where it says false; where it says nothing, the file
+    rl-zoo3 saves beside an sb3 model (`statistics_beside`), else None."""
+    given = entry.get("normalize")
+    if isinstance(given, str):
+        return given
+    if given is False or entry.get("format") != "sb3":
+        return None
+    return statistics_beside(str(entry["file"]))
+
+
+def _import_item(entry: dict, *keys: str) -> dict:
+    """One entry of import_collect / import_buffered: `keys` of the entry, and its statistics as
+    stage import_specialist takes them: normalize, the file or "none", and normalize_dep, what
+    DVC tracks for it (the file, or the policy file again where there is none: a DVC dep cannot
+    be optional, and a matrix item cannot add one)."""
+    stats = normalize_file(entry)
+    return {k: entry[k] for k in keys} | {"normalize": stats or "none", "normalize_dep": stats or entry["file"]}
+
+
 def derived_lists(
     methods: list[str], seeds: list[int], imports: list[dict] | None = None, export: list[str] | None = None
 ) -> dict[str, list]:
@@ -124,7 +174,9 @@ def derived_lists(
     critic_fidelity (the joint critics' scores): with no joint-critic method it names the
     trained kinds the methods start from (td3 when none does, unless only imported
     specialists are used). import_collect / import_buffered split the import entries into those
-    whose buffer is collected and those that bring one (their stages differ in a DVC dep)."""
+    whose buffer is collected and those that bring one (their stages differ in a DVC dep); each
+    item also names its observation statistics (`_import_item`), found on disk in rl-zoo3's
+    layout where the entry names none (`normalize_file`)."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
@@ -158,17 +210,11 @@ def derived_lists(
         "td3_seeds": list(seeds) if "td3" in kinds or any(m.kind == "td3" for m in chosen) else [],
         "pderl_seeds": list(seeds) if needs_pderl else [],
         "imported_seeds": imported_seeds,
-        "import_collect": [
-            {"objective": e["objective"], "file": e["file"], "format": e["format"]}
-            for e in entries
-            if not e.get("buffer")
-        ]
+        "import_collect": [_import_item(e, "objective", "file", "format") for e in entries if not e.get("buffer")]
         if uses_imported
         else [],
         "import_buffered": [
-            {"objective": e["objective"], "file": e["file"], "format": e["format"], "buffer": e["buffer"]}
-            for e in entries
-            if e.get("buffer")
+            _import_item(e, "objective", "file", "format", "buffer") for e in entries if e.get("buffer")
         ]
         if uses_imported
         else [],
