@@ -61,7 +61,8 @@ def with_lists(params: dict) -> dict:
     `mapex sync-params` writes them: DVC refuses a listed param that is not in the file)."""
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
-    out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export)}
+    objectives = params.get("objectives", [0, 1])
+    out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export, objectives)}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
     if out["warmup_from"]:
         fields = ExtractParams.model_fields
