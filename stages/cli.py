@@ -27,6 +27,7 @@ COMMANDS = {
     "render": "stages.render",
     "mopderl": "stages.mopderl",
     "morld": "stages.morld",
+    "interpolate": "stages.interpolate",
     "sweep": "stages.sweep",
     "grid-report": "stages.grid_report",
     "sync-params": "stages.sync_params",

@@ -131,11 +131,13 @@ def extract(
     )
     sources = slot_sources(slots) if kind == "imported" else None
     device = select_device(cfg.device)
-    # env.reference_point is not in the config: it does not change what extraction computes
+    # env.reference_point is not in the config: it does not change what extraction computes;
+    # nor, with 2 objectives, extract.facet_bridge_ratio (the paper's edges never read it), so
+    # 2-objective populations and their resume fingerprints are what they were before it existed
     env_cfg = env_p.model_dump(exclude={"objective_names", "reference_point"})
     config = {
         "env": env_cfg,
-        "extract": cfg.model_dump(),
+        "extract": cfg.model_dump(exclude={"facet_bridge_ratio"} if spec.n_objectives == 2 else None),
         "seed": seed,
         "variant": variant,
         "kind": kind,

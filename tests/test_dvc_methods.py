@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 
 import pytest
@@ -31,7 +32,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     except ImportError:  # the optional extra is not installed: the chain without MORL/D
         baselines = ["mopderl"]
     methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
-    methods += ["warmup_only_td3", "warmup_only_pderl"]
+    methods += ["warmup_only_td3", "warmup_only_pderl", "interpolate_td3", "interpolate_pderl"]
     params = {
         **TINY,
         "methods": methods,
@@ -56,6 +57,9 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         ]
         == 8
     )
+    # interpolation starts from the same policy sets, then mixes one per objective
+    interp = json.loads((root / "data" / "score" / "interpolate_pderl" / "seed0" / "metrics.json").read_text())
+    assert interp["starting_policies"] == 8 and interp["children"] == 1  # 1 iteration x 1 child
     assert (
         json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())["starting_policies"]
         == 2
@@ -71,8 +75,11 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         "MAPEX (PDERL specialists)",
         "Sample efficiency",
         "| MAPEX | MOPDERL |",
+        "| interpolation (PDERL) |",
+        "| interpolation (TD3) |",
     ):
         assert name in report, name
+    assert re.search(r"MAPEX-TD3 (beat|lost to|tied with) interpolation \(TD3\)", report)
     if "morld" in baselines:
         assert "| MORL/D |" in report
     assert ran(run([str(BIN / "dvc"), "repro"], root)) == set()
@@ -83,7 +90,8 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         fh.write("\n# an edit\n")
     stale = stale_stages(root)
     assert "extract" in stale and "extract_posthoc" in stale and "warmup_only" in stale
-    assert not stale & {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity"}, stale
+    untouched = {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity", "interpolate"}
+    assert not stale & untouched, stale
 
     # DVC params are exact: the specialists' run length and keep-best schedule are
     # train_specialist's alone (PDERL and MOPDERL read the td3 section), and the warm-up-only
@@ -98,7 +106,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     (root / "params.yaml").write_text(yaml.safe_dump(edited))
     stale = stale_stages(root)
     assert {"train_specialist", "extract"} <= stale, stale
-    assert not stale & {"train_pderl", "mopderl", "warmup_only", "morld"}, stale
+    assert not stale & {"train_pderl", "mopderl", "warmup_only", "morld", "interpolate"}, stale
 
 
 def stale_stages(root) -> set[str]:

@@ -300,3 +300,19 @@ def test_reference_point_is_not_an_input_of_extraction(specialists, tmp_path):
     members, _ = load_population(tmp_path / "out" / "population.pt")
     assert members[2].returns_std == [-1.0, -1.0]  # resumed, not recomputed
     assert len(members) == 5
+
+
+def test_facet_bridge_ratio_is_not_an_input_with_two_objectives(specialists, tmp_path):
+    """With 2 objectives the paper's edges never read extract.facet_bridge_ratio: a run with it
+    null and one with the default give the same population, meta included (the key is not in
+    the recorded params), so 2-objective artifacts are those from before the key existed."""
+    r = mapex(
+        *extract_cmd(specialists, tmp_path / "a", write_params(tmp_path / "a.yaml"), tmp_path / "ra"), cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr
+    params_b = write_params(tmp_path / "b.yaml", facet_bridge_ratio=None)
+    r = mapex(*extract_cmd(specialists, tmp_path / "b", params_b, tmp_path / "rb"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _population_equal(tmp_path / "a" / "population.pt", tmp_path / "b" / "population.pt")
+    (_, meta_a), (_, meta_b) = (load_population(tmp_path / d / "population.pt") for d in "ab")
+    assert meta_a == meta_b and "facet_bridge_ratio" not in meta_a["params"]["extract"]

@@ -321,6 +321,14 @@ def test_near_degenerate_fronts_never_raise_and_give_front_parents():
         else:
             assert parents == gaps.best_per_objective(pts)
         assert np.linalg.norm(ex.target_weight(pts, parents)) == pytest.approx(1.0)
+        # the same with the surface rule: front members, an edge or a facet, or the same fallback
+        parents = ex.select_parents(pts, np.random.default_rng(trial), 3.0)
+        if len(facets) and sizes.sum() > 0:
+            assert set(parents) <= front and len(parents) in (2, facets.shape[1])
+            assert list(parents) == sorted(set(parents))
+        else:
+            assert parents == gaps.best_per_objective(pts)
+        assert np.linalg.norm(ex.target_weight(pts, parents)) == pytest.approx(1.0)
 
 
 def test_one_objective_is_refused():
@@ -520,3 +528,296 @@ def test_extraction_with_three_objectives_end_to_end(tmp_path):
         save_population(tmp_path / f"population{k}.pt", run.members, meta)
         loaded, _ = load_population(tmp_path / f"population{k}.pt")
         assert [c.parents for c in loaded[5:]] == [c.parents for c in children]
+
+
+# ---------------------------------------------------------------- N = 2 and the whole mesh: literal values from before
+
+# Produced by the code of main at 6aca736 (before extract.facet_bridge_ratio existed), printed with
+# repr: a 2-objective population (policy 8 dominated), its edges, their roulette probabilities and
+# 16 draws from default_rng(31); and the 12-point ARC's facets, probabilities and 16 draws.
+POP2 = np.array(
+    [
+        [1200.5, -3400.0],
+        [2500.0, -4100.25],
+        [300.0, -900.0],
+        [1800.0, -3600.0],
+        [900.0, -2500.0],
+        [1000.0, -3000.0],
+        [2100.0, -3900.0],
+        [0.0, -350.0],
+        [2100.0, -4000.0],
+    ]
+)
+POP2_IDS = [7, 2, 4, 5, 0, 3, 6, 1]
+POP2_P = [
+    0.12547651763332263,
+    0.3241358502388357,
+    0.09217025778805933,
+    0.08836425502465264,
+    0.16266615355473715,
+    0.09549665012783663,
+    0.11169031563255605,
+]
+POP2_DRAWS = [(6, 1), (7, 2), (0, 3), (4, 5), (0, 3), (7, 2), (7, 2), (2, 4)]
+POP2_DRAWS += [(6, 1), (2, 4), (5, 0), (6, 1), (0, 3), (2, 4), (2, 4), (7, 2)]
+NEXT_DRAW_AFTER_16 = 0.2848570988390776  # one draw per selection, whatever the front
+
+# ARC: 12 points on the curve (cos t, sin t, sin 2t), t evenly spaced over [0, pi / 2]: a thin
+# (one-dimensional) curved front of 3 objectives, the example of issue 31. Its projection is
+# convex, so the mesh fans across the region between the curve and the chord joining its ends.
+_T = np.linspace(0, np.pi / 2, 12)
+ARC = np.stack([np.cos(_T), np.sin(_T), np.sin(2 * _T)], axis=1)
+ARC_FACETS = [[0, 1, 11], [1, 2, 9], [1, 9, 10], [1, 10, 11], [2, 3, 9], [3, 4, 7], [3, 7, 8], [3, 8, 9]]
+ARC_FACETS += [[4, 5, 7], [5, 6, 7]]
+ARC_P = [0.21481271861975307, 0.13253501765602343, 0.16572862606454844, 0.1820551975691523]
+ARC_P += [0.10947483763400429, 0.03461378629348677, 0.05690617906296126, 0.0798280964188227]
+ARC_P += [0.01800340539836579, 0.006042135282881986]
+ARC_DRAWS = [(3, 8, 9), (0, 1, 11), (1, 10, 11), (1, 9, 10), (1, 10, 11), (0, 1, 11), (0, 1, 11), (0, 1, 11)]
+ARC_DRAWS += [(4, 5, 7), (1, 2, 9), (1, 10, 11), (4, 5, 7), (2, 3, 9), (0, 1, 11), (1, 9, 10), (0, 1, 11)]
+
+
+@pytest.mark.parametrize("ratio", [None, 3.0, 1.5])
+def test_two_objectives_draw_the_literal_values_of_before_whatever_the_ratio(ratio):
+    ids, lengths = ex.front_edges(POP2)
+    assert ids.tolist() == POP2_IDS
+    assert (lengths / lengths.sum()).tolist() == POP2_P  # bit for bit
+    rng = np.random.default_rng(31)
+    assert [gaps.select_parents(POP2, rng, ratio) for _ in range(16)] == POP2_DRAWS
+    assert next_draw(rng) == NEXT_DRAW_AFTER_16
+
+
+def test_without_a_ratio_the_arc_draws_the_literal_values_of_before():
+    """The issue's numbers, reproduced: the facet joining both ends of the arc draws 21.5% of the
+    probability, the one facet of consecutive points (5, 6, 7) 0.6%."""
+    facets, sizes = gaps.front_facets(ARC)
+    assert facets.tolist() == ARC_FACETS
+    assert (sizes / sizes.sum()).tolist() == ARC_P
+    found, found_sizes = gaps.front_gaps(ARC, None)
+    assert found == [tuple(f) for f in ARC_FACETS] and found_sizes.tolist() == sizes.tolist()
+    assert round(ARC_P[0], 3) == 0.215 and round(ARC_P[-1], 3) == 0.006
+    rng = np.random.default_rng(31)
+    assert [gaps.select_parents(ARC, rng) for _ in range(16)] == ARC_DRAWS
+    assert next_draw(rng) == NEXT_DRAW_AFTER_16
+
+
+# ---------------------------------------------------------------- gaps on the front's surface (facet_bridge_ratio)
+
+
+def test_on_the_arc_the_spanning_facets_go_and_the_steps_between_neighbours_take_the_roulette():
+    """Ratio 3 (the default): every facet joining points 5 or more steps apart along the arc is
+    eroded (the chord 0-11 is bridged by the arc's own steps, each under a third of it, and so on
+    inwards); 3 facets near the middle stay, and the 7 steps between neighbours they leave
+    uncovered become 2-parent gaps sized as the equilateral triangle on them. The gaps between
+    consecutive points (steps, and the facet 5-6-7) now draw 82.7% of the probability, against
+    0.6% before, and the facet joining both ends nothing."""
+    found, sizes = gaps.front_gaps(ARC, 3.0)
+    facets, areas = gaps.front_facets(ARC)
+    kept = [(3, 4, 7), (4, 5, 7), (5, 6, 7)]
+    steps = [(0, 1), (1, 2), (2, 3), (7, 8), (8, 9), (9, 10), (10, 11)]
+    assert found == kept + steps
+    np.testing.assert_array_equal(sizes[:3], areas[[ARC_FACETS.index(list(f)) for f in kept]])
+    lo, span = population_scale(ARC)
+    norm = (ARC - lo) / span
+    lengths = np.array([np.linalg.norm(norm[a] - norm[b]) for a, b in steps])
+    np.testing.assert_allclose(sizes[3:], math.sqrt(3) / 4 * lengths**2, rtol=1e-12)
+    p = sizes / sizes.sum()
+    consecutive = sum(q for g, q in zip(found, p) if max(g) - min(g) == len(g) - 1)
+    assert consecutive == pytest.approx(0.827, abs=5e-4)
+    assert all(not {0, 11} <= set(g) for g in found)
+    assert max(max(g) - min(g) for g in found) == 4
+    # ratio 2: only the facet of 3 consecutive points stays, and every other step is a gap
+    found2, sizes2 = gaps.front_gaps(ARC, 2.0)
+    assert found2 == [(5, 6, 7)] + [(i, i + 1) for i in range(11) if i not in (5, 6)]
+    # a larger ratio keeps more: at 5 no edge of this mesh bridges, nothing changes
+    assert gaps.front_gaps(ARC, 5.0)[0] == [tuple(f) for f in ARC_FACETS]
+
+
+def test_the_roulette_draws_the_surface_gaps_by_size_one_draw_each():
+    found, sizes = gaps.front_gaps(ARC, 3.0)
+    for seed in range(20):
+        rng, ref = np.random.default_rng(seed), np.random.default_rng(seed)
+        got = gaps.select_parents(ARC, rng, 3.0)
+        assert got == found[int(ref.choice(len(sizes), p=sizes / sizes.sum()))]
+        assert next_draw(rng) == next_draw(ref)
+        w = ex.target_weight(ARC, got)
+        assert w.shape == (3,) and np.linalg.norm(w) == pytest.approx(1.0)
+
+
+def test_a_two_dimensional_front_with_its_specialists_at_the_corners_loses_nothing():
+    """The three specialists at the corners and children inside (on the simplex, and on the
+    sphere): the hull's edges are specialist to specialist, bridged by no path along the hull,
+    so every facet stays, including the strips along the hull (2-objective trade-offs not yet
+    explored). Were paths through the inside allowed, some of those strips would go."""
+    rng = np.random.default_rng(1)
+    dropped_by_inner_paths = 0
+    for trial in range(40):
+        n = int(rng.integers(3, 40))
+        inner = rng.dirichlet(np.ones(3), size=n) if trial % 2 else np.abs(rng.normal(size=(n, 3)))
+        if trial % 2 == 0:
+            inner /= np.linalg.norm(inner, axis=1, keepdims=True)
+        pop = np.vstack([np.eye(3), inner])
+        facets, sizes = gaps.front_facets(pop)
+        found, found_sizes = gaps.front_gaps(pop, 3.0)
+        assert found == [tuple(f) for f in facets.tolist()]
+        np.testing.assert_array_equal(found_sizes, sizes)
+        # the same erosion with every mesh edge as a path would drop some strip facets
+        lo, span = population_scale(pop)
+        norm = (pop - lo) / span
+        ids = np.flatnonzero(pareto_mask(pop))
+        local = fm.triangulate(norm[ids])
+        edges = fm.mesh_edges(local)
+        minimax = fm.graph_minimax(norm[ids], edges)
+        length = np.linalg.norm(norm[ids][edges[:, 0]] - norm[ids][edges[:, 1]], axis=1)
+        dropped_by_inner_paths += int((length > 3.0 * minimax[edges[:, 0], edges[:, 1]]).any())
+    assert dropped_by_inner_paths > 10  # the boundary rule is what keeps the strips
+
+
+def test_a_hole_enclosed_by_the_front_stays_a_gap():
+    """A jittered 7 x 7 grid on a plane orthogonal to (1, 1, 1) with its middle 3 x 3 left out:
+    the facets across the hole have edges bridged through the grid (5 of them, via all mesh
+    edges), but the hole is never reached from the hull, so every facet stays and the largest
+    facet, in the hole, is still the most likely."""
+    rng = np.random.default_rng(0)
+    uv = np.array([(i, j) for i in range(7) for j in range(7) if not (2 <= i <= 4 and 2 <= j <= 4)], float) / 6
+    uv += rng.uniform(-0.01, 0.01, uv.shape)
+    pop = uv @ fm.diagonal_basis(3).T + 1.0
+    assert pareto_mask(pop).all()
+    facets, sizes = gaps.front_facets(pop)
+    found, found_sizes = gaps.front_gaps(pop, 3.0)
+    assert found == [tuple(f) for f in facets.tolist()]
+    assert sizes.max() > 5 * np.median(sizes)  # the hole's facets are large
+    lo, span = population_scale(pop)
+    norm = (pop - lo) / span
+    edges = fm.mesh_edges(fm.triangulate(norm))
+    length = np.linalg.norm(norm[edges[:, 0]] - norm[edges[:, 1]], axis=1)
+    assert (length > 3.0 * fm.graph_minimax(norm, edges)[edges[:, 0], edges[:, 1]]).sum() == 5
+
+
+def test_surface_does_not_depend_on_the_order_of_the_points():
+    """Relabelling the policies relabels the gaps and nothing else (thin, noisy and crescent
+    fronts, where facets are dropped)."""
+    rng = np.random.default_rng(4)
+    checked = 0
+    for trial in range(30):
+        n = int(rng.integers(5, 30))
+        t = np.sort(rng.uniform(0, np.pi / 2, n))
+        radius = 1.0 if trial % 2 else rng.uniform(0.85, 1.0, n)
+        pop = np.stack([radius * np.cos(t), radius * np.sin(t), rng.uniform(0.3, 1.0) * np.sin(2 * t)], axis=1)
+        pop = pop[pareto_mask(pop)]
+        found, sizes = gaps.front_gaps(pop, 3.0)
+        perm = rng.permutation(len(pop))
+        found_p, sizes_p = gaps.front_gaps(pop[perm], 3.0)
+        relabelled = {tuple(sorted(int(perm[i]) for i in g)): s for g, s in zip(found_p, sizes_p)}
+        assert relabelled.keys() == {g: 0 for g in found}.keys()
+        np.testing.assert_allclose([relabelled[g] for g in found], sizes, rtol=1e-9)
+        checked += len(found) < len(gaps.front_facets(pop)[0]) or any(len(g) == 2 for g in found)
+    assert checked >= 5  # the rule changed the gaps of several of these fronts
+
+
+def test_the_shortest_edge_never_bridges_so_the_rule_never_leaves_no_gap():
+    rng = np.random.default_rng(2)
+    for trial in range(100):
+        m = 3 + trial % 2
+        n = int(rng.integers(m + 1, 25))
+        t = np.sort(rng.uniform(0, 1, n))
+        pop = np.stack(
+            [np.cos(t * np.pi / 2), np.sin(t * np.pi / 2)] + [rng.uniform(0, 1) * np.sin(np.pi * t)] * (m - 2), 1
+        )
+        pop = pop + rng.normal(scale=rng.choice([0.0, 1e-3, 3e-2]), size=pop.shape)
+        found, sizes = gaps.front_gaps(pop, rng.uniform(1.01, 4.0))
+        assert len(found) and sizes.sum() > 0 and (sizes >= 0).all()
+        assert all(len(g) in (2, gaps.front_facets(pop)[0].shape[1]) for g in found)
+
+
+def test_when_nothing_is_left_the_whole_mesh_is_used(monkeypatch):
+    """A defensive fallback (the shortest edge keeps the rule from reaching it): with a surface
+    of no facet and no edge, the gaps are the whole mesh."""
+    monkeypatch.setattr(
+        gaps, "surface", lambda points, facets, ratio: (np.zeros(len(facets), bool), np.zeros((0, 2), int))
+    )
+    found, sizes = gaps.front_gaps(ARC, 3.0)
+    assert found == [tuple(f) for f in ARC_FACETS]
+    np.testing.assert_allclose(sizes / sizes.sum(), ARC_P, rtol=1e-12)
+
+
+def test_the_hand_checked_sets_are_unchanged_by_the_rule():
+    for pop in (FAN, RHOMBUS, np.hstack([RHOMBUS, np.full((4, 1), 3.0)])):
+        facets, sizes = gaps.front_facets(pop)
+        found, found_sizes = gaps.front_gaps(pop, 3.0)
+        assert found == [tuple(f) for f in facets.tolist()]
+        np.testing.assert_array_equal(found_sizes, sizes)
+    # collinear projections (a chain of edges): nothing to erode, whatever the ratio
+    line = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.3, 0.7, 0.0]])
+    assert gaps.front_gaps(line, 1.01)[0] == [(0, 2), (1, 2)]
+
+
+def test_four_objectives_thin_curve_keeps_neighbours_only():
+    """N = 4 (facets are tetrahedra, ridges triangles): 14 points evenly spaced (in normalised
+    units) along a thin curve through 4-d. The mesh has tetrahedra joining both ends; with the
+    rule every gap left joins points at most 4 steps apart (ratio 3) or is a step between
+    neighbours (ratio 2), and the target weights are unit vectors of 4 components."""
+
+    def curve(t):
+        return np.stack([np.cos(t), np.sin(t), np.sin(2 * t), np.sin(2 * t) + 0.3 * np.sin(4 * t)], axis=1)
+
+    dense = np.linspace(0, np.pi / 2, 20001)
+    lo, span = population_scale(curve(dense))
+    arc_length = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve(dense) / span, axis=0), axis=1))])
+    pop = curve(np.interp(np.linspace(0, arc_length[-1], 14), arc_length, dense))
+    assert pareto_mask(pop).all()
+    facets, _ = gaps.front_facets(pop)
+    assert facets.shape[1] == 4 and max(int(f.max() - f.min()) for f in facets) == 13
+    found, sizes = gaps.front_gaps(pop, 3.0)
+    assert max(max(g) - min(g) for g in found) == 4 and sizes.sum() > 0
+    assert gaps.front_gaps(pop, 2.0)[0] == [(i, i + 1) for i in range(13)]
+    parents = gaps.select_parents(pop, np.random.default_rng(0), 3.0)
+    assert parents in found and np.linalg.norm(ex.target_weight(pop, parents)) == pytest.approx(1.0)
+
+
+def test_graph_minimax_against_floyd_warshall():
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        n = int(rng.integers(1, 12))
+        pts = rng.normal(size=(n, 3))
+        pairs = [(a, b) for a in range(n) for b in range(a + 1, n) if rng.random() < 0.4]
+        edges = np.array(pairs, dtype=np.int64).reshape(-1, 2)
+        ref = np.full((n, n), np.inf)
+        np.fill_diagonal(ref, 0.0)
+        for a, b in pairs:
+            ref[a, b] = ref[b, a] = np.linalg.norm(pts[a] - pts[b])
+        for k in range(n):  # minimax closure: the best path's longest step
+            ref = np.minimum(ref, np.maximum(ref[:, [k]], ref[[k], :]))
+        np.testing.assert_array_equal(fm.graph_minimax(pts, edges), ref)
+
+
+def test_regular_simplex_volume_by_hand():
+    assert fm.regular_simplex_volume(np.array([2.5]), 1).tolist() == [2.5]  # N = 2 units: the length
+    np.testing.assert_allclose(fm.regular_simplex_volume(np.array([2.0]), 2), [math.sqrt(3)])
+    np.testing.assert_allclose(fm.regular_simplex_volume(np.array([3.0]), 3), [27 / (6 * math.sqrt(2))])
+    # the equilateral triangle's area, as simplex_volumes measures it
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, math.sqrt(3) / 2, 0.0]])
+    np.testing.assert_allclose(fm.simplex_volumes(tri, [[0, 1, 2]]), fm.regular_simplex_volume(np.array([1.0]), 2))
+
+
+def test_the_stage_passes_the_ratio_to_the_roulette(monkeypatch):
+    """extract.facet_bridge_ratio reaches select_parents through child_config and start_child;
+    its default is 3 and it must exceed 1 (null allowed)."""
+    from pipeline.extraction.run import child_config
+    from pipeline.params.extract import ExtractParams
+
+    assert ExtractParams().facet_bridge_ratio == 3.0
+    assert ExtractParams(facet_bridge_ratio=None).facet_bridge_ratio is None
+    with pytest.raises(ValueError, match="facet_bridge_ratio"):
+        ExtractParams(facet_bridge_ratio=1.0)
+    cfg = child_config(ExtractParams(facet_bridge_ratio=2.5, epochs=0, beta=1.0, omega_max=1.0))
+    assert cfg.facet_bridge_ratio == 2.5
+    seen = []
+
+    def spy(returns, rng, ratio=None):
+        seen.append(ratio)
+        raise RuntimeError("stop after the parents")
+
+    monkeypatch.setattr(ex, "select_parents", spy)
+    with pytest.raises(RuntimeError, match="stop after the parents"):
+        ex.start_child(ARC, [], [], cfg, np.random.default_rng(0), 0, "cpu")
+    assert seen == [2.5]

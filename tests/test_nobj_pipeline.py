@@ -91,6 +91,7 @@ def test_children_have_three_parents_and_three_weights(hopper3):
     for method in ("mapex_td3", "warmup_only_td3"):
         members, meta = load_population(hopper3 / "data" / "fronts" / method / "seed0" / "population.pt")
         assert meta["n_objectives"] == 3
+        assert meta["params"]["extract"]["facet_bridge_ratio"] == 3.0  # read with 3 objectives: recorded
         starts = [m for m in members if m.iteration == 0]
         children = [m for m in members if m.iteration >= 1]
         assert len(starts) == 3 and len(children) == 3, method

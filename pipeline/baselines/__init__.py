@@ -1,1 +1,1 @@
-"""The paper's baselines: MOPDERL (phase 2) and MORL/D (morl-baselines)."""
+"""The baselines: the paper's MOPDERL (phase 2) and MORL/D (morl-baselines), and weight-space interpolation (not in the paper)."""

@@ -195,3 +195,140 @@ def mesh_edges(facets: np.ndarray) -> np.ndarray:
     k = f.shape[1]
     pairs = [f[:, [i, j]] for i in range(k) for j in range(i + 1, k)]
     return canonical(np.concatenate(pairs))
+
+
+def edge_lengths(points: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The Euclidean length (E,) of each edge (E, 2) between rows of `points` (n, m)."""
+    p = np.asarray(points, dtype=float)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    return np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1)
+
+
+def graph_minimax(points: np.ndarray, edges: np.ndarray, lengths: np.ndarray | None = None) -> np.ndarray:
+    """(n, n) minimax path distances in the graph on the rows of `points` (n, m) with edges
+    `edges` (E, 2), each as long as `lengths` (default: the Euclidean distance between its
+    ends): for a and b, the least possible longest edge of a path from a to b in the graph; inf
+    where there is no path, 0 on the diagonal. Kruskal's order: edges by length, and the first
+    edge to join two components gives every pair across them its length (the values do not
+    depend on how ties are ordered, and each is one of `lengths` exactly)."""
+    n = len(points)
+    out = np.full((n, n), np.inf)
+    np.fill_diagonal(out, 0.0)
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    if len(e) == 0:
+        return out
+    length = edge_lengths(points, e) if lengths is None else np.asarray(lengths, dtype=float)
+    root = list(range(n))
+    members = {i: [i] for i in range(n)}
+    for j in np.argsort(length, kind="stable").tolist():
+        a, b = root[e[j, 0]], root[e[j, 1]]
+        if a == b:
+            continue
+        if len(members[a]) < len(members[b]):
+            a, b = b, a
+        out[np.ix_(members[a], members[b])] = length[j]
+        out[np.ix_(members[b], members[a])] = length[j]
+        for i in members[b]:
+            root[i] = a
+        members[a].extend(members.pop(b))
+    return out
+
+
+def surface(points: np.ndarray, facets: np.ndarray, ratio: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The part of the mesh over `points` (n, m) that lies on the front's surface: a mask (F,)
+    of the facets (F, k) kept, and the loose edges (E, 2) (see below).
+
+    The mesh triangulates the convex hull of the projected front, so where the front is curved
+    and thin (an arc) it also covers the region between the front and the chord of its hull,
+    with facets joining far-apart points across it. Those are eroded from the outside:
+
+    - A ridge (a facet's face of k - 1 vertices) is *exposed* once fewer than 2 kept facets
+      share it: at first the hull's boundary, then the faces each dropped facet uncovers.
+    - An edge (a, b) *bridges* when a path of exposed edges (ridges' edges) joins a to b with
+      every step shorter than |ab| / ratio: the front goes around the region the straight edge
+      cuts across, through points that are themselves on the boundary. (graph_minimax)
+    - A kept facet is dropped when one of its ridges is exposed with it as the only kept facet
+      and has a bridging edge; repeated until none is. Dropping only adds exposed edges, and
+      an edge that bridges keeps bridging as edges are added, so the result does not depend on
+      the order of removal.
+
+    The path must run along the boundary: where the front is two-dimensional, the points that
+    join a and b lie inside it, the hull edge (a, b) is bridged by no boundary path, and the
+    facets along the hull stay (a strip between two specialists and the nearest children is a
+    gap to fill). Holes enclosed by kept facets are never exposed, so they stay gaps too.
+
+    Loose edges: the edges of dropped facets that are no edge of a kept facet and whose ends no
+    path of exposed edges joins in shorter steps (their length is their minimax distance: they
+    are edges of the exposed edges' minimum spanning forest). Where the mesh was eroded down to
+    a thin part of the front they are the steps between neighbouring points along it; a long
+    edge of a dropped facet that the front goes around is not one. The shortest edge of the
+    mesh is always either kept in a facet or loose, so facets and loose edges are never both
+    empty. In canonical order (low, high), lexicographic.
+
+    `ratio` None, no facet, or facets of 2 vertices (whose ridges are single points): every
+    facet is kept, no loose edge. No fallback here: the mask may be all False.
+    """
+    f = np.asarray(facets, dtype=np.int64)
+    keep = np.ones(len(f), dtype=bool)
+    none = np.zeros((0, 2), dtype=np.int64)
+    if ratio is None or len(f) == 0 or f.shape[1] < 3:
+        return keep, none
+    k = f.shape[1]
+    p = np.asarray(points, dtype=float)
+    all_edges = mesh_edges(f)
+    # every length computed once, so that a step's length and its minimax distance are one float
+    length = dict(zip(map(tuple, all_edges.tolist()), edge_lengths(p, all_edges).tolist()))
+    owners: dict[tuple[int, ...], list[int]] = {}  # ridge -> the facets sharing it
+    for i, row in enumerate(f.tolist()):
+        for drop in range(k):
+            owners.setdefault(tuple(row[:drop] + row[drop + 1 :]), []).append(i)
+    live = {r: len(own) for r, own in owners.items()}  # kept facets sharing each ridge
+
+    def pairs(ridge: tuple[int, ...]) -> list[tuple[int, int]]:
+        return [(ridge[i], ridge[j]) for i in range(len(ridge)) for j in range(i + 1, len(ridge))]
+
+    exposed = {e for r, n in live.items() if n < 2 for e in pairs(r)}
+    while True:
+        # Minimax distances along the exposed edges as they are now. Dropping facets below only
+        # adds exposed edges, which can only shorten these distances, so an edge found to bridge
+        # with them bridges still: facets can be dropped at once, and the distances are
+        # recomputed when nothing more can be (the fixed point is reached when, freshly
+        # computed, they make no boundary ridge bridge).
+        graph = sorted(exposed)
+        minimax = graph_minimax(p, np.array(graph, dtype=np.int64).reshape(-1, 2), [length[e] for e in graph])
+
+        def bridging(ridge: tuple[int, ...]) -> bool:
+            return any(length[(a, b)] > ratio * minimax[a, b] for a, b in pairs(ridge))
+
+        queue = [r for r, n in live.items() if n == 1 and bridging(r)]
+        if not queue:
+            break
+        while queue:
+            ridge = queue.pop()
+            if live[ridge] != 1:
+                continue  # its last kept facet is already gone
+            i = next(j for j in owners[ridge] if keep[j])
+            keep[i] = False
+            row = f[i].tolist()
+            for drop in range(k):
+                other = tuple(row[:drop] + row[drop + 1 :])
+                live[other] -= 1
+                exposed.update(pairs(other))
+                if live[other] == 1 and bridging(other):
+                    queue.append(other)
+    covered = {tuple(e) for e in mesh_edges(f[keep]).tolist()}
+    # a step between neighbours: no path of exposed edges joins its ends in shorter steps (its
+    # length is their minimax distance: an edge of the exposed edges' minimum spanning forest)
+    loose = [
+        e
+        for e in mesh_edges(f[~keep]).tolist()
+        if tuple(e) not in covered and not length[tuple(e)] > minimax[e[0], e[1]]
+    ]
+    return keep, np.array(loose, dtype=np.int64).reshape(-1, 2)
+
+
+def regular_simplex_volume(length: np.ndarray, d: int) -> np.ndarray:
+    """The d-dimensional volume of the regular d-simplex with edges of `length`:
+    length^d sqrt(d + 1) / (d! sqrt(2^d)). d = 1: the length itself; d = 2: sqrt(3) / 4 length^2
+    (the equilateral triangle)."""
+    return np.asarray(length, dtype=float) ** d * math.sqrt(d + 1) / (math.factorial(d) * math.sqrt(2.0**d))

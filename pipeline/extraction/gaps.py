@@ -12,7 +12,11 @@ N >= 3 (an extension: the paper leaves it to future work): the front is triangul
 (pipeline.core.front_mesh: its points projected onto the hyperplane orthogonal to (1, ..., 1),
 then Delaunay), one facet is drawn by roulette on its (N - 1)-dimensional volume, and its N
 vertices are the parents (`front_facets`, `select_facet_parents`). For N = 2 this rule gives the
-same edges as the paper's. Degenerate fronts (docs/n_objectives.md):
+same edges as the paper's. With `extract.facet_bridge_ratio` (default 3; a further extension)
+the roulette draws only from the gaps on the front's surface (`front_gaps`): facets spanning
+the region between a thin curved front and its convex hull are eroded from the outside, and the
+steps along what is left of such a front are gaps of 2 parents. Degenerate fronts
+(docs/n_objectives.md):
 - duplicate return vectors (after normalisation): one point, the lowest policy id, is kept;
 - projections of lower affine rank r < N - 1 (fewer than N points, collinear for N = 3,
   coplanar for N = 4, ...): triangulated in their affine hull, so a facet, and the parents,
@@ -31,7 +35,14 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.core.front_mesh import first_unique, simplex_volumes, triangulate
+from pipeline.core.front_mesh import (
+    edge_lengths,
+    first_unique,
+    regular_simplex_volume,
+    simplex_volumes,
+    surface,
+    triangulate,
+)
 from pipeline.core.pareto import pareto_mask, population_scale
 
 # ---------------------------------------------------------------- N = 2: the paper's edges
@@ -82,14 +93,20 @@ def front_facets(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     with the same normalised returns are one point, the lowest id. No facet ((0, 1), (0,)) for
     a front of one point.
     """
+    ids, norm, facets = _front_mesh(returns)
+    # ids ascending, so mapping indices to ids keeps the canonical order
+    return ids[facets], simplex_volumes(norm, facets)
+
+
+def _front_mesh(returns: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The front's distinct points and their mesh: policy ids (ascending), their normalised
+    returns, and the facets as indices into them (see `front_facets`)."""
     lo, span = population_scale(returns)
     ids = np.flatnonzero(pareto_mask(returns))
     norm = (returns[ids] - lo) / span
     keep = first_unique(norm)  # ids ascending: the first of equal rows is the lowest id
     ids, norm = ids[keep], norm[keep]
-    facets = triangulate(norm)
-    # ids ascending, so mapping indices to ids keeps the canonical order
-    return ids[facets], simplex_volumes(norm, facets)
+    return ids, norm, triangulate(norm)
 
 
 def best_per_objective(returns: np.ndarray) -> tuple[int, ...]:
@@ -98,31 +115,70 @@ def best_per_objective(returns: np.ndarray) -> tuple[int, ...]:
     return tuple(int(np.argmax(returns[:, j])) for j in range(returns.shape[1]))
 
 
-def select_facet_parents(returns: np.ndarray, rng: np.random.Generator) -> tuple[int, ...]:
-    """Draw one facet of the front mesh with probability proportional to its size (one roulette
-    draw, as for N = 2) and return its vertices' policy ids, ascending.
+def front_gaps(returns: np.ndarray, bridge_ratio: float | None = None) -> tuple[list[tuple[int, ...]], np.ndarray]:
+    """The gaps the roulette draws from for m >= 3 objectives: their policy ids and sizes.
 
-    If there is no facet of positive size (a front of one point), the policies best on each
+    bridge_ratio None (the rule of `front_facets` alone): every facet of the front mesh, in
+    `front_facets`' order, sized by its volume.
+
+    bridge_ratio r (extract.facet_bridge_ratio; an extension, docs/n_objectives.md): only the
+    gaps on the front's surface. In normalised objective space, an edge of the mesh *bridges*
+    when the front's points already join its endpoints by a chain of steps each shorter than
+    1 / r of it (pipeline.core.front_mesh.bridging_edges): the edge cuts across a region the
+    front goes around. The gaps are then
+    - the facets left once those reached from outside the mesh through bridging edges are
+      dropped (`surface_facets`; enclosed holes are kept), each sized by its volume, in
+      `front_facets`' order; then
+    - the edges that do not bridge and belong to no kept facet (`loose_edges`: where the front
+      is thin, the steps between neighbours along it), 2 parents each, sized as the regular
+      simplex of the facets' dimension with that edge length (for m = 3 the equilateral
+      triangle on it), so that they are in the facets' units; in lexicographic order.
+    Should no gap of positive size remain, the whole mesh is used (as with None). Facets of 2
+    vertices (a front whose projections are collinear) are kept as they are: there the mesh is
+    already a chain of neighbours.
+    """
+    ids, norm, local = _front_mesh(returns)
+    facets, sizes = ids[local], simplex_volumes(norm, local)  # = front_facets(returns)
+    if bridge_ratio is None or len(facets) == 0 or facets.shape[1] < 3:
+        return [tuple(int(i) for i in f) for f in facets], sizes
+    keep, loose = surface(norm, local, bridge_ratio)
+    loose_sizes = regular_simplex_volume(edge_lengths(norm, loose), facets.shape[1] - 1)
+    gaps = [tuple(int(i) for i in f) for f in facets[keep]] + [tuple(int(i) for i in ids[e]) for e in loose]
+    gap_sizes = np.concatenate([sizes[keep], loose_sizes])
+    if not gap_sizes.sum() > 0:  # the rule never removes the last gap: the whole mesh
+        return [tuple(int(i) for i in f) for f in facets], sizes
+    return gaps, gap_sizes
+
+
+def select_facet_parents(
+    returns: np.ndarray, rng: np.random.Generator, bridge_ratio: float | None = None
+) -> tuple[int, ...]:
+    """Draw one gap of the front mesh (`front_gaps`: every facet for `bridge_ratio` None, the
+    gaps on the front's surface otherwise) with probability proportional to its size (one
+    roulette draw, as for N = 2) and return its vertices' policy ids, ascending.
+
+    If there is no gap of positive size (a front of one point), the policies best on each
     objective are the parents (`best_per_objective`) and nothing is drawn from `rng`.
     """
-    facets, sizes = front_facets(returns)
+    gaps, sizes = front_gaps(returns, bridge_ratio)
     total = sizes.sum() if len(sizes) else 0.0
     if total <= 0:
         return best_per_objective(returns)
     f = int(rng.choice(len(sizes), p=sizes / total))
-    return tuple(int(i) for i in facets[f])
+    return gaps[f]
 
 
-def select_parents(returns: np.ndarray, rng: np.random.Generator) -> tuple[int, ...]:
+def select_parents(returns: np.ndarray, rng: np.random.Generator, bridge_ratio: float | None = None) -> tuple[int, ...]:
     """The parents of a child (paper Step 1) from the population's returns (n, m): by edge
-    roulette for m = 2 (`select_edge_parents`), by facet roulette for m >= 3
-    (`select_facet_parents`). Raises ValueError for m < 2."""
+    roulette for m = 2 (`select_edge_parents`: the paper's rule; `bridge_ratio` is not read),
+    by roulette over the front mesh's gaps for m >= 3 (`select_facet_parents`, `bridge_ratio`
+    as in `front_gaps`). Raises ValueError for m < 2."""
     m = returns.shape[1]
     if m == 2:
         return select_edge_parents(returns, rng)
     if m < 2:
         raise ValueError(f"gap identification needs at least 2 objectives, got {m}")
-    return select_facet_parents(returns, rng)
+    return select_facet_parents(returns, rng, bridge_ratio)
 
 
 # ---------------------------------------------------------------- the target weight

@@ -21,7 +21,9 @@ Deviations from the paper, each a param unless it is a necessary reading:
 - N >= 3 objectives: the paper defines the gap for N = 2 only and leaves N >= 3 to future
   work; the facet rule above is this project's extension (docs/n_objectives.md), with
   documented fallbacks for degenerate fronts (fewer parents on a front of lower affine rank,
-  the per-objective best policies on a front of one point). N = 2 is unchanged.
+  the per-objective best policies on a front of one point), and `facet_bridge_ratio`: only
+  the gaps on the front's surface are drawn (facets across a thin curved front's hull are
+  left out; its steps are 2-parent gaps). N = 2 is unchanged.
 - A front of one point (no gap of positive size): the policies best on each objective are the
   parents (a case the paper does not cover).
 - `advantage_norm`: `none` mixes the raw advantages A_m with a weight w computed from
@@ -332,6 +334,7 @@ class ChildConfig:
     warmup_lr: float
     warmup_batch_size: int
     adv: AdvantageConfig
+    facet_bridge_ratio: float | None = None  # N >= 3: which facets the roulette draws from (gaps.front_gaps)
 
 
 class ChildSeeds(NamedTuple):
@@ -380,7 +383,7 @@ def start_child(
     returns: (n, m) mean returns of the population; actors: its n policies. Draws from `rng`
     in a fixed order (parents, then hybrid rows); torch's global generator is left untouched.
     """
-    parents = select_parents(returns, rng)
+    parents = select_parents(returns, rng, cfg.facet_bridge_ratio)
     w = target_weight(returns, parents, cfg.weight_norm)
     hybrid = build_hybrid(buffers, w, cfg.child_buffer_size, rng, device)
     a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs)

@@ -68,6 +68,7 @@ def child_config(cfg: ExtractParams) -> ChildConfig:
             recompute=cfg.advantage_recompute,
             norm=cfg.advantage_norm,
         ),
+        facet_bridge_ratio=cfg.facet_bridge_ratio,
     )
 
 

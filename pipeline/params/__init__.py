@@ -37,6 +37,7 @@ KNOWN_SECTIONS = (
     "render",
     "mopderl",
     "morld",
+    "interpolate",
 )
 
 # Keys that moved to another section: an old params file that still has one where it was gets a

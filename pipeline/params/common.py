@@ -49,7 +49,8 @@ class RunParams(Strict):
         ["mapex_td3", "warmup_only_td3"],
         min_length=1,
         description="what runs and is compared, one data/fronts/<method>/seedS each: <variant>_<kind> (variants mapex, "
-        "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld (pipeline/params/methods.py)",
+        "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld, interpolate_<kind> "
+        "(pipeline/params/methods.py)",
     )
     # derived (generated block): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
@@ -87,6 +88,9 @@ class RunParams(Strict):
     posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
         [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
     )
+    interpolate_from: list[Literal["td3", "pderl", "imported"]] = Field(
+        [], description="derived: kinds of specialists the interpolation baseline mixes (stage interpolate)"
+    )
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
     export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
@@ -111,7 +115,7 @@ class RunParams(Strict):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
 
-    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "methods")
+    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "interpolate_from", "methods")
     @classmethod
     def _unique(cls, v: list[str] | None) -> list[str] | None:
         if v is not None and len(set(v)) != len(v):

@@ -73,6 +73,14 @@ class ExtractParams(Strict):
         "paper, whose returns are raw too, nor consistent units; the default only because every measurement so far used "
         "it); objective_range: each A_m divided by objective m's population range (the units of w); zscore of A_mixed (precursor)",
     )
+    facet_bridge_ratio: float | None = Field(
+        3.0,
+        gt=1,
+        description="N >= 3 objectives only (an extension: the paper defines gaps for N = 2; docs/n_objectives.md): "
+        "the roulette draws only from gaps on the front's surface; a facet reached from outside the front mesh through "
+        "an edge whose ends the mesh's boundary joins in steps shorter than 1/ratio of it is left out, and the steps "
+        "along a thin front become 2-parent gaps; null = every facet of the mesh (the rule before). N = 2 never reads it",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
 
     def resolved(self, env_id: str) -> "ExtractParams":

@@ -48,6 +48,10 @@ METHODS: dict[str, Method] = {
             "tab:pink",
             "warmup_only",
         ),
+        # the weight-space interpolation baseline (not in the paper): pipeline/baselines/interpolate.py
+        Method("interpolate_pderl", None, "pderl", "interpolation (PDERL)", "darkcyan", "interpolate"),
+        Method("interpolate_td3", None, "td3", "interpolation (TD3)", "goldenrod", "interpolate"),
+        Method("interpolate_imported", None, "imported", "interpolation (imported)", "rosybrown", "interpolate"),
         Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
         Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
     )
@@ -193,6 +197,7 @@ def derived_lists(
         "warmup_from": (kinds if "warmup_only" in variants else [])
         + (["imported"] if method_name("warmup_only", "imported") in methods else []),
         "posthoc_from": posthoc,
+        "interpolate_from": [k for k in SPECIALIST_KINDS if method_name("interpolate", k) in methods],
         "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
         "morld_seeds": list(seeds) if "morld" in methods else [],
         "export_methods": list(export or []),

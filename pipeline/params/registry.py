@@ -20,6 +20,7 @@ def section_models() -> dict[str, type[BaseModel]]:
     from pipeline.params.extract import ExtractParams
     from pipeline.params.fit_critics import FitCriticsParams
     from pipeline.params.import_specialists import ImportSpecialistsParams
+    from pipeline.params.interpolate import InterpolateParams
     from pipeline.params.mopderl import MopderlParams
     from pipeline.params.morld import MorldParams
     from pipeline.params.render import RenderParams
@@ -41,6 +42,7 @@ def section_models() -> dict[str, type[BaseModel]]:
         "extract": ExtractParams,
         "mopderl": MopderlParams,
         "morld": MorldParams,
+        "interpolate": InterpolateParams,
         "evaluate": EvaluateParams,
         "score": ScoreParams,
         "report": ReportParams,

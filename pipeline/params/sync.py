@@ -81,32 +81,51 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
     return with_tracked_keys("".join(kept[: at + 1]) + block + "".join(kept[at + 1 :]))
 
 
-TRACKED_NOTE = "  # named for DVC by `mapex sync-params` (stage warmup_only tracks each key it reads); edit freely\n"
+TRACKED_NOTE = (
+    "  # named for DVC by `mapex sync-params` (stages warmup_only, interpolate track these keys); edit freely\n"
+)
 
 
 RENDER_NOTE = "# named for DVC by `mapex sync-params` (stage render tracks the section): no clips\n"
 
 
-def with_tracked_keys(text: str) -> str:
-    """`text` with every extract key of WARMUP_ONLY_KEYS present, at its default where missing,
-    and a `render` section (`methods: []`, under RENDER_NOTE) where it has none.
+INTERPOLATE_NOTE = "# named for DVC by `mapex sync-params` (stage interpolate tracks the section): null = as extract\n"
 
-    Stage warmup_only lists those keys one by one in dvc.yaml (so that changing an
-    advantage-weighted key, which it does not read, leaves it up to date), and DVC refuses to
-    run a stage whose listed params are missing from the file. Missing keys are appended to the
-    extract section (created if absent) under TRACKED_NOTE; nothing else changes, and a file
-    without warm-up-only methods is returned as it is (but for the render section)."""
+
+def with_tracked_keys(text: str) -> str:
+    """`text` with every extract key a listed stage tracks present, at its default where
+    missing, a `render` section (`methods: []`, under RENDER_NOTE) where it has none and, where
+    an interpolation method is listed, an `interpolate` section (under INTERPOLATE_NOTE).
+
+    Stage warmup_only lists the extract keys of WARMUP_ONLY_KEYS one by one in dvc.yaml (so
+    that changing an advantage-weighted key, which it does not read, leaves it up to date), stage
+    interpolate those of INTERPOLATE_EXTRACT_KEYS, and DVC refuses to run a stage whose listed
+    params are missing from the file. Missing keys are appended to the extract section (created
+    if absent) under TRACKED_NOTE; nothing else changes, and a file without warm-up-only or
+    interpolation methods is returned as it is (but for the render section)."""
     from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+    from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
 
     raw = yaml.safe_load(text) or {}
     if "render" not in raw:  # stage render tracks the whole section: DVC needs it in the file
         text = text + ("" if text.endswith("\n") or not text else "\n") + RENDER_NOTE + "render:\n  methods: []\n"
-    if not any(str(m).startswith("warmup_only_") for m in raw.get("methods") or []):
+    methods = [str(m) for m in raw.get("methods") or []]
+    interpolates = any(m.startswith("interpolate_") for m in methods)
+    if interpolates and "interpolate" not in raw:  # stage interpolate tracks the whole section
+        text = (
+            text
+            + ("" if text.endswith("\n") or not text else "\n")
+            + INTERPOLATE_NOTE
+            + "interpolate:\n  policies: null\n  eval_episodes: null\n"
+        )
+    tracked = WARMUP_ONLY_KEYS if any(m.startswith("warmup_only_") for m in methods) else ()
+    tracked += tuple(k for k in INTERPOLATE_EXTRACT_KEYS if interpolates and k not in tracked)
+    if not tracked:
         return text
     section = raw.get("extract")
     if section is not None and not isinstance(section, dict):
         return text  # not a mapping: the stage's validation names the problem
-    missing = [k for k in WARMUP_ONLY_KEYS if k not in (section or {})]
+    missing = [k for k in tracked if k not in (section or {})]
     if not missing:
         return text
     fields = ExtractParams.model_fields

@@ -11,11 +11,12 @@ Defaults are the paper's table. Which stage reads which key: every key is read b
 `train_specialist` and `train_pderl`; `mopderl` reads all but `learning_starts`,
 `hidden_sizes` and `secondary_critics` (its agents start from PDERL's filled buffers and
 networks), which cannot change without PDERL's specialists, its inputs, changing too.
+`shared_init` (not in the paper) is read by `train_specialist` only.
 """
 
 from __future__ import annotations
 
-from pydantic import Field, model_validator
+from pydantic import Field, model_serializer, model_validator
 
 from pipeline.params.common import Strict
 
@@ -35,6 +36,22 @@ class TD3Params(Strict):
     policy_freq: int = Field(2, ge=1, description="critic updates per actor/target update")
     secondary_critics: bool = Field(True, description="also train critics for every other objective (joint MAPEX)")
     cuda_graphs: bool = Field(True, description="on CUDA, replay each update as captured CUDA graphs (false: eager)")
+    shared_init: bool = Field(
+        False,
+        description="every objective's TD3 specialist of a seed starts from the same initial actor and critic weights "
+        "(objective 0's; exploration, replay and noise streams stay per objective), so that weight-space interpolation "
+        "between them (stage interpolate) has a chance; not in the paper (independent inits). train_specialist only: "
+        "PDERL's and MOPDERL's agents ignore it",
+    )
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # shared_init off (the default) is left out of the dump: the specialists' metadata and run
+        # fingerprints record the section as it was before the key existed, so their bits stay the same
+        out = handler(self)
+        if isinstance(out, dict) and not self.shared_init:
+            out.pop("shared_init", None)
+        return out
 
     @model_validator(mode="after")
     def _consistent(self) -> "TD3Params":

@@ -5,7 +5,8 @@ A `Run` is one (method, seed): the evaluate stage's re-evaluated returns plus th
 stage's metrics, front, hypervolume history and provenance. A method is an extraction variant
 from one kind of specialists (mapex_pderl = the paper's MAPEX, mapex_posthoc_pderl =
 MAPEX-PostHoc, mapex_td3 = MAPEX-TD3, warmup_only_<kind> = the ablation) or a baseline
-(mopderl, morld); every method's population is scored by the same evaluator. Figures are matplotlib `Figure`s
+(mopderl, morld, and interpolate_<kind>, weight-space interpolation between the specialists,
+which the paper does not have); every method's population is scored by the same evaluator. Figures are matplotlib `Figure`s
 rendered with Agg (no pyplot, no global backend state); tables and the verdict are markdown
 strings computed from the numbers. Mean +- SEM across seeds as in the paper's Table 1.
 """
@@ -79,7 +80,8 @@ def report_markdown(
         "sparsity only, expected utility and distinct points are added here. 'specialists only' is the front "
         "of the specialists alone: every starting policy (all of each specialist's policy set, one policy for a "
         "TD3 specialist), before any child. 'starting policies' and 'made by the method' count the population's "
-        "members (MAPEX: its children; MOPDERL: the phase-2 individuals that entered its archive; MORL/D: its policies).",
+        "members (MAPEX: its children; MOPDERL: the phase-2 individuals that entered its archive; MORL/D: its policies; "
+        "interpolation, a baseline the paper does not have: its policies mixed from the specialists' weights).",
         "",
         paper_table(runs, env_id),
         details_table(runs),
@@ -87,7 +89,7 @@ def report_markdown(
             [
                 "## Sample efficiency: extraction vs distillation from the same specialists",
                 "",
-                "Cumulative env frames after the specialists (MAPEX: its evaluation episodes; MOPDERL: every "
+                "Cumulative env frames after the specialists (MAPEX and interpolation: their evaluation episodes; MOPDERL: every "
                 "phase-2 frame) until a method's population first reaches a fraction of the other's final "
                 "re-evaluated hypervolume, on the re-evaluated hypervolume history.",
                 "",

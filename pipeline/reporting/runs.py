@@ -57,7 +57,9 @@ class Run:
     seed: int
     metrics: dict  # the score stage's metrics.json
     returns: np.ndarray  # (n, m) re-evaluated mean return of each member
-    origin: np.ndarray  # (n,) "specialist" (a starting policy, from a specialist's policy set) or "child"
+    origin: (
+        np.ndarray
+    )  # (n,) "specialist" (a starting policy, from a specialist's policy set) or what made it ("child", ...)
     iteration: np.ndarray  # (n,) iteration that made the member (0 for starting policies)
     on_front: np.ndarray  # (n,) bool, non-dominated among `returns`
     # the score stage's hypervolume.csv: iteration, env_samples, hypervolume_extract, hypervolume (each (T,))

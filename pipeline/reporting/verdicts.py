@@ -18,6 +18,10 @@ VERDICT_PAIRS = (
     ("mapex_pderl", "warmup_only_pderl", "the advantage-weighted phase (MAPEX)"),
     ("mapex_td3", "warmup_only_td3", "the advantage-weighted phase (MAPEX-TD3)"),
     ("mapex_posthoc_imported", "warmup_only_imported", "the advantage-weighted phase (MAPEX-PostHoc, imported)"),
+    # weight-space interpolation between the same specialists (a baseline the paper does not have)
+    ("mapex_pderl", "interpolate_pderl", "MAPEX"),
+    ("mapex_td3", "interpolate_td3", "MAPEX-TD3"),
+    ("mapex_posthoc_imported", "interpolate_imported", "MAPEX-PostHoc (imported)"),
     ("mapex_posthoc_pderl", "mapex_pderl", "MAPEX-PostHoc (post-hoc critics)"),
     ("mapex_posthoc_td3", "mapex_td3", "MAPEX-TD3-PostHoc (post-hoc critics)"),
     ("mapex_pderl", "mapex_td3", "MAPEX (PDERL specialists)"),

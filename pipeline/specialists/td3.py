@@ -405,11 +405,14 @@ def run_seeds(seed: int, objective: int) -> dict[str, int]:
 
 def init_stacked(spec: EnvSpec, cfg: TD3Params, jobs: Sequence[tuple[int, int]], device: torch.device) -> StackedTD3:
     """Stacked networks of specialists `jobs` = [(seed, objective), ...], each initialised as it
-    would be alone (torch seeded with its own seed, actor first, then its critics)."""
+    would be alone (torch seeded with its own seed, actor first, then its critics). With
+    td3.shared_init every objective's networks of a seed are initialised from objective 0's seed,
+    so they start equal (a deviation from the paper, for weight-space interpolation); only the
+    initial weights: the other streams of `run_seeds` stay the objective's own."""
     actors, critics, covered, primary = [], [], [], []
     for seed, objective in jobs:
         objectives, j = covered_objectives(objective, spec.n_objectives, cfg.secondary_critics)
-        torch.manual_seed(run_seeds(seed, objective)["torch"])
+        torch.manual_seed(run_seeds(seed, 0 if cfg.shared_init else objective)["torch"])
         actors.append(Actor(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, spec.action_low, spec.action_high))
         critics.append(CriticEnsemble(spec.obs_dim, spec.act_dim, cfg.hidden_sizes, 2 * len(objectives)))
         covered.append(objectives)

@@ -20,6 +20,7 @@ import copy
 from typing import Any
 
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
 from pipeline.params.methods import derived_lists
 
 # HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
@@ -57,16 +58,22 @@ def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, A
 
 def with_lists(params: dict) -> dict:
     """`params` with the run lists derived from its methods, seeds, imports and export methods,
-    a render section where none, and the extract keys stage warmup_only tracks at their defaults where missing (as
-    `mapex sync-params` writes them: DVC refuses a listed param that is not in the file)."""
+    a render section where none, the extract keys stages warmup_only and interpolate track at their defaults where
+    missing and an interpolate section where one is needed (as `mapex sync-params` writes them: DVC refuses a listed
+    param that is not in the file)."""
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
     objectives = params.get("objectives", [0, 1])
     out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export, objectives)}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
-    if out["warmup_from"]:
+    tracked = (WARMUP_ONLY_KEYS if out["warmup_from"] else ()) + (
+        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] else ()
+    )
+    if tracked:
         fields = ExtractParams.model_fields
-        out["extract"] = {k: fields[k].default for k in WARMUP_ONLY_KEYS} | (params.get("extract") or {})
+        out["extract"] = {k: fields[k].default for k in tracked} | (params.get("extract") or {})
+    if out["interpolate_from"]:
+        out.setdefault("interpolate", {"policies": None, "eval_episodes": None})
     return out
 
 
