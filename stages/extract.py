@@ -14,7 +14,7 @@ from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.specialist import load_slots
+from pipeline.core.specialist import load_slots, slot_sources
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
@@ -129,6 +129,7 @@ def extract(
         critics_root=posthoc if critics_mode == "posthoc" else specialists,
         critics=reads_critics,
     )
+    sources = slot_sources(slots) if kind == "imported" else None
     device = select_device(cfg.device)
     # env.reference_point is not in the config: it does not change what extraction computes;
     # nor, with 2 objectives, extract.facet_bridge_ratio (the paper's edges never read it), so
@@ -160,6 +161,8 @@ def extract(
                 "params": config,
                 # env frames spent collecting imported specialists' buffers (their sample cost; 0 otherwise)
                 "collection_frames": sum(int(s.buffer_attrs.get("collection_frames", 0)) for s in slots),
+                # imported slots beside slots trained here: where each came from (the report says it)
+                **({"specialist_sources": sources} if sources else {}),
             },
         )
         write_text_atomic(out / "history.csv", history_csv(run.history))

@@ -16,6 +16,7 @@ from pipeline.reporting.figures import front_caption, front_figure, history_figu
 from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.report import report_markdown
 from pipeline.reporting.runs import Run, check_comparable, load_runs
+from pipeline.reporting.specialists import sources_line
 from stages.common import PARAMS_OPTION, check_min_return, read_params, reports_errors
 
 
@@ -83,6 +84,9 @@ def report(
         "evaluation episodes per member": str(runs[0].metrics["episodes"]),
         "starting policies per specialist": starting_policies_line(runs),
     }
+    sources = sources_line(runs, names)  # a run from imported specialists and ones trained here
+    if sources:
+        context["specialists of the imported kind"] = sources
     text = report_markdown(
         runs,
         env_p.id,

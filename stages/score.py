@@ -103,6 +103,8 @@ def score(
         "env_samples_evaluation": record["env_samples_evaluation"],
         # imported specialists: env frames spent collecting their buffers (stage import_specialist)
         "env_samples_collection": int(meta.get("collection_frames", 0)),
+        # imported slots beside slots trained here (stage train_specialist_imported): where each came from
+        **({"specialist_sources": meta["specialist_sources"]} if "specialist_sources" in meta else {}),
         **summary,
         "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
         "reference_point": ref.tolist(),

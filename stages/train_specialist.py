@@ -26,6 +26,9 @@ from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
+# --kind -> what the slots' policy.pt records as their source: nothing for TD3 specialists (their
+# artifacts stay as they were), {"trained": "td3"} for a slot of the imported kind trained here
+SLOT_SOURCES: dict[str, dict | None] = {"td3": None, "imported": {"trained": "td3"}}
 PROGRESS_EVERY = 250  # env steps (of all specialists of a group) between progress messages
 
 
@@ -35,6 +38,11 @@ def train_specialist(
     out: Path = typer.Option(..., help="output directory of the seed: one obj{K}/ folder per specialist"),
     objective: Optional[list[int]] = typer.Option(
         None, help="train only this objective's specialist (repeatable); default: every entry of params `objectives`"
+    ),
+    kind: str = typer.Option(
+        "td3",
+        help="the kind of specialists the slots are: 'td3', or 'imported' (objectives import_specialists.policies "
+        "leaves out, trained here; needs --objective)",
     ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
@@ -60,6 +68,11 @@ def train_specialist(
     keep_best.csv lists every evaluation (step, score, kept). With --provenance, what produced
     the run (pipeline.core.provenance) goes to that file, outside OUT.
 
+    With --kind imported the slots are those of the imported kind that import_specialists.policies
+    leaves out (dvc.yaml's train_specialist_imported, one objective per item): trained exactly
+    as above, seeded as stage train_specialist seeds that objective, their policy.pt recording
+    source {"trained": "td3"} (an imported slot's records its file and format).
+
     Every train_specialist.checkpoint_every env steps the specialists trained together save
     their whole state (networks, optimizers, replay buffers, RNGs, the envs mid-episode) to
     .<OUT name>.resume/specialist_state_obj{K}[-obj{L}...].pt beside OUT, atomically; a rerun with the same params,
@@ -79,6 +92,10 @@ def train_specialist(
         check_against_td3(cfg, td3)
     except ValueError as exc:
         raise ParamsError(f"{params}: {exc}") from None
+    if kind not in SLOT_SOURCES:
+        raise ParamsError(f"--kind {kind!r}: expected one of {', '.join(SLOT_SOURCES)}")
+    if kind == "imported" and not objective:
+        raise ParamsError("--kind imported: name the objectives to train (--objective), those without an import entry")
     objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
     probe = make_env(env_p.id, env_p.max_episode_steps)
     spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
@@ -97,7 +114,7 @@ def train_specialist(
     with bar:
         run_parts(
             train_part,
-            [(out, part, seed, spec, env_p, td3, cfg, device, names) for part in parts],
+            [(out, part, seed, spec, env_p, td3, cfg, device, names, SLOT_SOURCES[kind]) for part in parts],
             bar,
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
@@ -123,16 +140,18 @@ def train_part(
     cfg: TrainSpecialistParams,
     device,
     names: Sequence[str],
+    source: dict | None,
     threads: int,
     *,
     send,
 ) -> None:
     """Train and save the specialists (seed, k) of `groups`, one group after another (one part
-    of `plan`: in this process, or a worker's whole job with `threads` torch threads)."""
+    of `plan`: in this process, or a worker's whole job with `threads` torch threads); `source`:
+    what their policy.pt records as their source (SLOT_SOURCES), None for nothing."""
     torch.set_num_threads(threads)
     with sigterm_deferred():  # SIGTERM: checkpoint after the current step and stop
         for group in groups:
-            train_group(out, group, seed, spec, env_p, td3, cfg, device, names, send)
+            train_group(out, group, seed, spec, env_p, td3, cfg, device, names, send, source)
 
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
@@ -180,6 +199,7 @@ def train_group(
     device: torch.device,
     names: Sequence[str],
     send,
+    source: dict | None = None,
 ) -> None:
     """Train and save the specialists (seed, k), k in `group`, together: from their checkpoint
     if one fits, checkpointing every cfg.checkpoint_every steps (pipeline.core.drive). Progress
@@ -196,7 +216,7 @@ def train_group(
 
     def save(run: SpecialistsRun) -> None:
         for result in run.results():
-            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg)
+            save_td3_specialist(out / f"obj{result.objective}", result, spec, env_p, td3, cfg, source)
             if result.keep_best is not None:
                 send("say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result))
 
@@ -218,17 +238,24 @@ def train_group(
 
 
 def save_td3_specialist(
-    out: Path, result: SpecialistResult, spec, env_p, td3: TD3Params, cfg: TrainSpecialistParams
+    out: Path,
+    result: SpecialistResult,
+    spec,
+    env_p,
+    td3: TD3Params,
+    cfg: TrainSpecialistParams,
+    source: dict | None = None,
 ) -> None:
     """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
-    keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check)."""
+    keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check);
+    with `source` (a slot of the imported kind trained here), policy.pt's metadata gets it as `source`."""
     params = {"td3": td3.model_dump(), "train_specialist": cfg.model_dump()}
     meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params)
     kb = result.keep_best
-    policy_meta = None
+    policy_meta = {"source": dict(source)} if source is not None else {}
     if kb is not None:
-        policy_meta = {"keep_best": {"step": kb.step, "score": kb.score, "checks": [[t, x] for t, x in kb.checks]}}
-    save_specialist(out, meta, result.objective, result, policy_meta)
+        policy_meta["keep_best"] = {"step": kb.step, "score": kb.score, "checks": [[t, x] for t, x in kb.checks]}
+    save_specialist(out, meta, result.objective, result, policy_meta or None)
     write_text_atomic(out / "returns.csv", returns_csv(result.episodes, spec.n_objectives))
     if kb is not None:
         write_text_atomic(out / "keep_best.csv", keep_best_csv(kb))

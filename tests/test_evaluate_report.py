@@ -26,7 +26,7 @@ from pipeline.params import section
 from pipeline.params.methods import specialist_kind
 from pipeline.params.report import ReportParams
 from pipeline.reporting.runs import Run
-from pipeline.reporting.specialists import own_returns_table, weak_sentence, weak_specialists
+from pipeline.reporting.specialists import own_returns_table, sources_line, weak_sentence, weak_specialists
 from pipeline.reporting.tables import (
     fmt_num,
     frames_to_reach,
@@ -523,6 +523,28 @@ def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
     return [_run("mapex_td3", s, h) for s, h in enumerate(mapex_hv)] + [
         _run("warmup_only_td3", s, h) for s, h in enumerate(warm_hv)
     ]
+
+
+def test_sources_line_names_the_imported_and_the_trained_objectives():
+    """Runs whose metrics record specialist_sources (imported slots beside ones trained here) give one
+    line naming both; runs without them give none."""
+    sources = [
+        {"objective": 0, "imported": {"format": "sb3", "algorithm": "sac", "file": "speed.zip"}},
+        {"objective": 1, "trained": "td3", "total_steps": 60000},
+    ]
+    runs = [_run(m, s, 1.0) for m in ("mapex_posthoc_imported", "warmup_only_imported") for s in (0, 1)]
+    assert sources_line(runs, ["x velocity", "energy"]) is None
+    for r in runs:
+        r.metrics["specialist_sources"] = sources
+    assert sources_line(runs, ["x velocity", "energy"]) == (
+        "objectives imported: 0 (x velocity: sb3 sac, file speed.zip); "
+        "trained here: 1 (energy: TD3, 60000 steps with the td3 and train_specialist settings)"
+    )
+    for r in runs[1::2]:  # seed 1's specialist trained for another length
+        r.metrics["specialist_sources"] = [sources[0], {**sources[1], "total_steps": 30000}]
+    line = sources_line(runs, ["x velocity", "energy"])
+    assert line.startswith("seed 0: objectives imported: 0") and "; seed 1: objectives imported" in line
+    assert "30000 steps" in line and "60000 steps" in line
 
 
 @pytest.mark.parametrize(

@@ -590,7 +590,12 @@ def test_export_writes_onnx_when_installed(cli, spec, tmp_path):
 def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     """import_specialist -> fit_critics -> extract_posthoc, and warmup_only (no critics) ->
     evaluate -> score -> export -> report on a tiny preset, whose report pairs MAPEX-PostHoc with
-    warm-up only in a verdict; then replacing one model reruns its own chain and not the other's."""
+    warm-up only in a verdict, nothing trained here. Then the paper's case, mixed sources: the
+    energy entry dropped, objective 1's slot is a TD3 specialist trained here (stage
+    train_specialist_imported) beside the imported speed specialist; its chain runs and the speed
+    one's import and fit do not, both slots get post-hoc critics and say where they came from, and
+    the report names the sources and gives the verdict. A td3 change reaches only the slot trained
+    here; a new speed model only the import."""
     import re
     import shutil
 
@@ -662,13 +667,59 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     assert doc["policies"] and all(
         (repo / "data/export/mapex_posthoc_imported/seed0" / p["file"]).is_file() for p in doc["policies"]
     )
-    # a new energy specialist in the same file: its import and fit rerun, the speed one's do not
-    shutil.copy(sb3_models["td3"], repo / "models" / "energy.zip")
+    assert "specialists of the imported kind" not in report  # all imported: nothing new to say
+
+    # mixed sources: no energy entry, so objective 1 is trained here by TD3; the speed chain stays cached
+    params["import_specialists"]["policies"] = params["import_specialists"]["policies"][:1]
+    params = with_lists(params)
+    assert params["import_train"] == [1] and params["td3_seeds"] == []
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
     assert {
-        "import_specialist@0-policy1",
+        "train_specialist_imported@0-1",
         "fit_critics@0-imported-1",
         "extract_posthoc@0-imported",
         "warmup_only@0-imported",
+        "report",
     } <= again
     assert "import_specialist@0-policy0" not in again and "fit_critics@0-imported-0" not in again
+    assert not any(s.startswith("train_specialist@") for s in again)  # no TD3 specialist of objective 0
+    slots = repo / "data" / "specialists" / "imported" / "seed0"
+    _, speed = load_policy(slots / "obj0" / "policy.pt")
+    _, energy, target = load_policy(slots / "obj1" / "policy.pt", target=True)
+    assert speed["source"]["format"] == "sb3" and speed["source"]["file"] == "speed.zip"
+    assert (
+        energy["source"] == {"trained": "td3"} and target is not None and not (slots / "obj1" / "collect.csv").exists()
+    )
+    assert energy["params"]["td3"]["hidden_sizes"] == params["td3"]["hidden_sizes"]  # trained with td3's settings
+    for k in (0, 1):  # every slot judged by critics of one kind, fitted on its own buffer
+        cmeta = torch.load(repo / "data/posthoc/imported/seed0" / f"obj{k}" / "critics.pt", weights_only=True)["meta"]
+        assert cmeta["source"] == "posthoc" and cmeta["buffer_objective"] == k
+    members, meta = load_population(repo / "data/fronts/mapex_posthoc_imported/seed0/population.pt")
+    assert any(m.origin == "child" for m in members)
+    assert meta["specialist_sources"] == [
+        {"objective": 0, "imported": {"format": "sb3", "algorithm": "td3", "file": "speed.zip"}},
+        {"objective": 1, "trained": "td3", "total_steps": params["train_specialist"]["total_steps"]},
+    ]
+    assert (repo / "data/score/mapex_posthoc_imported/seed0/front.csv").read_text().count("\n") > 1
+    report = (repo / "data" / "report" / "report.md").read_text()
+    assert re.search(
+        r"- specialists of the imported kind: objectives imported: 0 \(x velocity: sb3 td3, file speed\.zip\); "
+        r"trained here: 1 \(energy[^:]*: TD3, 300 steps",
+        report,
+    ), report
+    assert re.search(
+        r"the advantage-weighted phase \(MAPEX-PostHoc, imported\) (beat|lost to|tied with) warm-up only \(imported\)",
+        report,
+    ), report
+
+    # what reruns: a td3 change reaches the slot trained here, not the import; a new speed model, the import
+    changed = yaml.safe_load((repo / "params.yaml").read_text())
+    changed["td3"]["batch_size"] = 16
+    (repo / "params.yaml").write_text(yaml.safe_dump(changed, sort_keys=False))
+    status = run(str(bin_dir / "dvc"), "status")
+    assert "train_specialist_imported@0-1" in status and "import_specialist@0-policy0" not in status
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    shutil.copy(sb3_models["sac"], repo / "models" / "speed.zip")
+    status = run(str(bin_dir / "dvc"), "status")
+    assert "import_specialist@0-policy0" in status and "train_specialist_imported@0-1" not in status

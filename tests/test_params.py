@@ -260,6 +260,7 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "imported_seeds": [],
         "import_collect": [],
         "import_buffered": [],
+        "import_train": [],
         "mopderl_seeds": [],
         "morld_seeds": [],
         "export_methods": [],
@@ -309,6 +310,44 @@ def test_warmup_only_imported_adds_imported_to_warmup_from_outside_the_product()
     assert RunParams.model_validate(ok, context=ctx).warmup_from == ["imported"]
     with pytest.raises(ValueError, match=r"warmup_from = \[\], but .* make it \['imported'\]"):
         RunParams.model_validate({**ok, "warmup_from": []}, context=ctx)
+
+
+def test_imports_may_leave_objectives_to_be_trained_here():
+    """import_specialists.policies may cover some objectives: the others are import_train (stage
+    train_specialist_imported trains them here); an entry for every objective trains nothing, as before;
+    an objective outside `objectives` is one line naming it."""
+    methods = ["mapex_posthoc_imported", "warmup_only_imported"]
+    speed = [{"objective": 0, "file": "models/speed.zip", "format": "sb3"}]
+    lists = derived_lists(methods, [0, 1], speed, objectives=[0, 1])
+    assert lists["import_train"] == [1] and lists["imported_seeds"] == [0, 1]
+    assert lists["import_collect"] == speed and lists["td3_seeds"] == [] and lists["posthoc_from"] == ["imported"]
+    assert derived_lists(methods, [0], speed, objectives=[0, 1, 2])["import_train"] == [1, 2]
+    both = speed + [{"objective": 1, "file": "models/energy.zip", "format": "sb3"}]
+    assert derived_lists(methods, [0], both, objectives=[0, 1])["import_train"] == []
+    # entries no method reads train nothing either
+    assert derived_lists(["mapex_td3", "warmup_only_td3"], [0], speed)["import_train"] == []
+    with pytest.raises(
+        ValueError, match=r"^import_specialists.policies: objective 2 is not one of objectives = \[0, 1\]$"
+    ):
+        derived_lists(methods, [0], [{"objective": 2, "file": "m.zip", "format": "sb3"}], objectives=[0, 1])
+    # the validated section: the list follows `objectives`, and a stale one names the command that fixes it
+    ok = {"seeds": [0], "objectives": [0, 1], "methods": methods, **derived_lists(methods, [0], speed)}
+    assert RunParams.model_validate(ok, context={"imports": speed}).import_train == [1]
+    with pytest.raises(ValueError, match=r"import_train = \[1\], but .* make it \[1, 2\]: run `mapex sync-params`"):
+        RunParams.model_validate({**ok, "objectives": [0, 1, 2]}, context={"imports": speed})
+    # sync-params writes it from the file's own objectives
+    text = yaml.safe_dump(
+        {
+            "seeds": [0],
+            "objectives": [0, 1],
+            "methods": methods,
+            "import_specialists": {"policies": speed, "collect_rows": 100, "exploration_noise": 0.1},
+        },
+        sort_keys=False,
+    )
+    assert yaml.safe_load(synced_text(text))["import_train"] == [1]
+    with pytest.raises(ValueError, match=r"^params.yaml: import_specialists.policies: objective 0 is not one of"):
+        synced_text(text.replace("- 0\n- 1\n", "- 1\n- 2\n", 1))
 
 
 def test_sync_params_writes_the_derived_block_and_keeps_the_rest():

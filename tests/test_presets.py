@@ -27,6 +27,8 @@ PRESETS = sorted((ROOT / "presets" / "paper").glob("*.yaml"))
 PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
 # Three objectives (docs/n_objectives.md): paper-scale and quickstart-scale, mo-hopper-v5 and mo-ant-v5
 NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
+# Bring your own specialists: every objective imported, and one imported with the other trained here
+IMPORTED = [ROOT / "presets" / "imported.yaml", ROOT / "presets" / "mixed.yaml"]
 # Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
 ALL_PARAMS = [ROOT / "params.yaml"] + [
     p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "reference_points.yaml"
@@ -55,7 +57,7 @@ def test_params_file_validates(path, tmp_path):
 
 def test_every_params_file_is_checked():
     """ALL_PARAMS holds the files the tests above name one by one, and then some."""
-    assert {ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, ROOT / "presets" / "imported.yaml"} <= set(ALL_PARAMS)
+    assert {ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, *IMPORTED} <= set(ALL_PARAMS)
 
 
 def test_every_known_section_has_a_model():
@@ -129,7 +131,7 @@ def test_three_objective_presets():
 
 @pytest.mark.parametrize(
     "path",
-    [ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, ROOT / "presets" / "imported.yaml"],
+    [ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, *IMPORTED],
     ids=lambda p: f"{p.parent.name}/{p.name}",
 )
 def test_every_section_a_running_stage_reads_is_in_the_file(path, tmp_path):

@@ -254,6 +254,27 @@ def test_another_seed_gives_other_data_and_weights(cheetah, tmp_path_factory, wr
     assert not torch.equal(sa["online.weights.0"], sb["online.weights.0"])
 
 
+def test_a_slot_of_the_imported_kind_is_the_td3_specialist_with_its_source(cheetah, tmp_path, write_params, mapex):
+    """--kind imported (stage train_specialist_imported: an objective without an import entry) trains
+    the same specialist as --kind td3, bit for bit; only policy.pt's metadata adds its source."""
+    params = write_params(tmp_path)
+    proc = mapex(
+        "train-specialist", "--objective", 1, "--kind", "imported", "--out", tmp_path / "out", "--params", params,
+        cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    slot = tmp_path / "out" / "obj1"
+    a, _ = load_buffer(cheetah.out / "buffer.zarr")
+    b, _ = load_buffer(slot / "buffer.zarr")
+    assert all(a[name].tobytes() == b[name].tobytes() for name in FIELDS)
+    sa, sb = state_dicts(cheetah.out), state_dicts(slot)
+    assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+    assert (cheetah.out / "critics.pt").read_bytes() == (slot / "critics.pt").read_bytes()
+    _, td3_meta = load_policy(cheetah.out / "policy.pt")
+    _, meta = load_policy(slot / "policy.pt")
+    assert "source" not in td3_meta and meta == td3_meta | {"source": {"trained": "td3"}}
+
+
 # --- failures -----------------------------------------------------------------------------
 
 
@@ -318,6 +339,20 @@ def test_objective_out_of_range_is_a_clear_error(tiny_params, tmp_path, cli):
     result = cli("train-specialist", "--objective", 2, "--out", tmp_path / "out", "--params", tiny_params)
     check_failure(result.exit_code, result.stderr, [])
     assert error_lines(result.stderr) == ["error: --objective 2: env mo-halfcheetah-v5 has objectives 0..1"]
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("args", "line"),
+    [
+        (["--kind", "pderl", "--objective", "0"], "error: --kind 'pderl': expected one of td3, imported"),
+        (["--kind", "imported"], "error: --kind imported: name the objectives to train (--objective), those without"),
+    ],
+)
+def test_kind_must_be_known_and_imported_names_its_objectives(args, line, tiny_params, tmp_path, cli):
+    result = cli("train-specialist", *args, "--out", tmp_path / "out", "--params", tiny_params)
+    check_failure(result.exit_code, result.stderr, [])
+    assert error_lines(result.stderr)[0].startswith(line)
     assert not (tmp_path / "out").exists()
 
 

@@ -21,6 +21,7 @@ STAGE_MODULES = {
     "warmup_only": "extract",
     "critic_fidelity_posthoc": "critic_fidelity",
     "import_specialist_buffered": "import_specialist",
+    "train_specialist_imported": "train_specialist",
 }
 
 

@@ -70,11 +70,38 @@ def save_specialist(slot: Path, meta: dict, objective: int, result, policy_meta:
 
 
 def kind_from_meta(meta: dict) -> str | None:
-    """'pderl' or 'td3' from a specialist artifact's recorded params; None if it records none."""
+    """'pderl' or 'td3' from a specialist artifact's recorded params; 'imported' for a slot of the
+    imported kind trained here (its policy.pt's source is {"trained": ...}: stage
+    train_specialist_imported); None if it records none."""
+    source = meta.get("source")
+    if isinstance(source, dict) and "trained" in source:
+        return "imported"
     params = meta.get("params")
     if not isinstance(params, dict):
         return None
     return "pderl" if "train_pderl" in params else "td3" if "train_specialist" in params else None
+
+
+def slot_sources(slots: list["Slot"]) -> list[dict] | None:
+    """Where each slot of one seed's imported kind came from, in objective order, when some were
+    trained here (stage train_specialist_imported) beside the imported ones; None when none was
+    (a run of imported slots only, or of a kind trained here, records nothing new). An imported
+    slot gives its format, algorithm and file name ({"objective", "imported": {...}}), a trained
+    one its algorithm and length ({"objective", "trained": "td3", "total_steps"})."""
+    sources = [s.policy_meta.get("source") for s in slots]
+    if not any(isinstance(src, dict) and "trained" in src for src in sources):
+        return None
+    out = []
+    for slot, src in zip(slots, sources):
+        if isinstance(src, dict) and "trained" in src:
+            steps = ((slot.policy_meta.get("params") or {}).get("train_specialist") or {}).get("total_steps")
+            out.append({"objective": slot.objective, "trained": src["trained"], "total_steps": steps})
+        else:
+            src = src if isinstance(src, dict) else {}
+            out.append(
+                {"objective": slot.objective, "imported": {k: src.get(k) for k in ("format", "algorithm", "file")}}
+            )
+    return out
 
 
 def policies_path(slot: Path) -> Path:

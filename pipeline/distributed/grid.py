@@ -195,7 +195,8 @@ def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
     try:
         context = context_lists(params)
         methods = list(params.get("methods", defaults["methods"].default))
-        lists = derived_lists(methods, seeds, context["imports"], context["export"])
+        objectives = list(params.get("objectives", defaults["objectives"].default))
+        lists = derived_lists(methods, seeds, context["imports"], context["export"], objectives)
     except ValueError as exc:
         raise GridError(f"{where}: {exc}") from None
     if not lists["pderl_seeds"] and params.get("pderl_seeds"):

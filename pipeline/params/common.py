@@ -68,6 +68,11 @@ class RunParams(Strict):
     import_buffered: list[dict] = Field(
         [], description="derived: import_specialists.policies that bring a buffer (stage import_specialist_buffered)"
     )
+    import_train: list[int] = Field(
+        [],
+        description="derived: objectives without an import_specialists.policies entry, whose slots of the imported "
+        "kind stage train_specialist_imported trains here by TD3",
+    )
     extract_from: list[Literal["td3", "pderl"]] = Field(
         ["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"
     )
@@ -91,7 +96,14 @@ class RunParams(Strict):
     export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
 
     @field_validator(
-        "seeds", "objectives", "td3_seeds", "pderl_seeds", "imported_seeds", "mopderl_seeds", "morld_seeds"
+        "seeds",
+        "objectives",
+        "td3_seeds",
+        "pderl_seeds",
+        "imported_seeds",
+        "import_train",
+        "mopderl_seeds",
+        "morld_seeds",
     )
     @classmethod
     def _unique_non_negative(cls, v: list[int] | None) -> list[int] | None:
@@ -114,7 +126,9 @@ class RunParams(Strict):
     def _consistent(self, info: ValidationInfo) -> "RunParams":
         # the import entries come from section import_specialists (pipeline.params.section passes them)
         context = info.context or {}
-        want = derived_lists(self.methods, self.seeds, context.get("imports", []), context.get("export", []))
+        want = derived_lists(
+            self.methods, self.seeds, context.get("imports", []), context.get("export", []), self.objectives
+        )
         for key, value in want.items():
             given = getattr(self, key)
             if given is None:  # td3_seeds left out (a params dict built by hand): nothing to check

@@ -1,4 +1,4 @@
-"""Section `import_specialists`: specialists trained elsewhere, one per objective (docs/import_export.md).
+"""Section `import_specialists`: specialists trained elsewhere, one per objective at most (docs/import_export.md).
 
 Each entry of `policies` names the policy file of one objective, its format (an SB3 model.zip
 of TD3, DDPG or SAC; a CleanRL TD3, DDPG or SAC checkpoint; a TorchScript actor) and
@@ -8,7 +8,9 @@ beside an SB3 model in rl-zoo3's layout when not given, pipeline.params.methods.
 Without one, stage import_specialist collects `collect_rows` transitions of the policy in the
 MO env with TD3's Gaussian exploration noise. Post-hoc critics for every objective are then
 fitted on that buffer (stage fit_critics) and MAPEX-PostHoc extracts from them (method
-mapex_posthoc_imported).
+mapex_posthoc_imported). `policies` may leave objectives out: their slots of the imported kind
+are trained here by TD3 with sections `td3` and `train_specialist` (stage
+train_specialist_imported), and their critics are fitted post hoc like the imported ones'.
 """
 
 from __future__ import annotations
@@ -52,7 +54,9 @@ class ImportedPolicyEntry(Strict):
 
 
 class ImportSpecialistsParams(Strict):
-    policies: list[ImportedPolicyEntry] = Field([], description="one entry per objective")
+    policies: list[ImportedPolicyEntry] = Field(
+        [], description="one entry per imported objective; objectives without one are trained here by TD3"
+    )
     collect_rows: int = Field(
         25_000, gt=0, description="transitions collected per specialist without a buffer of its own"
     )

@@ -71,8 +71,10 @@ EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
 JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
 # train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
-# only MAPEX-PostHoc and warm-up only, which reads no critics, extract from them), under
-# data/specialists/<kind>/seedS.
+# only MAPEX-PostHoc and warm-up only, which reads no critics, extract from them; an objective
+# without an import entry gets a slot trained here by TD3, stage train_specialist_imported, and
+# its critics are fitted post hoc too, so every objective is judged by critics of one kind),
+# under data/specialists/<kind>/seedS.
 SPECIALIST_KINDS = ("td3", "pderl", "imported")
 # The kinds trained here with critics of their own (stage extract's joint variants read them).
 TRAINED_KINDS = ("td3", "pderl")
@@ -156,11 +158,15 @@ def _import_item(entry: dict, *keys: str) -> dict:
 
 
 def derived_lists(
-    methods: list[str], seeds: list[int], imports: list[dict] | None = None, export: list[str] | None = None
+    methods: list[str],
+    seeds: list[int],
+    imports: list[dict] | None = None,
+    export: list[str] | None = None,
+    objectives: list[int] | tuple[int, ...] = (0, 1),
 ) -> dict[str, list]:
     """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
     `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
-    imported_seeds, import_collect, import_buffered, extract_from, extract_variants (stage
+    imported_seeds, import_collect, import_buffered, import_train, extract_from, extract_variants (stage
     extract's), warmup_from (stage warmup_only's kinds), posthoc_from, mopderl_seeds,
     morld_seeds, and export_methods from `export` (section export's methods, each of which must
     be in `methods`). DVC cannot filter a matrix, so each
@@ -176,7 +182,12 @@ def derived_lists(
     specialists are used). import_collect / import_buffered split the import entries into those
     whose buffer is collected and those that bring one (their stages differ in a DVC dep); each
     item also names its observation statistics (`_import_item`), found on disk in rl-zoo3's
-    layout where the entry names none (`normalize_file`)."""
+    layout where the entry names none (`normalize_file`).
+
+    The entries may cover only some of `objectives` (the top-level list; RunParams' default
+    [0, 1]): import_train lists the others, whose slots of the imported kind stage
+    train_specialist_imported trains here by TD3. An entry for an objective outside
+    `objectives` raises ValueError naming it."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
@@ -200,8 +211,16 @@ def derived_lists(
     if uses_imported and not entries:
         raise ValueError(
             f"methods = {methods} start from imported specialists, but import_specialists.policies is empty: "
-            "name one policy file per objective (docs/import_export.md)"
+            "name the policy file of at least one objective (docs/import_export.md)"
         )
+    stray_objectives = [e["objective"] for e in entries if e.get("objective") not in objectives]
+    if uses_imported and stray_objectives:
+        raise ValueError(
+            f"import_specialists.policies: objective {stray_objectives[0]} is not one of objectives = {list(objectives)}"
+        )
+    # the objectives without an import entry: trained here by TD3 (stage train_specialist_imported)
+    imported_objectives = {e["objective"] for e in entries}
+    import_train = [k for k in objectives if k not in imported_objectives] if uses_imported else []
     imported_seeds = list(seeds) if uses_imported else []
     stray = [m for m in export or [] if m not in methods]
     if stray:
@@ -218,6 +237,7 @@ def derived_lists(
         ]
         if uses_imported
         else [],
+        "import_train": import_train,
         "extract_from": kinds,
         "extract_variants": [v for v in variants if v != "warmup_only"],
         "warmup_from": (kinds if "warmup_only" in variants else [])

@@ -22,9 +22,13 @@ DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in ("seeds", "ob
 
 
 def generated_block(
-    methods: list[str], seeds: list[int], imports: list[dict] | None = None, export: list[str] | None = None
+    methods: list[str],
+    seeds: list[int],
+    imports: list[dict] | None = None,
+    export: list[str] | None = None,
+    objectives: list[int] | tuple[int, ...] = (0, 1),
 ) -> str:
-    lists = derived_lists(methods, seeds, imports, export)
+    lists = derived_lists(methods, seeds, imports, export, objectives)
     lines = [f"{key}: {json.dumps(lists[key])}" for key in DERIVED_KEYS]
     return "\n".join([GENERATED_BEGIN, *lines, GENERATED_END]) + "\n"
 
@@ -42,11 +46,12 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
     defaults = RunParams.model_fields
     methods = raw.get("methods", defaults["methods"].default)
     seeds = raw.get("seeds", defaults["seeds"].default)
+    objectives = raw.get("objectives", defaults["objectives"].default)
     from pipeline.params import context_lists
 
     context = context_lists(raw)
     try:
-        block = generated_block(list(methods), list(seeds), context["imports"], context["export"])
+        block = generated_block(list(methods), list(seeds), context["imports"], context["export"], list(objectives))
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
     lines = text.splitlines(keepends=True)

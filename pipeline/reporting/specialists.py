@@ -115,3 +115,41 @@ def own_returns_table(runs: list[Run], names: list[str], weak: list[Weakness] = 
         return ""
     header = ["specialists", "seed", *(f"{n} (objective {k})" for k, n in enumerate(names))]
     return _md_table(header, list(rows.values()))
+
+
+def sources_line(runs: list[Run], names: list[str]) -> str | None:
+    """Which objectives of the imported kind were imported and which trained here, from the
+    runs whose metrics record it (`specialist_sources`: imported slots beside slots trained here
+    by stage train_specialist_imported): 'objectives imported: 0 (x velocity: sb3 td3, file
+    speed.zip); trained here: 1 (energy: TD3, 300 steps of td3 and train_specialist)'; one such
+    text per distinct set of sources (prefixed by its seeds where they differ), None if no run
+    records sources."""
+    texts: dict[str, list[int]] = {}
+    for r in sorted(runs, key=lambda r: r.seed):
+        sources = r.metrics.get("specialist_sources")
+        if not sources:
+            continue
+        imported, trained = [], []
+        for s in sources:
+            k = int(s["objective"])
+            name = names[k] if k < len(names) else f"objective {k}"
+            if "trained" in s:
+                steps = f", {s['total_steps']} steps" if s.get("total_steps") is not None else ""
+                trained.append(
+                    f"{k} ({name}: {str(s['trained']).upper()}{steps} with the td3 and train_specialist settings)"
+                )
+            else:
+                src = s.get("imported") or {}
+                what = " ".join(str(src[key]) for key in ("format", "algorithm") if src.get(key))
+                imported.append(f"{k} ({name}: {what or 'imported'}, file {src.get('file')})")
+        text = f"objectives imported: {', '.join(imported) or 'none'}; trained here: {', '.join(trained)}"
+        seeds = texts.setdefault(text, [])
+        if r.seed not in seeds:
+            seeds.append(r.seed)
+    if not texts:
+        return None
+    if len(texts) == 1:
+        return next(iter(texts))
+    return "; ".join(
+        f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}: {text}" for text, seeds in texts.items()
+    )
