@@ -320,7 +320,9 @@ def test_imports_may_leave_objectives_to_be_trained_here():
     speed = [{"objective": 0, "file": "models/speed.zip", "format": "sb3"}]
     lists = derived_lists(methods, [0, 1], speed, objectives=[0, 1])
     assert lists["import_train"] == [1] and lists["imported_seeds"] == [0, 1]
-    assert lists["import_collect"] == speed and lists["td3_seeds"] == [] and lists["posthoc_from"] == ["imported"]
+    no_statistics = {"normalize": "none", "normalize_dep": "models/speed.zip"}
+    assert lists["import_collect"] == [speed[0] | no_statistics]
+    assert lists["td3_seeds"] == [] and lists["posthoc_from"] == ["imported"]
     assert derived_lists(methods, [0], speed, objectives=[0, 1, 2])["import_train"] == [1, 2]
     both = speed + [{"objective": 1, "file": "models/energy.zip", "format": "sb3"}]
     assert derived_lists(methods, [0], both, objectives=[0, 1])["import_train"] == []
