@@ -37,7 +37,17 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from speed_floor import floor_seconds, flops, headline_rate, machine_lines, mlp_gemms, precisions, rate_line  # noqa: E402
+from speed_floor import (  # noqa: E402
+    floor_seconds,
+    flops,
+    headline_rate,
+    machine_lines,
+    mlp_gemms,
+    now,
+    precisions,
+    rate_line,
+    set_clock,
+)
 
 from pipeline.core.envs import make_env  # noqa: E402
 from pipeline.core.nets import Actor, CriticEnsemble  # noqa: E402
@@ -151,7 +161,7 @@ def step_ms(k: int, rows: int, steps: int, inputs, device: torch.device, precisi
 
     def on_step() -> None:
         sync(device)
-        stamps.append(time.perf_counter())
+        stamps.append(now())
 
     seeds = [ChildSeeds(*derive_seeds(0, c, n=3)) for c in range(k)]
     make_children(RETURNS, actors, buffers, critics, config(rows, epochs, 0, precision), seeds, device, on_step=on_step)
@@ -169,10 +179,10 @@ def warmup_ms(steps: int, rows: int, inputs, device: torch.device, precision: st
     rng = np.random.default_rng(0)
     warm_up(actor, obs, target, 20, 3e-4, 256, rng, precision)
     sync(device)
-    t0 = time.perf_counter()
+    t0 = now()
     warm_up(actor, obs, target, steps, 3e-4, 256, rng, precision)
     sync(device)
-    return (time.perf_counter() - t0) / steps * 1e3
+    return (now() - t0) / steps * 1e3
 
 
 def setup_seconds(rows: int, inputs, device: torch.device, precision: str) -> float:
@@ -185,11 +195,11 @@ def setup_seconds(rows: int, inputs, device: torch.device, precision: str) -> fl
     origin = torch.arange(2, device=device).repeat_interleave(half)
     cast = [frozen(c, precision) for c in critics]
     sync(device)
-    t0 = time.perf_counter()
+    t0 = now()
     critic_values(cast, obs, act, origin)
     mean_parent_action(actors, obs, precision=precision)
     sync(device)
-    return time.perf_counter() - t0
+    return now() - t0
 
 
 def step_report(args, inputs, device: torch.device) -> None:
@@ -269,7 +279,11 @@ def main() -> None:
     ap.add_argument("--step-rows", type=int, default=20_000, help="hybrid rows of the step benchmark")
     ap.add_argument("--step-count", type=int, default=300, help="steps timed per step line")
     ap.add_argument("--step-k", type=int, nargs="+", default=[1], help="children trained together in the step lines")
+    ap.add_argument(
+        "--clock", choices=["wall", "cpu"], default="wall", help="time the step lines by wall or process CPU time"
+    )
     args = ap.parse_args()
+    set_clock(args.clock)
     if args.paper_epochs < 1:
         ap.error("--paper-epochs must be >= 1")
     torch.set_num_threads(args.threads)

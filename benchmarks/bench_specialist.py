@@ -46,7 +46,17 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from speed_floor import floor_seconds, flops, headline_rate, machine_lines, mlp_gemms, precisions, rate_line  # noqa: E402
+from speed_floor import (  # noqa: E402
+    floor_seconds,
+    flops,
+    headline_rate,
+    machine_lines,
+    mlp_gemms,
+    now,
+    precisions,
+    rate_line,
+    set_clock,
+)
 
 from pipeline.core.buffer import StackedReplay  # noqa: E402
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
@@ -120,12 +130,12 @@ def update_report(args: argparse.Namespace) -> None:
             update(update_actor=t % td3.policy_freq == 0)
         if device.type == "cuda":
             torch.cuda.synchronize()
-        t0 = time.perf_counter()
+        t0 = now()
         for t in range(1, n + 1):
             update(update_actor=t % td3.policy_freq == 0)
         if device.type == "cuda":
             torch.cuda.synchronize()
-        ms = (time.perf_counter() - t0) / n * 1e3
+        ms = (now() - t0) / n * 1e3
         floor = floor_seconds(critic_g, dtype, device) + floor_seconds(actor_g, dtype, device) / td3.policy_freq
         what = f"TD3 update ({2 * n_obj} Q-networks {args.hidden}, actor, batch {args.batch}, actor every {td3.policy_freq})"
         print(rate_line(what, precision, ms, int(per_update), floor), flush=True)
@@ -270,7 +280,11 @@ def main() -> None:
     )
     parser.add_argument("--only-update", action="store_true", help="only the update lines")
     parser.add_argument("--update-count", type=int, default=400, help="updates timed per update line")
+    parser.add_argument(
+        "--clock", choices=["wall", "cpu"], default="wall", help="time the update lines by wall or process CPU time"
+    )
     args = parser.parse_args()
+    set_clock(args.clock)
 
     torch.set_num_threads(args.threads)
     for line in machine_lines(torch.device(args.device)):

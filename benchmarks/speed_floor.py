@@ -10,7 +10,11 @@ out: it is small in FLOPs, though not in time, which is what the percentage show
 
 The floor: the same GEMMs (shapes, transposes, dtype) timed back to back on preallocated
 operands in the same run; "% of the matmul rate" = the step's GFLOPS (its GEMM FLOPs over its
-wall time) / the floor's GFLOPS. 100% would be a step that is nothing but its products.
+time) / the floor's GFLOPS. 100% would be a step that is nothing but its products.
+
+Time is wall time, or with --clock cpu the CPU time of the process (`time.process_time`; with
+one torch thread, the time the step had a core): on a machine shared with other jobs the CPU
+time is the steadier figure, though it still pays for caches the other jobs evict.
 """
 
 from __future__ import annotations
@@ -24,6 +28,21 @@ import torch
 
 from pipeline.core.precision import dtype_of, native_bf16, native_flags
 from pipeline.core.provenance import cpu_model
+
+_CLOCK = {"name": "wall", "now": time.perf_counter}
+
+
+def set_clock(name: str) -> None:
+    """Time with the wall clock ("wall") or the process's CPU time ("cpu")."""
+    _CLOCK.update(name=name, now=time.perf_counter if name == "wall" else time.process_time)
+
+
+def now() -> float:
+    return _CLOCK["now"]()
+
+
+def clock_name() -> str:
+    return _CLOCK["name"]
 
 
 @dataclass(frozen=True)
@@ -92,10 +111,10 @@ def floor_seconds(gemms: Sequence[Gemm], dtype: torch.dtype, device: torch.devic
     times = []
     start = time.perf_counter()
     while time.perf_counter() - start < min_time or len(times) < 10:
-        t0 = time.perf_counter()
+        t0 = now()
         one_pass()
         sync(device)
-        times.append(time.perf_counter() - t0)
+        times.append(now() - t0)
     times.sort()
     return times[len(times) // 2]
 
@@ -124,7 +143,8 @@ def machine_lines(device: torch.device) -> list[str]:
     cuda_bf16 = f"; CUDA {'with' if cuda and native_bf16('cuda') else 'without'} bf16" if cuda else "; no CUDA"
     return [
         f"device {device.type}: {name}; {bf16}{cuda_bf16}",
-        f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {os.cpu_count()} cores, {load()}",
+        f"torch {torch.__version__}, {torch.get_num_threads()} thread(s), {os.cpu_count()} cores, {load()}; "
+        f"times below: {clock_name()} clock",
     ]
 
 
@@ -157,4 +177,6 @@ __all__ = [
     "precisions",
     "rate_line",
     "load",
+    "now",
+    "set_clock",
 ]

@@ -31,6 +31,7 @@ import torch
 
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.optim import adam_step, clear_grads
 from pipeline.core.pareto import population_scale
 from pipeline.core.precision import compute, frozen
 from pipeline.core.seeding import torch_generator
@@ -167,11 +168,11 @@ def stacked_regression_step(
     sq = ((pred - target) ** 2).sum(dim=-1)
     w = mask if weight is None else weight * mask
     loss = (sq * w).sum(dim=1) / mask.sum(dim=1).clamp(min=1)
-    opt.zero_grad(set_to_none=True)
+    clear_grads(opt)
     loss.sum().backward()
     if max_grad_norm is not None:
         clip_grad_norm_per_child_(list(actor.parameters()), max_grad_norm)
-    opt.step()
+    adam_step(opt)
     return loss.detach()
 
 
@@ -186,9 +187,10 @@ def check_children(what: str, loss: torch.Tensor, actor: StackedActor, step: int
     raise TrainingDiverged(*bad, step, during=f"child {j + 1} of {k}" if j is not None else None)
 
 
-def _adam(actor: StackedActor, lr: float) -> torch.optim.Optimizer:
-    # Fused on CUDA: one kernel per parameter tensor instead of a dozen elementwise launches.
-    if actor.scale.is_cuda:
+def _adam(actor: StackedActor, lr: float, precision: str = "fp32") -> torch.optim.Optimizer:
+    # Fused on CUDA and in bf16: one kernel per parameter tensor instead of a dozen elementwise
+    # ones (pipeline/core/optim.py); the plain Adam in fp32 on a CPU, as before the switch.
+    if actor.scale.is_cuda or precision == "bf16":
         return torch.optim.Adam(actor.parameters(), lr=lr, fused=True)
     return torch.optim.Adam(actor.parameters(), lr=lr)
 
@@ -204,7 +206,7 @@ def stacked_warm_up(
 ) -> None:
     """`warm_up` for K children at once (paper eq. L_init): obs (K, N, o), target (K, N, a)
     = each child's mean parent action; rows, mask (T, K, b) from `stack_schedules`."""
-    opt = _adam(actor, lr)
+    opt = _adam(actor, lr, precision)
     for t in range(len(rows)):
         idx = rows[t].long()
         o = gather_rows(obs, idx)
@@ -280,7 +282,7 @@ def stacked_awr(
         if cfg.recompute == "once"
         else None
     )
-    opt = _adam(actor, cfg.lr)
+    opt = _adam(actor, cfg.lr, precision)
     params = list(actor.parameters())
     finishing: dict[int, list[int]] = {}
     for j, t in enumerate(ends):

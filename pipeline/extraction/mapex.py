@@ -59,6 +59,7 @@ import torch
 
 from pipeline.core.finite import check_finite, due, weights
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.optim import adam_step, child_adam, clear_grads
 from pipeline.core.pareto import population_scale
 from pipeline.core.precision import compute, frozen
 
@@ -144,11 +145,11 @@ def regression_step(
     pred = actor(obs) if pred is None else pred
     sq = ((pred - target) ** 2).sum(dim=-1)
     loss = (sq * weight).mean() if weight is not None else sq.mean()
-    opt.zero_grad(set_to_none=True)
+    clear_grads(opt)  # opt.zero_grad(set_to_none=True) without its bookkeeping
     loss.backward()
     if max_grad_norm is not None:
         torch.nn.utils.clip_grad_norm_(actor.parameters(), max_grad_norm)
-    opt.step()
+    adam_step(opt)  # opt.step(), past its bookkeeping for a fused Adam (pipeline/core/optim.py)
     return loss.detach()
 
 
@@ -164,7 +165,7 @@ def warm_up(
 ) -> None:
     """Regress `actor` onto `target` actions at hybrid states (paper eq. L_init), `steps` steps;
     the actor's forward in `precision` (pipeline.core.precision), the loss and Adam in fp32."""
-    opt = torch.optim.Adam(actor.parameters(), lr=lr)
+    opt = child_adam(actor.parameters(), lr, precision)
     n = len(obs)
     for t in range(1, steps + 1):
         idx = torch.from_numpy(rng.integers(0, n, size=min(batch_size, n))).to(obs.device)
@@ -297,7 +298,7 @@ def advantage_weighted_regression(
     if cfg.epochs == 0 or n == 0:
         return {"omega_mean": float("nan"), "omega_clipped": float("nan")}
     critics = [frozen(c, precision) for c in critics]
-    opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
+    opt = child_adam(actor.parameters(), cfg.lr, precision)
     q_sa_all = critic_values(critics, hybrid.obs, hybrid.action, hybrid.origin)
     fixed = None
     if cfg.recompute == "once":

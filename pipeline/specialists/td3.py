@@ -29,12 +29,12 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.optim.optimizer as torch_optimizer
 from torch import nn
 
 from pipeline.core.buffer import Batch, StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.optim import adam_step, clear_grads
 from pipeline.core.precision import compute
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.td3 import TD3Params
@@ -162,66 +162,6 @@ class StackedTD3:
     @property
     def n(self) -> int:
         return self.reward_index.shape[0]
-
-
-def adam_step(opt: torch.optim.Optimizer) -> None:
-    """opt.step() for the stacked update's fused Adam on a CPU, minus Optimizer.step's per-call
-    bookkeeping (hooks, profiler ranges, the dynamo guard, per-parameter state checks and the
-    regrouping of tensors by device), which at the quickstart's 64-unit widths cost about a
-    tenth of a training step. It makes the calls opt.step() ends in for this case (the step
-    counters' increment, then torch._fused_adam_ with the group's hyperparameters), so the
-    bits are the same (tests/test_nets_td3.py). Any other case (not fused, not on the CPU,
-    capturable, AMSGrad, AdamW, a parameter without a gradient, no state yet) is opt.step()."""
-    groups = opt.param_groups
-    g = groups[0]
-    if (
-        len(groups) != 1
-        or not g.get("fused")
-        or g.get("capturable")
-        or g.get("amsgrad")
-        or g.get("differentiable")
-        or g.get("decoupled_weight_decay")
-        or type(opt) is not torch.optim.Adam
-        or opt._optimizer_step_pre_hooks
-        or opt._optimizer_step_post_hooks
-        or getattr(torch_optimizer, "_global_optimizer_pre_hooks", None)
-        or getattr(torch_optimizer, "_global_optimizer_post_hooks", None)
-    ):
-        opt.step()
-        return
-    params = g["params"]
-    states = [opt.state.get(p) for p in params]
-    if not all(states) or any(p.grad is None or p.device.type != "cpu" or p.dtype != torch.float32 for p in params):
-        opt.step()
-        return
-    steps = [st["step"] for st in states]
-    beta1, beta2 = g["betas"]
-    with torch.no_grad():  # as Optimizer.step
-        torch._foreach_add_(steps, 1)
-        torch._fused_adam_(
-            params,
-            [p.grad for p in params],
-            [st["exp_avg"] for st in states],
-            [st["exp_avg_sq"] for st in states],
-            [],
-            steps,
-            amsgrad=False,
-            lr=g["lr"],
-            beta1=float(beta1),
-            beta2=float(beta2),
-            weight_decay=g["weight_decay"],
-            eps=g["eps"],
-            maximize=g["maximize"],
-            grad_scale=None,
-            found_inf=None,
-        )
-
-
-def clear_grads(opt: torch.optim.Optimizer) -> None:
-    """opt.zero_grad(set_to_none=True) without its profiler range."""
-    for g in opt.param_groups:
-        for p in g["params"]:
-            p.grad = None
 
 
 def stacked_targets(
