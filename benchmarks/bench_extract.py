@@ -215,14 +215,19 @@ def step_report(args, inputs, device: torch.device) -> None:
         g = warmup_step_gemms()
         print(
             rate_line(
-                "warm-up step (actor 256-256, batch 256)", precision, warm, flops(g), floor_seconds(g, dtype, device)
+                f"warm-up step (actor {'-'.join(map(str, HIDDEN))}, batch 256)",
+                precision,
+                warm,
+                flops(g),
+                floor_seconds(g, dtype, device),
             )
         )
         awr = {}
         for k in args.step_k:
             awr[k] = step_ms(k, args.step_rows, args.step_count, inputs, device, precision)
             g = awr_step_gemms(k)
-            what = "AWR step (child + 2 x 4 critics 256-256, batch 256)" + (f", K = {k} stacked" if k > 1 else "")
+            width = "-".join(map(str, HIDDEN))
+            what = f"AWR step (child + 2 x 4 critics {width}, batch 256)" + (f", K = {k} stacked" if k > 1 else "")
             print(rate_line(what, precision, awr[k], flops(g), floor_seconds(g, dtype, device)), flush=True)
         setup = setup_seconds(args.rows, inputs, device, precision)
         for k, ms in awr.items():
@@ -282,8 +287,12 @@ def main() -> None:
     ap.add_argument(
         "--clock", choices=["wall", "cpu"], default="wall", help="time the step lines by wall or process CPU time"
     )
+    ap.add_argument(
+        "--hidden", type=int, nargs="+", default=HIDDEN, help="hidden widths of child and critics (paper: 256 256)"
+    )
     args = ap.parse_args()
     set_clock(args.clock)
+    HIDDEN[:] = args.hidden
     if args.paper_epochs < 1:
         ap.error("--paper-epochs must be >= 1")
     torch.set_num_threads(args.threads)
