@@ -136,14 +136,16 @@ def train_seconds(
 
 
 def awr_step_gemms(k: int, batch: int = 256) -> list:
-    """The GEMMs of one advantage-weighted step of K children (per child: the actor's forward and
-    backward on `batch` rows, and Q(s, pi(s)) of its rows by the critics of the specialist each
-    row came from, 4 members = 2 objectives x twin heads, about batch / 2 rows per specialist)."""
+    """The GEMMs of one advantage-weighted step of K children: the actors' forward and backward
+    on `batch` rows each (one batched product per layer for K > 1, a `StackedActor`), and
+    Q(s, pi(s)) of every row by the critics of the specialist it came from (4 members = 2
+    objectives x twin heads; about K * batch / 2 rows per specialist, all K children's rows at
+    once as `critic_values` takes them)."""
     actor = [OBS, *HIDDEN, ACT]
     critic = [OBS + ACT, *HIDDEN, 1]
-    per_child = mlp_gemms(batch, actor, forward=True, wgrad=True, xgrad=True)
-    per_child += 2 * mlp_gemms(batch // 2, critic, members=4)
-    return [g for _ in range(k) for g in per_child] if k > 1 else per_child
+    return mlp_gemms(batch, actor, members=k, forward=True, wgrad=True, xgrad=True) + 2 * mlp_gemms(
+        k * batch // 2, critic, members=4
+    )
 
 
 def warmup_step_gemms(batch: int = 256) -> list:
