@@ -36,6 +36,9 @@ Deviations from the paper, each a param unless it is a necessary reading:
   with parents drawn by the same roulette from the same front (the population at the start of
   the iteration: a child never sees its siblings), its own hybrid buffer and its own RNG
   streams, trained together as one stacked ensemble (`make_children`), then all added.
+- `precision: bf16` (default fp32, which the paper's results assume): the children's matrix
+  products in bfloat16, the critics and parents cast once, master weights, Adam and every sum
+  in fp32 (pipeline/core/precision.py).
 An advantage always weights exactly the row it was computed for (the precursor code paired
 them with resampled rows, a bug not reproduced here).
 
