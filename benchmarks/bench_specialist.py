@@ -17,6 +17,15 @@ specialists of one paper-scale env x seed (2 objectives x 2M steps) at rates (a)
     python benchmarks/bench_specialist.py --device cpu --hidden 64 64 --stack 2       # the quickstart's networks
     python benchmarks/bench_specialist.py --device cuda --stack 2 10 --steps 5000     # paper widths on a GPU
 
+First, the update alone (printed first; alone with --only-update): one specialist's TD3 update
+(the stage's `Updater`: minibatch draw, critic step, and the actor step with the Polyak updates
+every td3.policy_freq-th update) on a filled buffer of random rows, per --precision: ms per
+update, achieved GFLOPS, the rate of the same GEMMs alone in the same run and the percentage
+(benchmarks/speed_floor.py says how FLOPs are counted), and the env steps/s that would leave
+per core if the env cost nothing.
+
+    python benchmarks/bench_specialist.py --only-update --precision both       # paper widths, fp32 and bf16
+
 Warm-up steps (uniform random actions, no updates) are not timed; on CUDA the graph capture
 happens at the first update, inside the timed part (it costs well under a second). Each side
 reports steps per wall-second and per CPU-second of its process; on a shared machine the
@@ -37,9 +46,24 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from speed_floor import (  # noqa: E402
+    floor_seconds,
+    flops,
+    headline_rate,
+    machine_lines,
+    mlp_gemms,
+    now,
+    precisions,
+    rate_line,
+    set_clock,
+)
+
+from pipeline.core.buffer import StackedReplay  # noqa: E402
 from pipeline.core.envs import env_spec, make_env  # noqa: E402
+from pipeline.core.precision import dtype_of  # noqa: E402
 from pipeline.params.td3 import TD3Params  # noqa: E402
 from pipeline.params.train_specialist import TrainSpecialistParams  # noqa: E402
+from pipeline.specialists.td3 import Updater, init_stacked, run_seeds  # noqa: E402
 from pipeline.specialists.td3_training import train_specialists  # noqa: E402
 
 
@@ -52,6 +76,72 @@ def clocks() -> tuple[float, float]:
     return time.perf_counter(), time.process_time()
 
 
+def update_gemms(obs: int, act: int, hidden: list[int], n_obj: int, batch: int) -> tuple[list, list]:
+    """The GEMMs of one specialist's critic step and of its actor step (benchmarks/speed_floor.py).
+
+    Critic step: the target actor at s', the target critics (2 heads per objective) at
+    (s', a'), the online critics forward and backward (weights and inputs but the first
+    layer's). Actor step: the actor forward and backward, the primary critic member forward
+    and backward to its input (dQ/da; its weights get no gradient).
+    """
+    actor, critic, e = [obs, *hidden, act], [obs + act, *hidden, 1], 2 * n_obj
+    critic_step = mlp_gemms(batch, actor) + mlp_gemms(batch, critic, e)
+    critic_step += mlp_gemms(batch, critic, e, wgrad=True, xgrad=True)
+    actor_step = mlp_gemms(batch, actor, wgrad=True, xgrad=True)
+    actor_step += mlp_gemms(batch, critic, 1, xgrad=True, first_xgrad=True)
+    return critic_step, actor_step
+
+
+def update_report(args: argparse.Namespace) -> None:
+    """The update lines (module docstring) for each precision asked for."""
+    env = make_env(args.env, args.cap)
+    spec = env_spec(env, args.env, args.cap)
+    env.close()
+    device = torch.device(args.device)
+    rows = 20_000
+    rng = np.random.default_rng(0)
+    data = {
+        "obs": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+        "action": rng.uniform(-1, 1, (rows, spec.act_dim)).astype(np.float32),
+        "reward": rng.normal(size=(rows, spec.n_objectives)).astype(np.float32),
+        "next_obs": rng.normal(size=(rows, spec.obs_dim)).astype(np.float32),
+        "terminated": np.zeros(rows, bool),
+        "truncated": np.zeros(rows, bool),
+        "episode": np.zeros(rows, np.int64),
+        "episode_step": np.zeros(rows, np.int32),
+    }
+    td3 = TD3Params(batch_size=args.batch, hidden_sizes=args.hidden, secondary_critics=not args.no_secondary)
+    n_obj = spec.n_objectives if td3.secondary_critics else 1
+    critic_g, actor_g = update_gemms(spec.obs_dim, spec.act_dim, list(args.hidden), n_obj, args.batch)
+    per_update = flops(critic_g) + flops(actor_g) / td3.policy_freq
+    for precision in precisions(args.precision):
+        dtype = dtype_of(precision)
+        print(
+            f"[{precision}] batched matmul 4 x 256 x 256 x 256: {headline_rate(dtype, device):.0f} GFLOPS", flush=True
+        )
+        jobs = [(args.seed, 0)]
+        seeds = [run_seeds(*j) for j in jobs]
+        state = init_stacked(spec, td3, jobs, device)
+        buffer = StackedReplay(1, rows, spec.obs_dim, spec.act_dim, spec.n_objectives, device)
+        buffer.fill(data)
+        update = Updater(state, buffer, td3, seeds, [np.random.default_rng(0)], device, precision)
+        n = args.update_count - args.update_count % td3.policy_freq
+        for t in range(1, 21):
+            update(update_actor=t % td3.policy_freq == 0)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = now()
+        for t in range(1, n + 1):
+            update(update_actor=t % td3.policy_freq == 0)
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        ms = (now() - t0) / n * 1e3
+        floor = floor_seconds(critic_g, dtype, device) + floor_seconds(actor_g, dtype, device) / td3.policy_freq
+        what = f"TD3 update ({2 * n_obj} Q-networks {args.hidden}, actor, batch {args.batch}, actor every {td3.policy_freq})"
+        print(rate_line(what, precision, ms, int(per_update), floor), flush=True)
+        print(f"[{precision}] at most {1e3 / ms:.0f} env steps/s per core with a free env ({load()})", flush=True)
+
+
 def bench_ours(args: argparse.Namespace, stack: int, first: int = 0) -> tuple[tuple[float, float], int]:
     """`stack` specialists (objectives alternating, seeds counting up, from the first-th) trained
     together; returns ((wall s, CPU s) of the timed steps, Q-networks trained per specialist)."""
@@ -62,7 +152,9 @@ def bench_ours(args: argparse.Namespace, stack: int, first: int = 0) -> tuple[tu
         hidden_sizes=args.hidden,
         secondary_critics=not args.no_secondary,
     )
-    cfg = TrainSpecialistParams(total_steps=args.warmup + args.steps, device=args.device)
+    cfg = TrainSpecialistParams(
+        total_steps=args.warmup + args.steps, device=args.device, precision=precisions(args.precision)[0]
+    )
     envs = [make_env(args.env, args.cap) for _ in range(stack)]
     spec = env_spec(envs[0], args.env, args.cap)
     jobs = [(args.seed + s // spec.n_objectives, s % spec.n_objectives) for s in range(first, first + stack)]
@@ -179,9 +271,27 @@ def main() -> None:
     parser.add_argument(
         "--paper-steps", type=float, default=2e6, help="specialist steps per objective in the projection"
     )
+    parser.add_argument(
+        "--precision",
+        choices=["fp32", "bf16", "both"],
+        default="fp32",
+        help="the updates' arithmetic (train_specialist.precision); both: the update lines in each, "
+        "the env runs in the first",
+    )
+    parser.add_argument("--only-update", action="store_true", help="only the update lines")
+    parser.add_argument("--update-count", type=int, default=400, help="updates timed per update line")
+    parser.add_argument(
+        "--clock", choices=["wall", "cpu"], default="wall", help="time the update lines by wall or process CPU time"
+    )
     args = parser.parse_args()
+    set_clock(args.clock)
 
     torch.set_num_threads(args.threads)
+    for line in machine_lines(torch.device(args.device)):
+        print(line, flush=True)
+    update_report(args)
+    if args.only_update:
+        return
     sb3_version = "not used"
     if not args.no_sb3:
         import stable_baselines3  # fail early, before our run, if the bench extra is missing

@@ -27,6 +27,7 @@ import typer
 from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.population import Member, load_population, member_actor
+from pipeline.core.precision import resolve
 from pipeline.core.provenance import write_provenance
 from pipeline.core.seeding import select_device
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
@@ -63,6 +64,7 @@ def evaluate(
         device = select_device(cfg.device)
     except ValueError as exc:
         raise ParamsError(f"{params}: evaluate.device: {exc}") from None
+    precision = resolve(cfg.precision, device, 0, workload="act")
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.episodes)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     dims = (meta["obs_dim"], meta["act_dim"], meta["n_objectives"])
@@ -76,7 +78,10 @@ def evaluate(
     with progress(len(members), f"evaluate {meta['method']} seed {seed}", unit="policy") as bar:
         for i, member in enumerate(members):
             res = evaluate_policy(
-                member_actor(member, meta).to(device), envs, eval_seeds(seed, cfg.seed_stream, i, cfg.episodes)
+                member_actor(member, meta).to(device),
+                envs,
+                eval_seeds(seed, cfg.seed_stream, i, cfg.episodes),
+                precision,
             )
             results.append(res)
             bar.set_postfix_str(f"{member.origin} {i} return {fmt_vec(res.mean)}", refresh=False)
@@ -94,10 +99,12 @@ def evaluate(
         "population": len(members),
         "env_samples_evaluation": sum(r.env_samples for r in results),
     }
+    if precision != "fp32":  # an fp32 record stays as it was before the key existed
+        record["precision"] = precision
     out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "evaluated.csv", evaluated_csv(members, results))
     write_text_atomic(out / "evaluation.json", json.dumps(record, indent=2) + "\n")
-    write_provenance(provenance, "evaluate", device)
+    write_provenance(provenance, "evaluate", device, precision)
 
 
 def _check_population(path: Path, members: list[Member], meta: dict, env_id: str, seed: int) -> None:

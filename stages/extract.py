@@ -11,6 +11,7 @@ from pipeline.core.artifacts import write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
+from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
@@ -131,13 +132,15 @@ def extract(
     )
     sources = slot_sources(slots) if kind == "imported" else None
     device = select_device(cfg.device)
+    precision = resolve(cfg.precision, device, max(cfg.hidden_sizes))  # as ExtractionRun resolves it
     # env.reference_point is not in the config: it does not change what extraction computes;
     # nor, with 2 objectives, extract.facet_bridge_ratio (the paper's edges never read it), so
-    # 2-objective populations and their resume fingerprints are what they were before it existed
+    # 2-objective populations and their resume fingerprints are what they were before it existed;
+    # nor precision where it is fp32 (also the artifact's record: fp32 left out, precision.py)
     env_cfg = env_p.model_dump(exclude={"objective_names", "reference_point"})
     config = {
         "env": env_cfg,
-        "extract": cfg.model_dump(exclude={"facet_bridge_ratio"} if spec.n_objectives == 2 else None),
+        "extract": without_fp32(cfg.model_dump(exclude={"facet_bridge_ratio"} if spec.n_objectives == 2 else None)),
         "seed": seed,
         "variant": variant,
         "kind": kind,
@@ -146,7 +149,7 @@ def extract(
     method = method_name(variant, kind)
     ckpt = Checkpoint(
         (resume_dir or resume_root("data/resume")) / "extract" / method / f"seed{seed}" / "state.pt",
-        run_fingerprint("extract", config, device, [f for s in slots for f in s.files]),
+        run_fingerprint("extract", config, device, [f for s in slots for f in s.files], precision),
         lambda line: typer.echo(line, err=True),
     )
 
@@ -178,4 +181,4 @@ def extract(
             save=save,
             send=send,
         )
-    write_provenance(provenance, "extract", device)
+    write_provenance(provenance, "extract", device, precision)

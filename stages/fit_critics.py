@@ -12,6 +12,7 @@ import typer
 from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
 from pipeline.core.checkpoint import save_critics
 from pipeline.core.finite import TrainingDiverged
+from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.seeding import derive_seeds, select_device, torch_generator
 from pipeline.core.specialist import load_slot
@@ -116,7 +117,7 @@ def fit_critics(
         "action_high": pm["action_high"],
         "hidden_sizes": list(cfg.hidden_sizes),
         "seed": seed,
-        "params": dict(pm.get("params") or {}) | {"fit_critics": cfg.model_dump()},
+        "params": dict(pm.get("params") or {}) | {"fit_critics": without_fp32(cfg.model_dump())},
         "buffer_objective": objective,
         "objectives": objectives,
         "source": "posthoc",
@@ -129,4 +130,4 @@ def fit_critics(
     }
     save_critics(out / "critics.pt", online, fitted.target.cpu(), meta)
     write_text_atomic(out / "fit.csv", fit_csv(fitted.checks))
-    write_provenance(provenance, "fit_critics", device)
+    write_provenance(provenance, "fit_critics", device, resolve(cfg.precision, device, max(cfg.hidden_sizes)))

@@ -12,6 +12,7 @@ from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, spec_meta
 from pipeline.core.population import save_population
+from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
@@ -117,9 +118,10 @@ def mopderl(
         files = [f for s in slots for f in s.files]
         del slots
         device = select_device(cfg.device)
+        precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
         config = {
             "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
-            "mopderl": cfg.model_dump(exclude={"checkpoint_every", "device"}),
+            "mopderl": without_fp32(cfg.model_dump(exclude={"checkpoint_every", "device"})),
             # all of td3: the keys phase 2 does not read (learning_starts, hidden_sizes,
             # secondary_critics) change the PDERL specialists it starts from, so the run anyway
             "td3": td3.model_dump(),
@@ -127,7 +129,7 @@ def mopderl(
         }
         ckpt = Checkpoint(
             (resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}" / "state.pt",
-            run_fingerprint("mopderl", config, device, files),
+            run_fingerprint("mopderl", config, device, files, precision),
             lambda line: typer.echo(line, err=True),
         )
 
@@ -150,4 +152,4 @@ def mopderl(
             )
     finally:
         env.close()
-    write_provenance(provenance, "mopderl", device)
+    write_provenance(provenance, "mopderl", device, precision)

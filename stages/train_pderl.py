@@ -12,6 +12,7 @@ from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
 from pipeline.core.policyset import save_policy_set
+from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
@@ -106,7 +107,7 @@ def train_pderl(
             prefix="",
         )
         bar.total = bar.n  # the final evaluations overshoot the frame budget
-    write_provenance(provenance, "train_pderl", device)
+    write_provenance(provenance, "train_pderl", device, resolve(cfg.precision, device, max(td3.hidden_sizes)))
 
 
 def train_part(
@@ -158,7 +159,12 @@ def train_one(
 ) -> None:
     """One objective's PDERL run, resumed from its checkpoint if one fits, and its artifacts
     (OUT/obj{k}/). Progress to `send`: ("steps", frames), ("returns", text), ("say", line)."""
-    fp = run_fingerprint("train_pderl", run_config(seed, k, env_p, td3, cfg), device)
+    fp = run_fingerprint(
+        "train_pderl",
+        run_config(seed, k, env_p, td3, cfg),
+        device,
+        precision=resolve(cfg.precision, device, max(td3.hidden_sizes)),
+    )
     # beside OUT (DVC's out, deleted before a rerun), or on shared storage in a sweep
     ckpt = Checkpoint(checkpoint_path(out, k), fp, lambda line: send("say", line))
     label = f"obj {k} ({name})"
@@ -190,7 +196,7 @@ def save_pderl(
     """Write one PDERL specialist's artifacts (each atomically) into `out`; the meta keys are
     those of a TD3 specialist's (stages/train_specialist.py) plus `trainer` and `env_frames`."""
     k = result.objective
-    params = {"td3": td3.model_dump(), "train_pderl": cfg.model_dump()}
+    params = {"td3": td3.model_dump(), "train_pderl": without_fp32(cfg.model_dump())}
     meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params)
     meta |= {"trainer": "pderl", "env_frames": result.frames}
     save_specialist(out, meta, k, result)

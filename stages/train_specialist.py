@@ -12,6 +12,7 @@ from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
 from pipeline.core.envs import env_spec, make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
+from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
@@ -119,7 +120,7 @@ def train_specialist(
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
     remove_stale_checkpoints(out, objectives)
-    write_provenance(provenance, "train_specialist", device)
+    write_provenance(provenance, "train_specialist", device, resolve(cfg.precision, device, max(td3.hidden_sizes)))
 
 
 def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[list[int]]]:
@@ -206,7 +207,8 @@ def train_group(
     goes to `send` (see Relay), in batches of about PROGRESS_EVERY steps."""
     jobs = [(seed, k) for k in group]
     what = ", ".join(f"obj {k} ({names[k]})" for k in group)
-    fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, td3, cfg), device)
+    precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
+    fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, td3, cfg), device, precision=precision)
     ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
     probe = make_env(env_p.id, env_p.max_episode_steps)
     problem = env_checkpoint_problem(probe)
@@ -249,7 +251,7 @@ def save_td3_specialist(
     """Write one specialist's four artifacts (each atomically) into `out`; with keep-best, also
     keep_best.csv, and policy.pt's metadata gets `keep_best` (the kept step and score, every check);
     with `source` (a slot of the imported kind trained here), policy.pt's metadata gets it as `source`."""
-    params = {"td3": td3.model_dump(), "train_specialist": cfg.model_dump()}
+    params = {"td3": td3.model_dump(), "train_specialist": without_fp32(cfg.model_dump())}
     meta = specialist_meta(spec, env_p, td3.hidden_sizes, result.seed, params)
     kb = result.keep_best
     policy_meta = {"source": dict(source)} if source is not None else {}

@@ -218,6 +218,21 @@ def synthetic_run(spec, seed: int = 0, **over) -> MopderlRun:
     return MopderlRun(spec, td3, cfg, seed, starts, agents)
 
 
+def test_rl_agents_update_in_the_resolved_precision(hopper):
+    """mopderl.precision reaches both RL agents' updates (pipeline/core/precision.py); bf16
+    updates stay finite with fp32 master weights."""
+    _, spec = hopper
+    assert all(a.learner.update.precision == "fp32" for a in synthetic_run(spec).agents)
+    run = synthetic_run(spec, precision="bf16")
+    assert all(a.learner.update.precision == "bf16" for a in run.agents)
+    learner = run.agents[0].learner
+    before = learner.networks()[2].weights[1].clone()
+    learner.train(4)
+    learner.check_finite(full=True)
+    critic = learner.networks()[2]
+    assert critic.weights[1].dtype == torch.float32 and not torch.equal(critic.weights[1], before)
+
+
 def test_generation_counts_every_frame(hopper):
     env, spec = hopper
     run = synthetic_run(spec, eval_episodes=2, mutation_prob=0.5, rl_updates_per_frame=0.2)

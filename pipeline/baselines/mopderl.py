@@ -113,6 +113,7 @@ from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble, hidden_sizes_of
 from pipeline.core.pareto import normalised_hypervolume
 from pipeline.core.population import Member, actor_state
+from pipeline.core.precision import resolve
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
@@ -336,7 +337,14 @@ class MopderlRun:
         )
         seeds = agent_seeds(self.seed, a.objective)
         learner = TD3Learner(
-            self.spec, c, state, np.random.default_rng(seeds["rows"]), seeds["smoothing"], seeds["cuda_rows"], d
+            self.spec,
+            c,
+            state,
+            np.random.default_rng(seeds["rows"]),
+            seeds["smoothing"],
+            seeds["cuda_rows"],
+            d,
+            resolve(self.cfg.precision, d, max(c.hidden_sizes)),  # mopderl.precision: the updates' arithmetic
         )
         if len(a.buffer["obs"]):
             learner.buffer.fill(a.buffer)

@@ -27,6 +27,9 @@ def mlp(in_dim: int, hidden_sizes: Sequence[int], out_dim: int) -> nn.Sequential
 class Actor(nn.Module):
     """Deterministic policy: obs (B, obs_dim) -> action (B, act_dim) inside [low, high]."""
 
+    # runs with bfloat16 weights too (pipeline.core.precision.frozen): fp32 obs in, fp32 actions out
+    TAKES_BF16 = True
+
     def __init__(self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], low, high):
         super().__init__()
         self.net = mlp(obs_dim, hidden_sizes, act_dim)
@@ -37,7 +40,9 @@ class Actor(nn.Module):
         self.register_buffer("centre", (high_t + low_t) / 2)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.centre + self.scale * torch.tanh(self.net(obs))
+        # obs in the weights' dtype (a no-op in fp32; bfloat16 for a copy made by
+        # pipeline.core.precision.frozen); the action bounds are fp32, so the action is fp32.
+        return self.centre + self.scale * torch.tanh(self.net(obs.to(self.net[0].weight.dtype)))
 
 
 class NormalizedActor(Actor):
@@ -173,7 +178,12 @@ class CriticEnsemble(nn.Module):
     Member layout used throughout MAPEX: member 2*j + h is head h (0 or 1) of the j-th
     objective the ensemble covers. Layer l has weight (E, d_in, d_out) and bias (E, 1, d_out),
     initialised like `nn.Linear` (uniform in +-1/sqrt(d_in)).
+
+    Q-values come out in fp32 whatever the weights' dtype (bfloat16 in a frozen copy) or an
+    enclosing autocast (pipeline.core.precision).
     """
+
+    TAKES_BF16 = True
 
     def __init__(self, obs_dim: int, act_dim: int, hidden_sizes: Sequence[int], n_members: int):
         super().__init__()
@@ -188,27 +198,30 @@ class CriticEnsemble(nn.Module):
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Q of every member at the same (obs (B, o), action (B, a)) -> (E, B)."""
-        x = torch.cat([obs, action], dim=-1)
+        x = torch.cat([obs, action], dim=-1).to(self.weights[0].dtype)
         # (B, d) @ (E, d, h) broadcasts to (E, B, h): one batched matmul for every member.
         # ReLU in place saves an allocation per layer; the matmuls that produce h do not keep
         # it for their backward, so autograd allows it.
-        h = torch.relu_(torch.matmul(x, self.weights[0]) + self.biases[0])
+        if x.dtype == torch.float32 and not torch.is_autocast_enabled(x.device.type):
+            h = torch.relu_(torch.matmul(x, self.weights[0]) + self.biases[0])
+        else:  # bf16: the bias added inside the matmul, one slow bf16 elementwise pass less on a CPU
+            h = torch.relu_(torch.baddbmm(self.biases[0], x.expand(self.n_members, *x.shape), self.weights[0]))
         n = len(self.weights)
         for i in range(1, n):
             h = torch.baddbmm(self.biases[i], h, self.weights[i])
             if i < n - 1:
                 h = torch.relu_(h)
-        return h.squeeze(-1)
+        return h.squeeze(-1).float()  # Q in fp32 also from bf16 weights or autocast (no-op in fp32)
 
     def member(self, obs: torch.Tensor, action: torch.Tensor, e: int) -> torch.Tensor:
         """Q of member `e` alone at (obs (B, o), action (B, a)) -> (B,)."""
-        h = torch.cat([obs, action], dim=-1)
+        h = torch.cat([obs, action], dim=-1).to(self.weights[0].dtype)
         n = len(self.weights)
         for i in range(n):
             h = torch.addmm(self.biases[i][e], h, self.weights[i][e])
             if i < n - 1:
                 h = torch.relu_(h)
-        return h.squeeze(-1)
+        return h.squeeze(-1).float()
 
     def twin_min(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """Clipped double-Q estimate per covered objective: min over the two heads -> (n_obj, B)."""
@@ -254,7 +267,7 @@ class CriticEnsemble(nn.Module):
         g*E/G .. (g+1)*E/G - 1, one specialist's critics each). With `members` (G,) long, member
         members[g] alone sees batch g (e.g. each specialist's primary critic): -> (G, B).
         """
-        x = torch.cat([obs, action], dim=-1)  # (G, B, d)
+        x = torch.cat([obs, action], dim=-1).to(self.weights[0].dtype)  # (G, B, d)
         if members is None:
             ws, bs = list(self.weights), list(self.biases)
             per = self.n_members // x.shape[0]
@@ -269,7 +282,7 @@ class CriticEnsemble(nn.Module):
             h = torch.baddbmm(bs[i], h, ws[i])
             if i < n - 1:
                 h = torch.relu_(h)
-        return h.squeeze(-1)
+        return h.squeeze(-1).float()
 
 
 class StackedActor(nn.Module):
@@ -279,6 +292,8 @@ class StackedActor(nn.Module):
     back into one with `unstack`, which is what the artifacts store. Layer l holds weight
     (S, d_in, d_out) and bias (S, 1, d_out); one batched matmul per layer serves every actor.
     """
+
+    TAKES_BF16 = True
 
     def __init__(self, actors: Sequence[Actor]):
         super().__init__()
@@ -303,7 +318,7 @@ class StackedActor(nn.Module):
         self.register_buffer("centre", torch.stack([a.centre[None] for a in actors]).clone())
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        h = obs
+        h = obs.to(self.weights[0].dtype)  # see Actor.forward
         n = len(self.weights)
         for i in range(n):
             h = torch.baddbmm(self.biases[i], h, self.weights[i])

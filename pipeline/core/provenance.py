@@ -107,11 +107,17 @@ def provenance(device: torch.device | str = "cpu") -> dict[str, Any]:
     }
 
 
-def write_provenance(path: Path | None, stage: str, device: torch.device | str = "cpu") -> None:
+def write_provenance(
+    path: Path | None, stage: str, device: torch.device | str = "cpu", precision: str | None = None
+) -> None:
     """Write the record of this run of `stage` to `path` (JSON, atomically): {"stage": ...,
-    and `provenance(device)`'s keys}. Nothing when `path` is None (no --provenance given).
-    Stages call it after their outputs are written: a record stands for a finished run."""
+    and `provenance(device)`'s keys}, and "precision": what the stage computed in ("fp32" or
+    "bf16", its `precision` param resolved: pipeline.core.precision) for a stage that has one.
+    Nothing when `path` is None (no --provenance given). Stages call it after their outputs
+    are written: a record stands for a finished run."""
     if path is None:
         return
     record = {"stage": stage, **provenance(device)}
+    if precision is not None:
+        record["precision"] = precision
     write_text_atomic(path, json.dumps(record, indent=2) + "\n")

@@ -57,10 +57,13 @@ def fingerprint(config: dict[str, Any], files: Sequence[str | Path]) -> str:
     return h.hexdigest()
 
 
-def run_fingerprint(stage: str, config: dict[str, Any], device, inputs: Sequence[str | Path] = ()) -> str:
+def run_fingerprint(
+    stage: str, config: dict[str, Any], device, inputs: Sequence[str | Path] = (), precision: str = "fp32"
+) -> str:
     """The fingerprint of a run of stage `stage` (its module stages/<stage>.py): `config` (the
     params it reads and its seed and objectives; not settings that change nothing saved, such
-    as checkpoint_every), the device it resolved to, the torch thread count, the versions of
+    as checkpoint_every), the device and the precision it resolved to (pipeline.core.precision:
+    `auto` is bf16 on one machine and fp32 on another), the torch thread count, the versions of
     the numeric libraries (a checkpoint of another torch or mujoco is not resumed: its run
     would not continue bit for bit), the bytes of its input files and of every code file the
     stage imports."""
@@ -69,6 +72,7 @@ def run_fingerprint(stage: str, config: dict[str, Any], device, inputs: Sequence
     full = {
         **config,
         "device": str(device),
+        "precision": precision,
         "threads": torch.get_num_threads(),
         "libraries": library_versions(),
     }

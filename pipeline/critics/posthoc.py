@@ -28,6 +28,7 @@ import torch
 from pipeline.core.buffer import Batch, batch_at
 from pipeline.core.finite import check_finite, due, weights
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.precision import compute, frozen, resolve
 from pipeline.params.fit_critics import FitCriticsParams
 from pipeline.specialists.td3 import critic_loss, polyak_update, smoothed_target_action, td3_targets
 
@@ -70,17 +71,22 @@ def posthoc_step(
     objectives: Sequence[int],
     cfg: FitCriticsParams,
     generator: torch.Generator,
+    precision: str = "fp32",
 ) -> torch.Tensor:
     """One gradient step of every critic on `batch`; returns the (detached) loss.
 
     batch.reward is (B, n_objectives_env); the columns `objectives` are the targets' rewards,
     in member order. The target critics are not updated here (see `fit_posthoc_critics`).
+    precision bf16: the critics' forward passes under autocast (the frozen target policy is
+    passed as a bfloat16 copy, pipeline.core.precision.frozen), the noise, targets and loss in fp32.
     """
     reward = batch.reward[:, list(objectives)]  # (B, n_obj)
-    with torch.no_grad():
+    device = batch.obs.device
+    with torch.no_grad():  # the target policy is frozen: in bf16 already cast (no autocast around it)
         next_a = smoothed_target_action(target_policy, batch.next_obs, cfg.policy_noise, cfg.noise_clip, generator)
-    y = td3_targets(critic_target, batch.next_obs, next_a, reward, batch.terminated, cfg.gamma)  # (n_obj, B)
-    loss = critic_loss(critic, batch.obs, batch.action, y)
+    with compute(precision, device):
+        y = td3_targets(critic_target, batch.next_obs, next_a, reward, batch.terminated, cfg.gamma)  # (n_obj, B)
+        loss = critic_loss(critic, batch.obs, batch.action, y)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -120,6 +126,10 @@ def fit_posthoc_critics(
     Raises TrainingDiverged (pipeline.core.finite) if the loss or a critic weight is not
     finite, checked every CHECK_EVERY steps and at the end (also when the kept weights are
     from before the divergence: a fit that diverged is not trusted).
+
+    Precision: cfg.precision resolved on `device` at the critics' width (pipeline.core.precision);
+    with bf16 the frozen target policy is cast to bfloat16 once and the gradient steps run
+    their forward passes in bf16; the fidelity checks (`error`) see the fp32 master weights.
     """
     n = len(data["obs"])
     if n == 0:
@@ -127,7 +137,8 @@ def fit_posthoc_critics(
     obs_dim, act_dim = data["obs"].shape[1], data["action"].shape[1]
     critic = init_critics(obs_dim, act_dim, cfg.hidden_sizes, len(objectives), rng).to(device)
     critic_target = copy.deepcopy(critic).requires_grad_(False)
-    policy = copy.deepcopy(target_policy).to(device).eval().requires_grad_(False)
+    precision = resolve(cfg.precision, device, max(cfg.hidden_sizes))
+    policy = frozen(copy.deepcopy(target_policy).to(device).eval().requires_grad_(False), precision)
     # fused: one kernel per parameter tensor (same Adam update, fewer element-wise ops).
     optimizer = torch.optim.Adam(critic.parameters(), lr=cfg.lr, fused=True)
     loss = torch.zeros(())
@@ -137,7 +148,7 @@ def fit_posthoc_critics(
     step = 0
     for step in range(1, cfg.steps + 1):
         batch = batch_at(data, rng.integers(0, n, size=cfg.batch_size), device)
-        loss = posthoc_step(critic, critic_target, optimizer, policy, batch, objectives, cfg, generator)
+        loss = posthoc_step(critic, critic_target, optimizer, policy, batch, objectives, cfg, generator, precision)
         if step % cfg.target_update_freq == 0:
             polyak_update(critic, critic_target, cfg.tau)
         if on_step is not None:

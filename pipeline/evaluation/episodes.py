@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from pipeline.core.nets import Actor, StackedActor
+from pipeline.core.precision import frozen
 from pipeline.core.seeding import derive_seeds
 
 EVAL_TAG = 0x5EED_E7A1  # separates evaluation seeds from every other stream derived from a run seed
@@ -51,17 +52,17 @@ def eval_seeds(run_seed: int, stream: int, policy_index: int, episodes: int) -> 
     return derive_seeds(run_seed, EVAL_TAG, stream, policy_index, n=episodes)
 
 
-def evaluate_policy(actor: Actor, envs: list[gym.Env], seeds: list[int]) -> EvalResult:
+def evaluate_policy(actor: Actor, envs: list[gym.Env], seeds: list[int], precision: str = "fp32") -> EvalResult:
     """Run one episode per env (env i reset with seeds[i]) with deterministic actions.
 
     Episodes end at termination or at the envs' own step cap (truncation).
     """
-    return evaluate_policies([actor], envs, [seeds])[0]
+    return evaluate_policies([actor], envs, [seeds], precision)[0]
 
 
 @torch.no_grad()
 def evaluate_policies(
-    actors: Sequence[Actor], envs: Sequence[gym.Env], seeds: Sequence[Sequence[int]]
+    actors: Sequence[Actor], envs: Sequence[gym.Env], seeds: Sequence[Sequence[int]], precision: str = "fp32"
 ) -> list[EvalResult]:
     """Run policy i for one episode per seed in seeds[i], every episode of every policy at once.
 
@@ -69,8 +70,11 @@ def evaluate_policies(
     reset with its own seed, so a policy's returns depend on its seeds alone, not on the other
     policies evaluated beside it (up to the float rounding of the batched forward, which
     differs from a lone actor's in the last bits). Several actors must share one architecture.
-    Returns one EvalResult per policy.
+    precision "bf16" (resolved, pipeline.core.precision): the project's own actors run as
+    bfloat16 copies made once here (imported TorchScript or torch.export ones stay fp32), the
+    observations cast to bfloat16, the actions fp32. Returns one EvalResult per policy.
     """
+    actors = [frozen(a, precision) for a in actors]
     slots = [(i, s) for i, policy_seeds in enumerate(seeds) for s in policy_seeds]
     if len(slots) > len(envs):
         raise ValueError(f"{len(slots)} episodes asked for but only {len(envs)} envs given")

@@ -31,7 +31,9 @@ import torch
 
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite, weights
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.optim import adam_step, clear_grads
 from pipeline.core.pareto import population_scale
+from pipeline.core.precision import compute, frozen
 from pipeline.core.seeding import torch_generator
 from pipeline.extraction.mapex import (
     AdvantageConfig,
@@ -166,11 +168,11 @@ def stacked_regression_step(
     sq = ((pred - target) ** 2).sum(dim=-1)
     w = mask if weight is None else weight * mask
     loss = (sq * w).sum(dim=1) / mask.sum(dim=1).clamp(min=1)
-    opt.zero_grad(set_to_none=True)
+    clear_grads(opt)
     loss.sum().backward()
     if max_grad_norm is not None:
         clip_grad_norm_per_child_(list(actor.parameters()), max_grad_norm)
-    opt.step()
+    adam_step(opt)
     return loss.detach()
 
 
@@ -185,22 +187,32 @@ def check_children(what: str, loss: torch.Tensor, actor: StackedActor, step: int
     raise TrainingDiverged(*bad, step, during=f"child {j + 1} of {k}" if j is not None else None)
 
 
-def _adam(actor: StackedActor, lr: float) -> torch.optim.Optimizer:
-    # Fused on CUDA: one kernel per parameter tensor instead of a dozen elementwise launches.
-    if actor.scale.is_cuda:
+def _adam(actor: StackedActor, lr: float, precision: str = "fp32") -> torch.optim.Optimizer:
+    # Fused on CUDA and in bf16: one kernel per parameter tensor instead of a dozen elementwise
+    # ones (pipeline/core/optim.py); the plain Adam in fp32 on a CPU, as before the switch.
+    if actor.scale.is_cuda or precision == "bf16":
         return torch.optim.Adam(actor.parameters(), lr=lr, fused=True)
     return torch.optim.Adam(actor.parameters(), lr=lr)
 
 
 def stacked_warm_up(
-    actor: StackedActor, obs: torch.Tensor, target: torch.Tensor, rows: torch.Tensor, mask: torch.Tensor, lr: float
+    actor: StackedActor,
+    obs: torch.Tensor,
+    target: torch.Tensor,
+    rows: torch.Tensor,
+    mask: torch.Tensor,
+    lr: float,
+    precision: str = "fp32",
 ) -> None:
     """`warm_up` for K children at once (paper eq. L_init): obs (K, N, o), target (K, N, a)
     = each child's mean parent action; rows, mask (T, K, b) from `stack_schedules`."""
-    opt = _adam(actor, lr)
+    opt = _adam(actor, lr, precision)
     for t in range(len(rows)):
         idx = rows[t].long()
-        loss = stacked_regression_step(actor, opt, gather_rows(obs, idx), gather_rows(target, idx), mask[t])
+        o = gather_rows(obs, idx)
+        with compute(precision, o.device):
+            pred = actor(o)
+        loss = stacked_regression_step(actor, opt, o, gather_rows(target, idx), mask[t], pred=pred)
         if due(t + 1) or t + 1 == len(rows):
             check_children("the warm-up loss", loss, actor, t + 1)
 
@@ -215,6 +227,7 @@ def fixed_weights(
     scale: torch.Tensor,
     cfg: AdvantageConfig,
     gather: bool | None = None,
+    precision: str = "fp32",
 ) -> torch.Tensor:
     """omega of every hybrid row with Q(s, pi_new(s)) computed once, after warm-up
     (advantage_recompute = once): (K, N), each child over its own rows as
@@ -224,7 +237,8 @@ def fixed_weights(
         obs = data.obs[j, :n]
         with torch.random.fork_rng(devices=[]):  # building an Actor draws from the global generator
             child = actor.unstack(j).to(obs.device)
-        q_pi = critic_values(critics, obs, mean_parent_action([child], obs), data.origin[j, :n], gather=gather)
+        pi_new = mean_parent_action([child], obs, precision=precision)
+        q_pi = critic_values(critics, obs, pi_new, data.origin[j, :n], gather=gather)
         out[j, :n] = awr_weight(mixed_advantage(q_sa[j, :n], q_pi, weight[j], cfg.norm, scale), cfg.beta, cfg.omega_max)
     return out
 
@@ -241,6 +255,7 @@ def stacked_awr(
     ends: Sequence[int],
     on_step: Callable[[], None] | None = None,
     gather: bool | None = None,
+    precision: str = "fp32",
 ) -> list[dict[str, float]]:
     """`advantage_weighted_regression` for K children at once (paper Step 3).
 
@@ -251,8 +266,10 @@ def stacked_awr(
     row. No host sync inside the loop on CUDA (no .item(), boolean indexing or numpy) but the
     finiteness check every CHECK_EVERY steps. Child j's weights are kept as they are after its
     step T_j. Returns per-child statistics of the weights (mean, fraction clipped at omega_max).
+    precision: as `advantage_weighted_regression`'s.
     """
     k, m = len(data.lengths), critics[0].n_members // 2
+    critics = [frozen(c, precision) for c in critics]
     q_sa = pad_stack(
         [
             critic_values(critics, data.obs[j, :n], data.action[j, :n], data.origin[j, :n], gather=gather)
@@ -260,8 +277,12 @@ def stacked_awr(
         ],
         data.obs.shape[1],
     )
-    fixed = fixed_weights(actor, data, critics, q_sa, weight, scale, cfg, gather) if cfg.recompute == "once" else None
-    opt = _adam(actor, cfg.lr)
+    fixed = (
+        fixed_weights(actor, data, critics, q_sa, weight, scale, cfg, gather, precision)
+        if cfg.recompute == "once"
+        else None
+    )
+    opt = _adam(actor, cfg.lr, precision)
     params = list(actor.parameters())
     finishing: dict[int, list[int]] = {}
     for j, t in enumerate(ends):
@@ -272,7 +293,8 @@ def stacked_awr(
     for t in range(len(rows)):
         idx, real = rows[t].long(), mask[t]
         obs, act = gather_rows(data.obs, idx), gather_rows(data.action, idx)
-        pred = actor(obs)
+        with compute(precision, obs.device):
+            pred = actor(obs)
         if fixed is not None:
             omega = gather_rows(fixed, idx)
         else:
@@ -332,7 +354,13 @@ def train_stacked(
         ]
     )
     stacked_warm_up(
-        actor, data.obs, pad_stack([c.a_bar for c in children], data.obs.shape[1]), rows, mask, cfg.warmup_lr
+        actor,
+        data.obs,
+        pad_stack([c.a_bar for c in children], data.obs.shape[1]),
+        rows,
+        mask,
+        cfg.warmup_lr,
+        cfg.precision,
     )
     if cfg.adv.epochs == 0:
         return actor, [{"omega_mean": float("nan"), "omega_clipped": float("nan")} for _ in children]
@@ -344,7 +372,18 @@ def train_stacked(
     weight = torch.as_tensor(np.stack([c.weight for c in children]), dtype=torch.float32, device=device)
     scale = torch.as_tensor(span, dtype=torch.float32, device=device)
     stats = stacked_awr(
-        actor, data, critics, weight, scale, cfg.adv, rows, mask, [len(i) for i, _ in sched], on_step, gather
+        actor,
+        data,
+        critics,
+        weight,
+        scale,
+        cfg.adv,
+        rows,
+        mask,
+        [len(i) for i, _ in sched],
+        on_step,
+        gather,
+        cfg.precision,
     )
     return actor, stats
 

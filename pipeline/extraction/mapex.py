@@ -38,6 +38,9 @@ Deviations from the paper, each a param unless it is a necessary reading:
   with parents drawn by the same roulette from the same front (the population at the start of
   the iteration: a child never sees its siblings), its own hybrid buffer and its own RNG
   streams, trained together as one stacked ensemble (`make_children`), then all added.
+- `precision: bf16` (default fp32, which the paper's results assume): the children's matrix
+  products in bfloat16, the critics and parents cast once, master weights, Adam and every sum
+  in fp32 (pipeline/core/precision.py).
 An advantage always weights exactly the row it was computed for (the precursor code paired
 them with resampled rows, a bug not reproduced here).
 
@@ -61,7 +64,9 @@ import torch
 
 from pipeline.core.finite import check_finite, due, weights
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.optim import adam_step, child_adam, clear_grads
 from pipeline.core.pareto import population_scale
+from pipeline.core.precision import compute, frozen
 
 # Step 1 (gaps, parents, target weight) lives in pipeline.extraction.gaps; re-exported here.
 from pipeline.extraction.gaps import front_edges as front_edges
@@ -122,8 +127,12 @@ def build_hybrid(
 
 
 @torch.no_grad()
-def mean_parent_action(parents: Sequence[Actor], obs: torch.Tensor, chunk: int = 65_536) -> torch.Tensor:
-    """a_bar(s) = mean over parents of pi_p(s), for every row of obs (N, obs_dim) -> (N, act_dim)."""
+def mean_parent_action(
+    parents: Sequence[Actor], obs: torch.Tensor, chunk: int = 65_536, precision: str = "fp32"
+) -> torch.Tensor:
+    """a_bar(s) = mean over parents of pi_p(s), for every row of obs (N, obs_dim) -> (N, act_dim).
+    precision bf16: each parent runs as a bfloat16 copy made once here (the mean is fp32)."""
+    parents = [frozen(p, precision) for p in parents]
     out = []
     for i in range(0, len(obs), chunk):
         o = obs[i : i + chunk]
@@ -141,11 +150,11 @@ def regression_step(
     pred = actor(obs) if pred is None else pred
     sq = ((pred - target) ** 2).sum(dim=-1)
     loss = (sq * weight).mean() if weight is not None else sq.mean()
-    opt.zero_grad(set_to_none=True)
+    clear_grads(opt)  # opt.zero_grad(set_to_none=True) without its bookkeeping
     loss.backward()
     if max_grad_norm is not None:
         torch.nn.utils.clip_grad_norm_(actor.parameters(), max_grad_norm)
-    opt.step()
+    adam_step(opt)  # opt.step(), past its bookkeeping for a fused Adam (pipeline/core/optim.py)
     return loss.detach()
 
 
@@ -157,13 +166,18 @@ def warm_up(
     lr: float,
     batch_size: int,
     rng: np.random.Generator,
+    precision: str = "fp32",
 ) -> None:
-    """Regress `actor` onto `target` actions at hybrid states (paper eq. L_init), `steps` steps."""
-    opt = torch.optim.Adam(actor.parameters(), lr=lr)
+    """Regress `actor` onto `target` actions at hybrid states (paper eq. L_init), `steps` steps;
+    the actor's forward in `precision` (pipeline.core.precision), the loss and Adam in fp32."""
+    opt = child_adam(actor.parameters(), lr, precision)
     n = len(obs)
     for t in range(1, steps + 1):
         idx = torch.from_numpy(rng.integers(0, n, size=min(batch_size, n))).to(obs.device)
-        loss = regression_step(actor, opt, obs[idx], target[idx])
+        o = obs[idx]
+        with compute(precision, obs.device):
+            pred = actor(o)
+        loss = regression_step(actor, opt, o, target[idx], pred=pred)
         if due(t) or t == steps:
             check_finite([("the warm-up loss", loss), *weights("a child weight", actor)], t)
 
@@ -183,7 +197,9 @@ def critic_values(
     """Q^(k)_m(s, a) for each row with k = the row's origin: (B, m), min over the twin heads.
 
     Each row is evaluated only by the critics trained on the buffer it came from
-    (paper, "Secondary Critics"). Rows are processed `chunk` at a time to bound memory.
+    (paper, "Secondary Critics"). Rows are processed `chunk` at a time to bound memory. The
+    values are fp32 whatever the critics' dtype (bfloat16 copies: pipeline.core.precision) or
+    an enclosing autocast.
     gather: evaluate every critic on every row and pick each row's by its origin, the CUDA
     path (no boolean indexing, hence no host sync); None = on CUDA only. The CPU path runs
     each critic on its own rows alone, which is less compute.
@@ -206,7 +222,7 @@ def critic_values(
     for k, critic in enumerate(critics):
         rows = (origin == k).nonzero(as_tuple=True)[0]
         if len(rows):
-            out[rows] = critic.twin_min(obs[rows], action[rows]).T
+            out[rows] = critic.twin_min(obs[rows], action[rows]).T.to(out.dtype)
     return out
 
 
@@ -271,6 +287,7 @@ def advantage_weighted_regression(
     cfg: AdvantageConfig,
     rng: np.random.Generator,
     on_step: Callable[[], None] | None = None,
+    precision: str = "fp32",
 ) -> dict[str, float]:
     """Train `actor` for cfg.epochs shuffled passes over the hybrid buffer (paper Step 3).
 
@@ -278,17 +295,22 @@ def advantage_weighted_regression(
     minibatch indices are drawn once and used for Q(s, a), Q(s, pi_new(s)) and the loss alike.
     Returns summary statistics of the weights (mean, fraction clipped at omega_max). With
     cfg.epochs == 0 nothing is trained and no critic is read (critics may be None).
+    precision bf16 (pipeline.core.precision): the critics run as bfloat16 copies (made here
+    unless they already are), the actor's forward under autocast; Q-values, advantages, omega,
+    the loss and Adam stay fp32.
     """
     n = len(hybrid.obs)
     if cfg.epochs == 0 or n == 0:
         return {"omega_mean": float("nan"), "omega_clipped": float("nan")}
-    opt = torch.optim.Adam(actor.parameters(), lr=cfg.lr)
+    critics = [frozen(c, precision) for c in critics]
+    opt = child_adam(actor.parameters(), cfg.lr, precision)
     q_sa_all = critic_values(critics, hybrid.obs, hybrid.action, hybrid.origin)
     fixed = None
     if cfg.recompute == "once":
         with torch.no_grad():
             # pi_new(s) for every row, chunked and without grad (a "mean" over one policy)
-            q_pi_all = critic_values(critics, hybrid.obs, mean_parent_action([actor], hybrid.obs), hybrid.origin)
+            pi_new = mean_parent_action([actor], hybrid.obs, precision=precision)
+            q_pi_all = critic_values(critics, hybrid.obs, pi_new, hybrid.origin)
         fixed = awr_weight(mixed_advantage(q_sa_all, q_pi_all, weight, cfg.norm, scale), cfg.beta, cfg.omega_max)
     # Accumulated as tensors so a GPU run does not synchronise at every step.
     omega_sum = torch.zeros((), device=hybrid.obs.device)
@@ -299,7 +321,8 @@ def advantage_weighted_regression(
         for start in range(0, n, cfg.batch_size):
             idx = perm[start : start + cfg.batch_size]
             obs, act = hybrid.obs[idx], hybrid.action[idx]
-            pred = actor(obs)
+            with compute(precision, obs.device):
+                pred = actor(obs)
             if fixed is not None:
                 omega = fixed[idx]
             else:
@@ -335,6 +358,7 @@ class ChildConfig:
     warmup_batch_size: int
     adv: AdvantageConfig
     facet_bridge_ratio: float | None = None  # N >= 3: which facets the roulette draws from (gaps.front_gaps)
+    precision: str = "fp32"  # resolved (pipeline.core.precision): "fp32" or "bf16"
 
 
 class ChildSeeds(NamedTuple):
@@ -386,7 +410,7 @@ def start_child(
     parents = select_parents(returns, rng, cfg.facet_bridge_ratio)
     w = target_weight(returns, parents, cfg.weight_norm)
     hybrid = build_hybrid(buffers, w, cfg.child_buffer_size, rng, device)
-    a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs)
+    a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs, precision=cfg.precision)
     ref = actors[parents[0]]
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(torch_seed)
@@ -417,7 +441,16 @@ def make_child(
     """
     rng = np.random.default_rng(seeds.numpy)
     child = start_child(returns, actors, buffers, cfg, rng, seeds.torch, device)
-    warm_up(child.actor, child.hybrid.obs, child.a_bar, cfg.warmup_steps, cfg.warmup_lr, cfg.warmup_batch_size, rng)
+    warm_up(
+        child.actor,
+        child.hybrid.obs,
+        child.a_bar,
+        cfg.warmup_steps,
+        cfg.warmup_lr,
+        cfg.warmup_batch_size,
+        rng,
+        cfg.precision,
+    )
     _, span = population_scale(returns)
     stats = advantage_weighted_regression(
         child.actor,
@@ -428,5 +461,6 @@ def make_child(
         cfg.adv,
         rng,
         on_step,
+        cfg.precision,
     )
     return child.actor.eval(), child.record(len(buffers), stats)

@@ -31,6 +31,7 @@ from pipeline.core.finite import TrainingDiverged
 from pipeline.core.nets import CriticEnsemble
 from pipeline.core.pareto import normalised_hypervolume, pareto_mask
 from pipeline.core.population import Member, actor_state, member_actor
+from pipeline.core.precision import frozen, resolve
 from pipeline.core.seeding import derive_seeds
 from pipeline.core.specialist import Slot, StartingPolicy
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policies, evaluate_policy
@@ -49,9 +50,11 @@ def child_seeds(seed: int, first: int, k: int) -> list[ChildSeeds]:
     return [ChildSeeds(*derive_seeds(seed, EXTRACT_TAG, c, n=3)) for c in range(first, first + k)]
 
 
-def child_config(cfg: ExtractParams) -> ChildConfig:
-    """The `extract` params that shape one child's training."""
+def child_config(cfg: ExtractParams, precision: str = "fp32") -> ChildConfig:
+    """The `extract` params that shape one child's training; `precision` the resolved
+    extract.precision (pipeline.core.precision)."""
     return ChildConfig(
+        precision=precision,
         hidden_sizes=tuple(cfg.hidden_sizes),
         child_buffer_size=cfg.child_buffer_size,
         weight_norm=cfg.weight_norm,
@@ -95,6 +98,9 @@ class ExtractionRun:
     no child reads a critic, so specialists without critics, e.g. imported ones, will do).
     meta: env_id, obs_dim, act_dim, n_objectives, action_low, action_high (what a child's actor
     is rebuilt from). envs: cfg.eval_episodes * cfg.children_per_iteration envs.
+    cfg.precision is resolved on `device` at the child's widest hidden layer; with bf16 the
+    critics are cast to bfloat16 once, here, and every child trains in bf16 (its evaluation
+    episodes stay fp32).
     """
 
     def __init__(
@@ -111,9 +117,10 @@ class ExtractionRun:
         self.starts, self.buffers, self.cfg, self.meta, self.seed = list(starts), list(buffers), cfg, meta, seed
         if critics is None and cfg.epochs > 0:
             raise ValueError(f"extract.epochs = {cfg.epochs} trains with the critics, but none were given")
-        self.critics = None if critics is None else [c.to(device) for c in critics]
+        self.precision = resolve(cfg.precision, device, max(cfg.hidden_sizes))
+        self.critics = None if critics is None else [frozen(c.to(device), self.precision) for c in critics]
         self.envs, self.device = list(envs), device
-        self.child_cfg = child_config(cfg)
+        self.child_cfg = child_config(cfg, self.precision)
         self.k = cfg.children_per_iteration
         self.actors = [s.actor.to(device) for s in self.starts]  # the population's actors, member by member
         self.members: list[Member] = []

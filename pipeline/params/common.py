@@ -15,6 +15,21 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+PrecisionChoice = Literal["fp32", "bf16", "auto"]
+
+
+def precision_field(
+    what: str, auto: str = "bf16 where the hardware has bfloat16 natively and the hidden width is >= 256, else fp32"
+):
+    """The `precision` key of a section that trains or evaluates (pipeline/core/precision.py)."""
+    return Field(
+        "fp32",
+        description=f"arithmetic of {what}: fp32; bf16 (bfloat16 matmuls; master weights, optimizer state, losses, "
+        f"targets and sums in fp32); auto: {auto} (pipeline/core/precision.py). The stage records what it used in "
+        "its provenance record",
+    )
+
+
 class EnvParams(Strict):
     """Section `env`: which MO-Gymnasium environment every stage works on."""
 

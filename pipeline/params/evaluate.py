@@ -12,7 +12,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 
 
 class EvaluateParams(Strict):
@@ -22,4 +22,9 @@ class EvaluateParams(Strict):
     )
     device: Literal["auto", "cpu", "cuda"] = Field(
         "cpu", description="where the actors run; small MLPs stepped one env step at a time are fastest on cpu"
+    )
+    precision: PrecisionChoice = precision_field(
+        "the actors' forward passes in the episodes (the project's own MLPs; imported TorchScript or torch.export "
+        "policies run in fp32)",
+        auto="fp32 (a forward of a few rows per env step measured no faster in bf16)",
     )

@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 
 # Paper, appendix table "Environment-specific MAPEX hyperparameters": (epochs, beta, omega_max).
 PAPER_ENV_SETTINGS: dict[str, tuple[int, float, float]] = {
@@ -82,6 +82,11 @@ class ExtractParams(Strict):
         "along a thin front become 2-parent gaps; null = every facet of the mesh (the rule before). N = 2 never reads it",
     )
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+    precision: PrecisionChoice = precision_field(
+        "the children's training (their warm-up and advantage-weighted regression, the critics and parents they "
+        "read); the evaluation episodes stay fp32",
+        auto="bf16 where the hardware has bfloat16 natively and the child's hidden width is >= 256, else fp32",
+    )
 
     def resolved(self, env_id: str) -> "ExtractParams":
         """A copy with epochs, beta and omega_max filled from the paper's table for `env_id`."""

@@ -20,7 +20,7 @@ from typing import Literal
 
 from pydantic import Field, PositiveInt
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 
 
 class FitCriticsParams(Strict):
@@ -63,4 +63,8 @@ class FitCriticsParams(Strict):
     hidden_sizes: list[PositiveInt] = Field([256, 256], min_length=1, description="hidden layer widths of every critic")
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="'auto' picks cuda when present; results are bitwise reproducible on cpu"
+    )
+    precision: PrecisionChoice = precision_field(
+        "the critics' fit (the fidelity checks of the stopping rule stay fp32)",
+        auto="bf16 where the hardware has bfloat16 natively and the critics' hidden width is >= 256, else fp32",
     )

@@ -19,7 +19,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 
 # Paper appendix, "Environment interaction budgets": MOPDERL stage-2 frames (2M elsewhere).
 PAPER_STAGE2_FRAMES = {"mo-hopper-2obj-v5": 1_750_000, "mo-swimmer-v5": 1_000_000}
@@ -104,6 +104,7 @@ class MopderlParams(Strict):
         1, ge=1, description="generations between resumable checkpoints (RESUME_DIR/mopderl/seedS)"
     )
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+    precision: PrecisionChoice = precision_field("the RL agents' TD3 updates (episodes and evolution stay fp32)")
 
     @model_validator(mode="after")
     def _consistent(self) -> "MopderlParams":

@@ -18,7 +18,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 
 
 def n_elites(elite_fraction: float, population_size: int) -> int:
@@ -90,6 +90,9 @@ class TrainPderlParams(Strict):
         5, ge=1, description="generations between resumable checkpoints (OUT/obj{K}/pderl_state.pt)"
     )
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+    precision: PrecisionChoice = precision_field(
+        "the RL agent's TD3 updates (the population's episodes and evolution stay fp32)"
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> "TrainPderlParams":

@@ -12,13 +12,14 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from pipeline.params.common import Strict
+from pipeline.params.common import PrecisionChoice, Strict, precision_field
 from pipeline.params.td3 import TD3Params
 
 
 class TrainSpecialistParams(Strict):
     total_steps: int = Field(2_000_000, gt=0, description="env steps per specialist (paper: 2M; Swimmer 1M)")
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
+    precision: PrecisionChoice = precision_field("the specialists' TD3 updates (acting in the env stays fp32)")
     batched: bool = Field(
         True,
         description="train all specialists of a stage in one stacked process (each exactly as alone); "

@@ -65,6 +65,7 @@ from pipeline.core.drive import run_to_end
 from pipeline.core.envs import EnvSpec, make_env
 from pipeline.core.finite import TrainingDiverged, check_finite
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.precision import resolve
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams, n_elites
@@ -440,6 +441,8 @@ class PderlRun:
             self.seeds["smoothing"],
             self.seeds["cuda_rows"],
             self.device,
+            # its updates' arithmetic (train_pderl.precision); the population's episodes stay fp32
+            resolve(cfg.precision, self.device, max(td3_cfg.hidden_sizes)),
         )
         self.buffer = self.agent.buffer
         self.evo_rng = np.random.default_rng(self.seeds["evolution"])

@@ -29,12 +29,13 @@ from typing import Sequence
 
 import numpy as np
 import torch
-import torch.optim.optimizer as torch_optimizer
 from torch import nn
 
 from pipeline.core.buffer import Batch, StackedReplay
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.optim import adam_step, clear_grads
+from pipeline.core.precision import compute
 from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.params.td3 import TD3Params
 
@@ -163,92 +164,51 @@ class StackedTD3:
         return self.reward_index.shape[0]
 
 
-def adam_step(opt: torch.optim.Optimizer) -> None:
-    """opt.step() for the stacked update's fused Adam on a CPU, minus Optimizer.step's per-call
-    bookkeeping (hooks, profiler ranges, the dynamo guard, per-parameter state checks and the
-    regrouping of tensors by device), which at the quickstart's 64-unit widths cost about a
-    tenth of a training step. It makes the calls opt.step() ends in for this case (the step
-    counters' increment, then torch._fused_adam_ with the group's hyperparameters), so the
-    bits are the same (tests/test_nets_td3.py). Any other case (not fused, not on the CPU,
-    capturable, AMSGrad, AdamW, a parameter without a gradient, no state yet) is opt.step()."""
-    groups = opt.param_groups
-    g = groups[0]
-    if (
-        len(groups) != 1
-        or not g.get("fused")
-        or g.get("capturable")
-        or g.get("amsgrad")
-        or g.get("differentiable")
-        or g.get("decoupled_weight_decay")
-        or type(opt) is not torch.optim.Adam
-        or opt._optimizer_step_pre_hooks
-        or opt._optimizer_step_post_hooks
-        or getattr(torch_optimizer, "_global_optimizer_pre_hooks", None)
-        or getattr(torch_optimizer, "_global_optimizer_post_hooks", None)
-    ):
-        opt.step()
-        return
-    params = g["params"]
-    states = [opt.state.get(p) for p in params]
-    if not all(states) or any(p.grad is None or p.device.type != "cpu" or p.dtype != torch.float32 for p in params):
-        opt.step()
-        return
-    steps = [st["step"] for st in states]
-    beta1, beta2 = g["betas"]
-    with torch.no_grad():  # as Optimizer.step
-        torch._foreach_add_(steps, 1)
-        torch._fused_adam_(
-            params,
-            [p.grad for p in params],
-            [st["exp_avg"] for st in states],
-            [st["exp_avg_sq"] for st in states],
-            [],
-            steps,
-            amsgrad=False,
-            lr=g["lr"],
-            beta1=float(beta1),
-            beta2=float(beta2),
-            weight_decay=g["weight_decay"],
-            eps=g["eps"],
-            maximize=g["maximize"],
-            grad_scale=None,
-            found_inf=None,
-        )
-
-
-def clear_grads(opt: torch.optim.Optimizer) -> None:
-    """opt.zero_grad(set_to_none=True) without its profiler range."""
-    for g in opt.param_groups:
-        for p in g["params"]:
-            p.grad = None
-
-
 def stacked_targets(
-    state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float
+    state: StackedTD3,
+    batch: Batch,
+    noise: torch.Tensor,
+    gamma: float,
+    policy_noise: float,
+    noise_clip: float,
+    precision: str = "fp32",
 ) -> torch.Tensor:
     """TD3 targets of every covered objective of every specialist -> (S, n_cov, B).
 
     batch fields carry a leading S; noise (S, B, act) is standard normal, drawn by the caller
     from each specialist's own generator (so the draws do not depend on how many are stacked).
+    precision bf16: the target networks' forward passes under autocast; the smoothing noise,
+    the next action and the targets themselves are fp32 (pipeline.core.precision).
     """
+    device = batch.obs.device
     with torch.no_grad():
-        a = state.actor_target(batch.next_obs)
+        with compute(precision, device):
+            a = state.actor_target(batch.next_obs)
         scale, centre = state.actor_target.scale, state.actor_target.centre
         eps = (noise * policy_noise).clamp(-noise_clip, noise_clip) * scale
         next_a = torch.max(torch.min(a + eps, centre + scale), centre - scale)
         s, n_cov = state.reward_index.shape
-        q_next = state.critic_target.grouped(batch.next_obs, next_a)  # (S * 2 * n_cov, B)
+        with compute(precision, device):
+            q_next = state.critic_target.grouped(batch.next_obs, next_a)  # (S * 2 * n_cov, B)
         q_next = q_next.view(s, n_cov, 2, -1).amin(dim=2)
         reward = batch.reward.gather(2, state.reward_index.unsqueeze(1).expand(-1, batch.reward.shape[1], -1))
         return reward.transpose(1, 2) + gamma * (1.0 - batch.terminated).unsqueeze(1) * q_next
 
 
 def stacked_critic_step(
-    state: StackedTD3, batch: Batch, noise: torch.Tensor, gamma: float, policy_noise: float, noise_clip: float
+    state: StackedTD3,
+    batch: Batch,
+    noise: torch.Tensor,
+    gamma: float,
+    policy_noise: float,
+    noise_clip: float,
+    precision: str = "fp32",
 ) -> torch.Tensor:
-    """One Adam step of every critic of every specialist; returns the summed loss (a tensor)."""
-    y = stacked_targets(state, batch, noise, gamma, policy_noise, noise_clip)  # (S, n_cov, B)
-    q = state.critic.grouped(batch.obs, batch.action)  # (S * 2 * n_cov, B)
+    """One Adam step of every critic of every specialist; returns the summed loss (a tensor).
+    precision bf16: the critics' forward under autocast (backward outside it), the loss fp32."""
+    y = stacked_targets(state, batch, noise, gamma, policy_noise, noise_clip, precision)  # (S, n_cov, B)
+    with compute(precision, batch.obs.device):
+        q = state.critic.grouped(batch.obs, batch.action)  # (S * 2 * n_cov, B)
     y = y.repeat_interleave(2, dim=1).reshape(q.shape)  # both heads of an objective share its target
     loss = ((q - y) ** 2).mean(dim=1).sum()
     clear_grads(state.critic_opt)
@@ -257,11 +217,13 @@ def stacked_critic_step(
     return loss.detach()
 
 
-def stacked_actor_step(state: StackedTD3, obs: torch.Tensor, tau: float) -> torch.Tensor:
-    """Each actor ascends its own primary critic on its own states (S, B, o); then Polyak."""
+def stacked_actor_step(state: StackedTD3, obs: torch.Tensor, tau: float, precision: str = "fp32") -> torch.Tensor:
+    """Each actor ascends its own primary critic on its own states (S, B, o); then Polyak (in
+    fp32 whatever the precision: the targets move by tau = 0.005 of the gap, below bf16's resolution)."""
     state.critic.requires_grad_(False)  # dQ/da only (see td3_update)
     try:
-        q = state.critic.grouped(obs, state.actor(obs), members=state.primary_members)  # (S, B)
+        with compute(precision, obs.device):
+            q = state.critic.grouped(obs, state.actor(obs), members=state.primary_members)  # (S, B)
         loss = -q.mean(dim=1).sum()
         clear_grads(state.actor_opt)
         loss.backward()
@@ -282,11 +244,13 @@ def stacked_update(
     tau: float,
     policy_noise: float,
     noise_clip: float,
+    precision: str = "fp32",
 ) -> dict[str, torch.Tensor]:
-    """One TD3 step of S specialists: `td3_update` for each, batched (see the module docstring)."""
-    metrics = {"critic_loss": stacked_critic_step(state, batch, noise, gamma, policy_noise, noise_clip)}
+    """One TD3 step of S specialists: `td3_update` for each, batched (see the module docstring);
+    precision: "fp32", or "bf16" for the networks' forward passes (pipeline.core.precision)."""
+    metrics = {"critic_loss": stacked_critic_step(state, batch, noise, gamma, policy_noise, noise_clip, precision)}
     if update_actor:
-        metrics["actor_loss"] = stacked_actor_step(state, batch.obs, tau)
+        metrics["actor_loss"] = stacked_actor_step(state, batch.obs, tau, precision)
     return metrics
 
 
@@ -314,10 +278,11 @@ class GraphedUpdate:
         policy_noise: float,
         noise_clip: float,
         warmup: int = 3,
+        precision: str = "fp32",
     ):
         self.state, self.gather, self.idx, self.noise = state, gather, idx, noise
-        self.args = (gamma, policy_noise, noise_clip)
-        self.tau = tau
+        self.args = (gamma, policy_noise, noise_clip, precision)
+        self.tau, self.precision = tau, precision
         self.obs = torch.zeros(idx.shape[0], idx.shape[1], state.actor.weights[0].shape[1], device=idx.device)
         if state.actor_opt.state or state.critic_opt.state:
             raise RuntimeError("GraphedUpdate must be built before the first update (fresh optimizers)")
@@ -358,7 +323,7 @@ class GraphedUpdate:
         stacked_critic_step(self.state, batch, self.noise, *self.args)
 
     def _actor(self) -> None:
-        stacked_actor_step(self.state, self.obs, self.tau)
+        stacked_actor_step(self.state, self.obs, self.tau, self.precision)
 
     def __call__(self, update_actor: bool) -> None:
         self.critic_graph.replay()
@@ -470,7 +435,8 @@ def unstack_actor(actor: StackedActor, s: int) -> Actor:
 
 
 class Updater:
-    """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update."""
+    """Draws each specialist's minibatch rows and smoothing noise and runs one stacked update
+    in `precision` ("fp32" or "bf16", resolved: pipeline.core.precision)."""
 
     def __init__(
         self,
@@ -480,6 +446,7 @@ class Updater:
         seeds: list[dict[str, int]],
         rngs,
         device,
+        precision: str = "fp32",
     ):
         self.state, self.buffer, self.cfg, self.rngs = state, buffer, cfg, rngs
         self.device = device
@@ -492,7 +459,10 @@ class Updater:
             self.idx = torch.zeros(s, b, dtype=torch.long, device=device)
         self.graphs = self.on_cuda and cfg.cuda_graphs
         self.graphed: GraphedUpdate | None = None
-        self.args = dict(gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip)
+        self.args = dict(
+            gamma=cfg.gamma, tau=cfg.tau, policy_noise=cfg.policy_noise, noise_clip=cfg.noise_clip, precision=precision
+        )
+        self.precision = precision
         # the latest critic and actor losses (eager updates only: a captured graph keeps its own)
         self.metrics: dict[str, torch.Tensor] = {}
 

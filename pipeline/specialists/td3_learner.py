@@ -36,6 +36,7 @@ class TD3Learner:
     lives on the GPU, minibatch rows are drawn there from `cuda_rows_seed`, and with
     cfg.cuda_graphs each update replays two captured CUDA graphs; `train(n)` makes n updates
     with no host sync but the finiteness check every CHECK_EVERY updates. On a CPU, rows are drawn with `rows_rng` (numpy).
+    `precision` ("fp32" or "bf16", resolved: pipeline.core.precision) is its updates' arithmetic.
     """
 
     def __init__(
@@ -47,6 +48,7 @@ class TD3Learner:
         noise_seed: int,
         cuda_rows_seed: int,
         device: torch.device | str,
+        precision: str = "fp32",
     ):
         if state.n != 1:
             raise ValueError(f"a TD3Learner trains one specialist, got a stacked set of {state.n}")
@@ -54,7 +56,13 @@ class TD3Learner:
         self.rows_rng = rows_rng
         self.buffer = StackedReplay(1, cfg.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
         self.update = Updater(
-            state, self.buffer, cfg, [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}], [rows_rng], self.device
+            state,
+            self.buffer,
+            cfg,
+            [{"noise": noise_seed, "cuda_rows": cuda_rows_seed}],
+            [rows_rng],
+            self.device,
+            precision,
         )
         self.objectives: list[int] = state.reward_index[0].tolist()
         self.primary_member = int(state.primary_members[0])  # head 0 of its own objective

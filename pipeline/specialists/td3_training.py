@@ -46,6 +46,7 @@ from pipeline.core.envs import EnvSpec
 from pipeline.core.envstate import env_state, restore_env_state
 from pipeline.core.finite import TrainingDiverged, due, first_nonfinite
 from pipeline.core.nets import Actor, CriticEnsemble, StackedActor
+from pipeline.core.precision import resolve
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams
 from pipeline.specialists.keep_best import KeepBest, keep_best_hook, keep_best_steps
@@ -137,11 +138,13 @@ class SpecialistsRun:
         n = len(jobs)
         self.seeds = [run_seeds(seed, objective) for seed, objective in self.jobs]
         self.state = init_stacked(spec, td3, self.jobs, self.device)
+        # the updates' arithmetic (train_specialist.precision); acting in the env stays fp32
+        self.precision = resolve(cfg.precision, self.device, max(td3.hidden_sizes))
         self.rngs = [np.random.default_rng(x["numpy"]) for x in self.seeds]
         for env, x in zip(self.envs, self.seeds):
             env.action_space.seed(x["space"])
         self.buffer = StackedReplay(n, td3.buffer_size, spec.obs_dim, spec.act_dim, spec.n_objectives, self.device)
-        self.update = Updater(self.state, self.buffer, td3, self.seeds, self.rngs, self.device)
+        self.update = Updater(self.state, self.buffer, td3, self.seeds, self.rngs, self.device, self.precision)
         self.episodes: list[list[EpisodeRecord]] = [[] for _ in range(n)]
         self.obs = np.stack([env.reset(seed=x["env"])[0] for env, x in zip(self.envs, self.seeds)]).astype(np.float32)
         self.episode = np.zeros(n, np.int64)
