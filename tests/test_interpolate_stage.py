@@ -11,8 +11,10 @@ from support.tiny_params import TINY_CHAIN, with_lists
 
 from pipeline.core.population import load_population
 
-# Runs the DVC pipeline in subprocesses: `make test-fast` leaves this file out.
-pytestmark = pytest.mark.integration
+# Runs the DVC pipeline in subprocesses: `make test-fast` leaves this file out; and slow, so
+# `make test` stays within 8 minutes (the every-method chain in test_dvc_methods.py, also slow,
+# runs interpolation too; tests/test_interpolate.py covers the stage's pieces in the fast tier).
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 def test_dvc_repro_scores_the_interpolation_front(tmp_path):

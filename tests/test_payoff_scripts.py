@@ -37,6 +37,7 @@ def sh(*args, cwd: Path = ROOT) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", *map(str, args)], cwd=cwd, env=env, capture_output=True, text=True)
 
 
+@pytest.mark.slow  # about a minute: slow keeps `make test` within 8 minutes
 def test_payoff_run_resumes_and_reports_both_forms(tmp_path):
     params = tmp_path / "tiny.yaml"
     params.write_text(yaml.safe_dump(TINY))
