@@ -18,7 +18,8 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.checkpoint import load_policy, save_policy
 from pipeline.core.nets import Actor, NormalizedActor, StackedActor
 from pipeline.core.population import Member, member_actor
-from pipeline.interop.vecnorm import read_vecnormalize
+from pipeline.core.precision import frozen
+from pipeline.interop.vecnorm import read_vecnormalize, restricted_loads
 from pipeline.params.import_specialists import ImportedPolicyEntry
 from pipeline.params.methods import derived_lists, normalize_file, statistics_beside
 
@@ -61,6 +62,32 @@ def test_a_pickle_that_would_run_code_is_refused_unrun(tmp_path):
     assert not marker.exists()
 
 
+class ObjectArrayFromBytes:
+    """Unpickled by plain pickle, an ndarray of object dtype whose pointers are raw bytes: reading
+    it would crash the interpreter, not raise."""
+
+    def __reduce__(self):
+        return (np.ndarray, ((1,), np.dtype("O"), b"\x41" * 8))
+
+
+def test_arrays_are_rebuilt_as_numbers_only(tmp_path):
+    path = tmp_path / "vecnormalize.pkl"
+    path.write_bytes(pickle.dumps({"obs_rms": ObjectArrayFromBytes()}))
+    with pytest.raises(ArtifactError, match=r"not a readable pickle \(numpy\.ndarray called directly") as exc:
+        read_vecnormalize(path)
+    assert "\n" not in str(exc.value)
+    # float arrays and scalars pickled either way numpy does (protocol 4: _reconstruct and BUILD;
+    # protocol 5: _frombuffer) come back equal
+    values = {"a": np.arange(6, dtype=np.float64).reshape(2, 3), "s": np.float64(2.5)}
+    for protocol in (4, 5):
+        back = restricted_loads(pickle.dumps(values, protocol=protocol), path, "the test pickle")
+        np.testing.assert_array_equal(back["a"], values["a"])
+        assert back["s"] == 2.5 and back["a"].dtype == np.float64
+    # an object array whose items the pickle makes (through the same gate) holds only those items
+    mixed = np.array([1.5, "x"], dtype=object)
+    assert list(restricted_loads(pickle.dumps(mixed, protocol=4), path, "the test pickle")) == [1.5, "x"]
+
+
 def test_the_reader_refuses_what_is_not_a_vecnormalize_file(tmp_path):
     path = tmp_path / "stats.pkl"
     path.write_bytes(pickle.dumps({"mean": np.zeros(3)}))  # numpy arrays are read, but a dict is not the wrapper
@@ -95,6 +122,17 @@ def test_the_normalized_actor_is_vecnormalize_then_the_mlp():
         np.testing.assert_array_equal(actor(torch.from_numpy(obs)).numpy(), plain(torch.from_numpy(z)).numpy())
         assert (np.abs(z) == 2.0).any()  # the clip was exercised
         assert not np.allclose(actor(torch.from_numpy(obs)).numpy(), plain(torch.from_numpy(obs)).numpy())
+
+
+def test_a_bf16_copy_of_the_normalized_actor_keeps_its_statistics_and_acts_in_fp32():
+    actor = normalized_actor()
+    copy = frozen(actor, "bf16")
+    assert copy.net[0].weight.dtype == torch.bfloat16 and copy.obs_mean.dtype == torch.float64
+    obs = torch.from_numpy((np.random.default_rng(2).normal(size=(20, OBS)) * 3).astype(np.float32))
+    with torch.no_grad():
+        full, low = actor(obs), copy(obs)
+    assert low.dtype == torch.float32 and torch.isfinite(low).all()
+    assert (low - full).abs().max() < 0.05  # bf16's 8-bit mantissa through one small layer
 
 
 def test_the_normalized_actor_round_trips_through_policy_and_population(tmp_path):
@@ -155,6 +193,9 @@ def test_params_take_normalize_for_mlp_formats_only():
         ImportedPolicyEntry(**(base | {"format": "torchscript"}), normalize="s.pkl")
     with pytest.raises(ValueError):
         ImportedPolicyEntry(**base, normalize=True)
+    for word in ("none", "None", "auto"):  # the CLI's words, which YAML reads as file names
+        with pytest.raises(ValueError, match=rf"normalize = '{word}' is a word of the command line.*write false"):
+            ImportedPolicyEntry(**base, normalize=word)
 
 
 def test_interpolation_mixes_normalized_actors_of_the_same_statistics_only():

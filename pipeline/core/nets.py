@@ -73,7 +73,9 @@ class NormalizedActor(Actor):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         z = (obs.to(torch.float64) - self.obs_mean) / self.obs_std
         z = torch.minimum(torch.maximum(z, -self.obs_clip), self.obs_clip)
-        return self.centre + self.scale * torch.tanh(self.net(z.to(obs.dtype)))
+        # z in the weights' dtype, as Actor does (obs is fp32 everywhere, so fp32 keeps its bits;
+        # bfloat16 for a copy made by pipeline.core.precision.frozen, whose buffers stay as they are)
+        return self.centre + self.scale * torch.tanh(self.net(z.to(self.net[0].weight.dtype)))
 
 
 NORMALIZED_KEYS = ("obs_mean", "obs_std", "obs_clip")  # what a NormalizedActor's state dict adds to an Actor's

@@ -122,15 +122,15 @@ def front_gaps(returns: np.ndarray, bridge_ratio: float | None = None) -> tuple[
     `front_facets`' order, sized by its volume.
 
     bridge_ratio r (extract.facet_bridge_ratio; an extension, docs/n_objectives.md): only the
-    gaps on the front's surface. In normalised objective space, an edge of the mesh *bridges*
-    when the front's points already join its endpoints by a chain of steps each shorter than
-    1 / r of it (pipeline.core.front_mesh.bridging_edges): the edge cuts across a region the
-    front goes around. The gaps are then
+    gaps on the front's surface (all in pipeline.core.front_mesh.surface). In normalised
+    objective space, an edge of the mesh *bridges* when the mesh's exposed boundary already joins
+    its endpoints by a path of boundary edges each shorter than 1 / r of it: the edge cuts across
+    a region the front goes around. The gaps are then
     - the facets left once those reached from outside the mesh through bridging edges are
-      dropped (`surface_facets`; enclosed holes are kept), each sized by its volume, in
-      `front_facets`' order; then
-    - the edges that do not bridge and belong to no kept facet (`loose_edges`: where the front
-      is thin, the steps between neighbours along it), 2 parents each, sized as the regular
+      dropped (eroded from the outside inwards; enclosed holes are kept), each sized by its
+      volume, in `front_facets`' order; then
+    - the edges that do not bridge and belong to no kept facet (where the front is thin, the
+      steps between neighbours along it), 2 parents each, sized as the regular
       simplex of the facets' dimension with that edge length (for m = 3 the equilateral
       triangle on it), so that they are in the facets' units; in lexicographic order.
     Should no gap of positive size remain, the whole mesh is used (as with None). Facets of 2

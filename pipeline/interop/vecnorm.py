@@ -41,17 +41,49 @@ RUNNING_MEAN_STD = "stable_baselines3.common.running_mean_std.RunningMeanStd"
 INERT_PREFIXES = ("stable_baselines3.", "gymnasium.spaces.", "gym.spaces.", "numpy.random.")
 
 
+class _NdarrayName:
+    """What the pickle gets for the name numpy.ndarray: only a token for `_reconstruct`'s first
+    argument. Called itself it refuses: `ndarray(shape, object_dtype, buffer=...)` would build
+    an array of object pointers from the pickle's raw bytes (a crash, not a refusal)."""
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> Any:
+        raise pickle.UnpicklingError("numpy.ndarray called directly: statistics are rebuilt, never constructed")
+
+
+def _plain(dtype: Any) -> np.dtype:
+    """`dtype` as a numpy dtype, refused if it holds Python objects (statistics are numbers)."""
+    d = dtype if isinstance(dtype, np.dtype) else np.dtype(dtype)
+    if d.hasobject:
+        raise pickle.UnpicklingError(f"an array or scalar of dtype {d} holds Python objects, not numbers")
+    return d
+
+
 def _numpy_rebuilders() -> dict[tuple[str, str], Any]:
     """numpy's own array, dtype and scalar rebuilders under the module names numpy 1 (numpy.core)
-    and numpy 2 (numpy._core) pickle them with; taken from numpy's reductions, not imported by name."""
+    and numpy 2 (numpy._core) pickle them with; taken from numpy's reductions, not imported by
+    name, and wrapped: an array is rebuilt only as a plain ndarray, and nothing of object dtype
+    is made from bytes (an object array's BUILD state must be a list of objects the pickle made
+    through this same gate, which numpy enforces)."""
     reconstruct = np.zeros(1).__reduce__()[0]
     frombuffer = np.zeros(1).__reduce_ex__(5)[0]
     scalar = np.float64(1.0).__reduce__()[0]
-    out: dict[tuple[str, str], Any] = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype}
+
+    def rebuild(subtype: Any, shape: Any, dtype: Any) -> np.ndarray:
+        if subtype is not _NdarrayName:
+            raise pickle.UnpicklingError("an array rebuilt as another type than numpy.ndarray")
+        return reconstruct(np.ndarray, shape, dtype)
+
+    def from_buffer(buf: Any, dtype: Any, shape: Any, order: Any) -> np.ndarray:
+        return frombuffer(buf, _plain(dtype), shape, order)
+
+    def make_scalar(dtype: Any, *args: Any) -> Any:
+        return scalar(_plain(dtype), *args)
+
+    out: dict[tuple[str, str], Any] = {("numpy", "ndarray"): _NdarrayName, ("numpy", "dtype"): np.dtype}
     for core in ("numpy.core", "numpy._core"):
-        out[(f"{core}.multiarray", "_reconstruct")] = reconstruct
-        out[(f"{core}.multiarray", "scalar")] = scalar
-        out[(f"{core}.numeric", "_frombuffer")] = frombuffer
+        out[(f"{core}.multiarray", "_reconstruct")] = rebuild
+        out[(f"{core}.multiarray", "scalar")] = make_scalar
+        out[(f"{core}.numeric", "_frombuffer")] = from_buffer
     return out
 
 

@@ -43,6 +43,12 @@ class ImportedPolicyEntry(Strict):
 
     @model_validator(mode="after")
     def _normalizable(self) -> "ImportedPolicyEntry":
+        if isinstance(self.normalize, str) and self.normalize.strip().lower() in ("none", "auto"):
+            # YAML reads `none` as a string, which would become a DVC dep on a file of that name
+            raise ValueError(
+                f"normalize = {self.normalize!r} is a word of the command line (--normalize), not a file: write "
+                "false for no statistics, or leave the key out to use the file rl-zoo3 saves beside an sb3 model"
+            )
         if isinstance(self.normalize, str) and self.format not in ("sb3", "cleanrl"):
             raise ValueError(
                 f"normalize = {self.normalize!r} for a {self.format} policy: statistics are read for sb3 and cleanrl "
