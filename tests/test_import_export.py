@@ -587,6 +587,7 @@ def test_export_writes_onnx_when_installed(cli, spec, tmp_path):
 # -- the pipeline: one dvc repro from imported specialists to the report --------------------------
 
 
+@pytest.mark.slow  # two dvc repro chains (all imported, then mixed sources): slow keeps `make test` within 8 min
 def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     """import_specialist -> fit_critics -> extract_posthoc, and warmup_only (no critics) ->
     evaluate -> score -> export -> report on a tiny preset, whose report pairs MAPEX-PostHoc with

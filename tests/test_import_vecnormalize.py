@@ -252,6 +252,7 @@ def test_the_stage_bakes_the_statistics_in_and_the_exports_take_raw_observations
         np.testing.assert_allclose(np.array(actions), want, atol=1e-6, rtol=0, err_msg=kind)
 
 
+@pytest.mark.slow  # a dvc repro of two imports: slow keeps `make test` within 8 min
 def test_dvc_tracks_the_statistics_named_or_found_in_rl_zoo3_layout(trained, tmp_path):
     """Objective 0 names its statistics; objective 1's model sits in an rl-zoo3 run folder with
     its statistics where rl-zoo3 saves them. `mapex sync-params` finds them, both imports bake
