@@ -66,6 +66,7 @@ def hopper3(tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow  # the 3-objective chain fixture (about a minute): slow keeps `make test` within 8 min
 def test_specialists_carry_a_critic_for_every_objective(hopper3, tmp_path, cli):
     """Specialist k's joint critics (primary + N - 1 = 2 secondary) and the post-hoc ones fitted
     on its buffer (stage fit_critics, run here in this process): one critic per objective each."""
@@ -85,6 +86,7 @@ def test_specialists_carry_a_critic_for_every_objective(hopper3, tmp_path, cli):
         assert meta["objectives"] == [0, 1, 2] and meta["source"] == "posthoc", (k, meta)
 
 
+@pytest.mark.slow  # the 3-objective chain fixture (about a minute): slow keeps `make test` within 8 min
 def test_children_have_three_parents_and_three_weights(hopper3):
     from pipeline.core.population import load_population
 
@@ -102,6 +104,7 @@ def test_children_have_three_parents_and_three_weights(hopper3):
             assert 1 <= len(child.parents) <= 3  # a facet's vertices, or fewer on a degenerate front
 
 
+@pytest.mark.slow  # the 3-objective chain fixture (about a minute): slow keeps `make test` within 8 min
 def test_every_method_is_scored_in_three_dimensions(hopper3):
     methods = yaml.safe_load((hopper3 / "params.yaml").read_text())["methods"]
     for method in methods:

@@ -766,6 +766,7 @@ def test_side_by_side_processes_give_the_one_at_a_time_bits(keep_best_every, tmp
     assert sorted(p.name for p in (tmp_path / "two" / "out").iterdir()) == ["obj0", "obj1"]
 
 
+@pytest.mark.slow  # worker processes killed and resumed (35-45 s): slow keeps `make test` within 8 min
 def test_sigkilled_stage_stops_its_workers_and_resumes_them(tmp_path, write_params):
     """processes: 2, and the `mapex` process gets SIGKILL once both workers have checkpointed:
     the workers stop too (nothing is written after the kill), and the rerun resumes both to
@@ -880,6 +881,7 @@ def test_sigterm_checkpoints_at_once_and_the_rerun_resumes(tmp_path, write_param
     assert not ckpt.parent.exists()
 
 
+@pytest.mark.slow  # worker processes killed and resumed (35-45 s): slow keeps `make test` within 8 min
 def test_sigterm_is_passed_on_to_the_workers_and_each_checkpoints(tmp_path, write_params):
     """processes: 2, SIGTERM to the stage process alone once both workers have checkpointed:
     it passes it on, each worker checkpoints after its current step and says so, the stage

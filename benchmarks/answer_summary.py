@@ -1,0 +1,128 @@
+"""The summary table of benchmarks/answer.sh's runs (docs/results.md section 10), in Markdown.
+
+    python benchmarks/answer_summary.py WORKDIR > WORKDIR/summary.md
+
+Reads WORKDIR/score/LABEL/seedS/metrics.json (benchmarks/answer_report.sh). Per method: re-evaluated
+hypervolume, expected utility and distinct points (mean ± SEM over seeds), then each method paired by
+seed against warm-up only and against interpolation from the same specialists, with the report's rule
+(pipeline.reporting.verdicts.verdict_outcome: beyond 2 SEM of the paired differences and the same sign in
+more than half of the seeds). Interpolation between shared-init specialists has specialists of its own,
+so its comparison with the others is across specialist sets of the same seed, not a pairing of one set.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.evaluation.metrics import mean_sem
+from pipeline.reporting.verdicts import verdict_outcome
+
+LABELS = {
+    "paper_mapex": "MAPEX, paper form (20 epochs, lr 3e-4)",
+    "gentle_mapex": "MAPEX, gentle form (1 epoch, lr 1e-4)",
+    "warmup": "warm-up only",
+    "interp": "interpolation",
+    "interp_shared": "interpolation, shared-init specialists",
+}
+
+
+def load(w: Path) -> dict[str, dict[int, dict]]:
+    out: dict[str, dict[int, dict]] = {}
+    for label in LABELS:
+        for f in sorted((w / "score" / label).glob("seed*/metrics.json")):
+            out.setdefault(label, {})[int(f.parent.name[4:])] = json.loads(f.read_text())
+    return out
+
+
+def fmt(x: float) -> str:
+    return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.3e}".replace("e+0", "e")
+
+
+def ms(values: list[float]) -> str:
+    m, s = mean_sem(np.array(values, dtype=float))
+    return f"{fmt(m)} ± {fmt(s)}" if len(values) > 1 else fmt(m)
+
+
+def paired(runs: dict, a: str, b: str) -> str:
+    if a not in runs or b not in runs:
+        return "–"
+    seeds = sorted(set(runs[a]) & set(runs[b]))
+    if len(seeds) < 2:
+        return "–"
+    x = np.array([runs[a][s]["front"]["hypervolume"] for s in seeds])
+    y = np.array([runs[b][s]["front"]["hypervolume"] for s in seeds])
+    d = x - y
+    (dm, dsem), (bm, _) = mean_sem(d), mean_sem(y)
+    word = {"beat": "**beat**", "lost": "**lost**", "tied": "tied"}[verdict_outcome(d, y, 0.05, 2.0)]
+    z = f"{abs(dm) / dsem:.1f}" if dsem > 0 else "inf"
+    return f"{word}: {dm / abs(bm) * 100:+.1f}%, {z} SEM, higher in {int((d > 0).sum())}/{len(seeds)}"
+
+
+def main() -> None:
+    w = Path(sys.argv[1])
+    runs = load(w)
+    if not runs:
+        raise SystemExit(f"{w}/score: no LABEL/seedS/metrics.json (run benchmarks/answer_report.sh first)")
+    any_run = next(iter(next(iter(runs.values())).values()))
+    print(
+        f"env {any_run['env_id']}, reference point {any_run['reference_point']}, "
+        f"{any_run['episodes']} re-evaluation episodes per member\n"
+    )
+    print(
+        "| method | seeds | hypervolume | expected utility | distinct points | children | "
+        "vs warm-up only (paired HV) | vs interpolation (paired HV) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    spec_hv: dict[int, float] = {}
+    for label, name in LABELS.items():
+        if label not in runs:
+            continue
+        r = runs[label]
+        seeds = sorted(r)
+        hv = [r[s]["front"]["hypervolume"] for s in seeds]
+        eu = [r[s]["front"]["expected_utility"] for s in seeds]
+        dc = [r[s]["front"]["distinct_count"] for s in seeds]
+        if label != "interp_shared":
+            spec_hv.update({s: r[s]["specialists"]["hypervolume"] for s in seeds})
+        kids = sorted({r[s]["children"] for s in seeds})
+        vs_w = paired(runs, label, "warmup") if label != "warmup" else "–"
+        vs_i = paired(runs, label, "interp") if label not in ("interp",) else "–"
+        print(
+            f"| {name} | {','.join(map(str, seeds))} | {ms(hv)} | {ms(eu)} | {ms(dc)} | "
+            f"{'/'.join(map(str, kids))} | {vs_w} | {vs_i} |"
+        )
+    if spec_hv:
+        seeds = sorted(spec_hv)
+        print(f"| specialists alone | {','.join(map(str, seeds))} | {ms([spec_hv[s] for s in seeds])} | | 2 | 0 | | |")
+    if "interp_shared" in runs:
+        r = runs["interp_shared"]
+        seeds = sorted(r)
+        print(
+            f"| shared-init specialists alone | {','.join(map(str, seeds))} | "
+            f"{ms([r[s]['specialists']['hypervolume'] for s in seeds])} | | 2 | 0 | | |"
+        )
+    print("\nPer seed, re-evaluated hypervolume (distinct points):\n")
+    labels = [x for x in LABELS if x in runs]
+    print("| seed | specialists | " + " | ".join(LABELS[x] for x in labels) + " |")
+    print("|---|---|" + "---|" * len(labels))
+    for s in sorted({s for r in runs.values() for s in r}):
+        cells = [
+            f"{fmt(runs[x][s]['front']['hypervolume'])} ({runs[x][s]['front']['distinct_count']})"
+            if s in runs[x]
+            else ""
+            for x in labels
+        ]
+        print(f"| {s} | {fmt(spec_hv[s]) if s in spec_hv else ''} | " + " | ".join(cells) + " |")
+    print(
+        "\nThe rule of 'beat'/'lost': the mean paired difference beyond 2 SEM of the paired differences and the "
+        "same sign in more than half of the seeds (the report's); otherwise tied. The shared-init row pairs "
+        "different specialists of the same seed."
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,151 @@
+"""benchmarks/jobqueue.py, benchmarks/answer_summary.py and benchmarks/answer.sh (docs/results.md
+section 10): the queue runs each job once its inputs exist, best first, and never twice; the summary
+pairs methods by seed with the report's rule; the whole design runs and reports on a tiny preset."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from support.tiny_params import TINY_CHAIN, merge, with_lists
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_queue(plan: Path, log: Path, slots: int = 2) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks/jobqueue.py"),
+            str(plan),
+            "--slots",
+            str(slots),
+            "--log",
+            str(log),
+            "--poll",
+            "0.1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=plan.parent,
+    )
+
+
+def test_queue_runs_jobs_after_their_inputs_and_skips_what_is_done(tmp_path):
+    order = tmp_path / "order.txt"
+    rows = [  # NAME DONE DEPS COMMAND; 'b' is listed first but needs a's output
+        ("b", "b.out", "a.out", f"echo b >> {order} && touch b.out"),
+        ("a", "a.out", "-", f"sleep 0.5 && echo a >> {order} && touch a.out"),
+        ("done_before", "old.out", "-", f"echo again >> {order}"),
+        ("fails", "f.out", "-", f"echo f >> {order}; exit 3"),
+        ("after_fail", "g.out", "f.out", f"echo g >> {order} && touch g.out"),
+    ]
+    (tmp_path / "old.out").write_text("")
+    plan = tmp_path / "plan.tsv"
+    plan.write_text("# a comment\n" + "".join("\t".join(r) + "\n" for r in rows))
+    r = run_queue(plan, tmp_path / "logs", slots=1)
+    assert r.returncode == 0, r.stderr
+    # one slot: a runs before b (b waited for a.out); the done job never runs; the failed one once
+    assert order.read_text().split() == ["a", "b", "f"]
+    assert "fails: FAILED (exit 3)" in r.stdout
+    assert "never started (inputs missing): ['after_fail']" in r.stdout
+
+
+def test_queue_names_a_malformed_plan_line(tmp_path):
+    plan = tmp_path / "plan.tsv"
+    plan.write_text("only\ttwo\n")
+    r = run_queue(plan, tmp_path / "logs")
+    assert r.returncode != 0 and "plan.tsv:1: expected 4 tab-separated fields" in r.stderr
+
+
+def metrics(hv: float, eu: float = 1.0, distinct: int = 3, spec: float = 10.0) -> dict:
+    return {
+        "env_id": "mo-halfcheetah-v5",
+        "reference_point": [-100.0, -4500.0],
+        "episodes": 10,
+        "children": 48,
+        "front": {"hypervolume": hv, "expected_utility": eu, "distinct_count": distinct},
+        "specialists": {"hypervolume": spec},
+    }
+
+
+def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
+    hv = {  # per label, per seed: paper beats warm-up in every seed; gentle is a coin toss
+        "paper_mapex": [30.0, 32.0, 28.0],
+        "warmup": [20.0, 21.0, 19.0],
+        "gentle_mapex": [25.0, 15.0, 21.0],
+        "interp": [20.0, 22.0, 18.0],
+    }
+    for label, values in hv.items():
+        for seed, v in enumerate(values):
+            f = tmp_path / "score" / label / f"seed{seed}" / "metrics.json"
+            f.parent.mkdir(parents=True)
+            f.write_text(json.dumps(metrics(v)))
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/answer_summary.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert out.returncode == 0, out.stderr
+    rows = {line.split("|")[1].strip(): line for line in out.stdout.splitlines() if line.startswith("| ")}
+    paper = rows["MAPEX, paper form (20 epochs, lr 3e-4)"]
+    # paper - warm-up = (10, 11, 9): mean 10 (+50% of 20), SEM 0.577: 17.3 SEM
+    assert "**beat**: +50.0%, 17.3 SEM, higher in 3/3" in paper
+    assert "30 ± 1.15" in paper  # mean ± SEM of 30, 32, 28
+    gentle = rows["MAPEX, gentle form (1 epoch, lr 1e-4)"]
+    assert "tied: +1.7%" in gentle and "higher in 2/3" in gentle
+    assert rows["specialists alone"].split("|")[3].strip() == "10 ± 0"
+
+
+def test_summary_without_scores_names_the_folder(tmp_path):
+    out = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/answer_summary.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert out.returncode != 0 and f"{tmp_path}/score: no LABEL/seedS/metrics.json" in out.stderr
+
+
+@pytest.mark.integration
+@pytest.mark.slow  # every method of the design on two seeds: slow keeps `make test` within 8 minutes
+def test_answer_design_runs_and_reports_on_a_tiny_preset(tmp_path):
+    params = with_lists(
+        merge(
+            TINY_CHAIN,
+            {
+                "seeds": [0, 1],
+                "methods": ["mapex_td3", "warmup_only_td3", "interpolate_td3"],
+                "extract": {"epochs": 3},
+            },
+        )
+    )
+    p = tmp_path / "tiny.yaml"
+    p.write_text(yaml.safe_dump(params))
+    work = tmp_path / "w"
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "SHARED_SEEDS": "0"}
+    r = subprocess.run(
+        ["bash", "benchmarks/answer.sh", str(work), str(p), "2"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    queue = (work / "logs" / "queue.log").read_text()
+    assert "failed: none" in queue, queue
+    assert (yaml.safe_load((work / "shared.yaml").read_text())["td3"]["shared_init"]) is True
+    for form in ("paper", "gentle"):
+        report = (work / "report" / form / "report.md").read_text()
+        assert "warm-up only" in report and "interpolation" in report.lower(), report[:2000]
+    summary = (work / "summary.md").read_text()
+    for name in ("MAPEX, paper form", "MAPEX, gentle form", "warm-up only", "interpolation, shared-init specialists"):
+        assert f"| {name}" in summary, summary
