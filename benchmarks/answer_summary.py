@@ -90,7 +90,7 @@ def main() -> None:
             spec_hv.update({s: r[s]["specialists"]["hypervolume"] for s in seeds})
         kids = sorted({r[s]["children"] for s in seeds})
         vs_w = paired(runs, label, "warmup") if label != "warmup" else "–"
-        vs_i = paired(runs, label, "interp") if label not in ("interp",) else "–"
+        vs_i = paired(runs, label, "interp") if label != "interp" else "–"
         print(
             f"| {name} | {','.join(map(str, seeds))} | {ms(hv)} | {ms(eu)} | {ms(dc)} | "
             f"{'/'.join(map(str, kids))} | {vs_w} | {vs_i} |"

@@ -40,7 +40,7 @@ def main() -> None:
     ap.add_argument("--poll", type=float, default=5.0, help="seconds between looks at the plan and the jobs")
     a = ap.parse_args()
     a.log.mkdir(parents=True, exist_ok=True)
-    running: dict[str, tuple[subprocess.Popen, float]] = {}
+    running: dict[str, tuple[subprocess.Popen, float]] = {}  # the job's process and start time
     failed: set[str] = set()
 
     def say(msg: str) -> None:
@@ -53,6 +53,7 @@ def main() -> None:
         for name, (proc, t0) in list(running.items()):
             if proc.poll() is not None:
                 del running[name]
+                proc.stdout_log.close()
                 if proc.returncode == 0:
                     say(f"{name}: done in {time.time() - t0:.0f} s")
                 else:
@@ -67,10 +68,9 @@ def main() -> None:
                 break
             if all(d.exists() for d in deps):
                 log = open(a.log / f"{name}.log", "w")
-                running[name] = (
-                    subprocess.Popen(["bash", "-c", cmd], stdout=log, stderr=subprocess.STDOUT),
-                    time.time(),
-                )
+                proc = subprocess.Popen(["bash", "-c", cmd], stdout=log, stderr=subprocess.STDOUT)
+                proc.stdout_log = log  # closed when the job ends
+                running[name] = (proc, time.time())
                 say(f"{name}: started")
         if not running:
             startable = [j for j in waiting if all(d.exists() for d in j[2])]
