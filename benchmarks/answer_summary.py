@@ -17,17 +17,34 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from pipeline.evaluation.metrics import mean_sem
 from pipeline.reporting.verdicts import verdict_outcome
 
-LABELS = {
-    "paper_mapex": "MAPEX, paper form (20 epochs, lr 3e-4)",
-    "gentle_mapex": "MAPEX, gentle form (1 epoch, lr 1e-4)",
+LABELS = {  # the two MAPEX forms are named with their extract values by form_names()
+    "paper_mapex": "MAPEX, paper form",
+    "gentle_mapex": "MAPEX, gentle form",
     "warmup": "warm-up only",
     "interp": "interpolation",
     "interp_shared": "interpolation, shared-init specialists",
 }
+
+
+def form_names(w: Path) -> dict[str, str]:
+    """The MAPEX rows' names with the values each form ran with, from WORKDIR/paper.yaml and
+    WORKDIR/gentle.yaml (answer.sh writes both; a form without its file keeps the bare name)."""
+    out = {}
+    for label, fname in (("paper_mapex", "paper.yaml"), ("gentle_mapex", "gentle.yaml")):
+        f = w / fname
+        if not f.exists():
+            continue
+        x = (yaml.safe_load(f.read_text()) or {}).get("extract", {})
+        epochs = x.get("epochs", "?")
+        values = [f"{epochs} epoch{'' if epochs == 1 else 's'}", f"lr {x.get('lr', 3e-4):g}"]
+        values += [f"{k} {x[k]:g}" for k in ("beta", "omega_max") if k in x]
+        out[label] = f"{LABELS[label]} ({', '.join(values)})"
+    return out
 
 
 def load(w: Path) -> dict[str, dict[int, dict]]:
@@ -67,6 +84,7 @@ def main() -> None:
     runs = load(w)
     if not runs:
         raise SystemExit(f"{w}/score: no LABEL/seedS/metrics.json (run benchmarks/answer_report.sh first)")
+    names = {**LABELS, **form_names(w)}
     any_run = next(iter(next(iter(runs.values())).values()))
     print(
         f"env {any_run['env_id']}, reference point {any_run['reference_point']}, "
@@ -78,7 +96,7 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|---|")
     spec_hv: dict[int, float] = {}
-    for label, name in LABELS.items():
+    for label, name in names.items():
         if label not in runs:
             continue
         r = runs[label]
@@ -107,7 +125,7 @@ def main() -> None:
         )
     print("\nPer seed, re-evaluated hypervolume (distinct points):\n")
     labels = [x for x in LABELS if x in runs]
-    print("| seed | specialists | " + " | ".join(LABELS[x] for x in labels) + " |")
+    print("| seed | specialists | " + " | ".join(names[x] for x in labels) + " |")
     print("|---|---|" + "---|" * len(labels))
     for s in sorted({s for r in runs.values() for s in r}):
         cells = [

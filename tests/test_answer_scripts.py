@@ -87,6 +87,9 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
             f = tmp_path / "score" / label / f"seed{seed}" / "metrics.json"
             f.parent.mkdir(parents=True)
             f.write_text(json.dumps(metrics(v)))
+    # the forms' rows are named with the values in answer.sh's params files (here Hopper's paper values)
+    (tmp_path / "paper.yaml").write_text("extract: {epochs: 10, lr: 0.0003, beta: 0.1, omega_max: 20.0}\n")
+    (tmp_path / "gentle.yaml").write_text("extract: {epochs: 1, lr: 0.0001, beta: 0.1, omega_max: 20.0}\n")
     out = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks/answer_summary.py"), str(tmp_path)],
         capture_output=True,
@@ -95,11 +98,11 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     rows = {line.split("|")[1].strip(): line for line in out.stdout.splitlines() if line.startswith("| ")}
-    paper = rows["MAPEX, paper form (20 epochs, lr 3e-4)"]
+    paper = rows["MAPEX, paper form (10 epochs, lr 0.0003, beta 0.1, omega_max 20)"]
     # paper - warm-up = (10, 11, 9): mean 10 (+50% of 20), SEM 0.577: 17.3 SEM
     assert "**beat**: +50.0%, 17.3 SEM, higher in 3/3" in paper
     assert "30 ± 1.15" in paper  # mean ± SEM of 30, 32, 28
-    gentle = rows["MAPEX, gentle form (1 epoch, lr 1e-4)"]
+    gentle = rows["MAPEX, gentle form (1 epoch, lr 0.0001, beta 0.1, omega_max 20)"]
     assert "tied: +1.7%" in gentle and "higher in 2/3" in gentle
     assert rows["specialists alone"].split("|")[3].strip() == "10 ± 0"
 
