@@ -7,6 +7,10 @@
 #
 #   bash benchmarks/answer.sh WORKDIR PARAMS [SLOTS]        (e.g. presets/answer/mo-halfcheetah-v5-64.yaml)
 #
+# SEEDS="0 1 ... 9" replaces PARAMS's seeds (e.g. to add seeds to a finished run: rerun the same
+# command on the same WORKDIR with more seeds); SHARED_SEEDS (default: the seeds) picks the seeds
+# of the shared-init interpolation.
+#
 # Runs the stage commands (python -m stages.cli) through benchmarks/jobqueue.py on SLOTS cores
 # (default: nproc), longest jobs first, each once its inputs exist; every member of every front is
 # re-evaluated (evaluate.episodes) and scored once; then one report per comparison under
@@ -24,10 +28,12 @@ mkdir -p "$W"
 export MAPEX_RESUME_ROOT="$W/resume"
 
 "$PY" - "$P" "$W" <<'PY'
-import sys, yaml
+import os, sys, yaml
 from pathlib import Path
 src, w = Path(sys.argv[1]), Path(sys.argv[2])
 p = yaml.safe_load(src.read_text())
+if os.environ.get("SEEDS"):
+    p["seeds"] = [int(x) for x in os.environ["SEEDS"].split()]
 dump = lambda d: yaml.safe_dump(d, sort_keys=False, default_flow_style=None)  # lists on one line, as sync-params writes them
 (w / "paper.yaml").write_text(dump(p))
 g = {**p, "extract": {**p["extract"], "epochs": 1, "lr": 1e-4}}
@@ -35,6 +41,8 @@ g = {**p, "extract": {**p["extract"], "epochs": 1, "lr": 1e-4}}
 s = {**p, "td3": {**p["td3"], "shared_init": True}}
 (w / "shared.yaml").write_text(dump(s))
 PY
+# the generated run lists (td3_seeds, ...) follow the seeds: every stage checks them
+for f in paper gentle shared; do $CLI sync-params --params "$W/$f.yaml" > /dev/null; done
 SEEDS=$("$PY" -c "import yaml,sys; print(' '.join(map(str, yaml.safe_load(open(sys.argv[1]))['seeds'])))" "$W/paper.yaml")
 SHARED_SEEDS=${SHARED_SEEDS:-$SEEDS}
 

@@ -152,3 +152,29 @@ def test_answer_design_runs_and_reports_on_a_tiny_preset(tmp_path):
     summary = (work / "summary.md").read_text()
     for name in ("MAPEX, paper form", "MAPEX, gentle form", "warm-up only", "interpolation, shared-init specialists"):
         assert f"| {name}" in summary, summary
+
+
+def test_answer_seeds_override_rewrites_the_params_files_and_the_plan(tmp_path):
+    # SEEDS adds seeds to a finished run (docs/results.md section 11): the three params files get the
+    # new seeds with their generated run lists in step, and the plan covers exactly those seeds
+    params = with_lists(merge(TINY_CHAIN, {"seeds": [0, 1], "methods": ["mapex_td3", "warmup_only_td3"]}))
+    p = tmp_path / "tiny.yaml"
+    p.write_text(yaml.safe_dump(params))
+    work = tmp_path / "w"
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "SEEDS": "3 5", "PLAN_ONLY": "1"}
+    env.pop("SHARED_SEEDS", None)
+    r = subprocess.run(
+        ["bash", "benchmarks/answer.sh", str(work), str(p), "1"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    for form in ("paper", "gentle", "shared"):
+        written = yaml.safe_load((work / f"{form}.yaml").read_text())
+        assert written["seeds"] == [3, 5] and written["td3_seeds"] == [3, 5], form
+    names = [line.split("\t")[0] for line in (work / "plan.tsv").read_text().splitlines()]
+    assert [n for n in names if n.startswith("spec_td3_")] == ["spec_td3_3", "spec_td3_5"]
+    assert [n for n in names if n.startswith("spec_shared_")] == ["spec_shared_3", "spec_shared_5"]
