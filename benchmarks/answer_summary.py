@@ -95,7 +95,7 @@ def main() -> None:
         "vs warm-up only (paired HV) | vs interpolation (paired HV) |"
     )
     print("|---|---|---|---|---|---|---|---|")
-    spec_hv: dict[int, float] = {}
+    spec: dict[int, dict] = {}  # per seed, the specialists-alone scores (the same in every run of a seed)
     for label, name in names.items():
         if label not in runs:
             continue
@@ -105,7 +105,7 @@ def main() -> None:
         eu = [r[s]["front"]["expected_utility"] for s in seeds]
         dc = [r[s]["front"]["distinct_count"] for s in seeds]
         if label != "interp_shared":
-            spec_hv.update({s: r[s]["specialists"]["hypervolume"] for s in seeds})
+            spec.update({s: r[s]["specialists"] for s in seeds})
         kids = sorted({r[s]["children"] for s in seeds})
         vs_w = paired(runs, label, "warmup") if label != "warmup" else "–"
         vs_i = paired(runs, label, "interp") if label != "interp" else "–"
@@ -113,16 +113,16 @@ def main() -> None:
             f"| {name} | {','.join(map(str, seeds))} | {ms(hv)} | {ms(eu)} | {ms(dc)} | "
             f"{'/'.join(map(str, kids))} | {vs_w} | {vs_i} |"
         )
-    if spec_hv:
-        seeds = sorted(spec_hv)
-        print(f"| specialists alone | {','.join(map(str, seeds))} | {ms([spec_hv[s] for s in seeds])} | | 2 | 0 | | |")
+    # specialists alone: their own front's distinct points (1 where one specialist dominates the other)
+    def alone(name: str, by_seed: dict[int, dict]) -> None:
+        seeds = sorted(by_seed)
+        cols = [ms([by_seed[s][k] for s in seeds]) for k in ("hypervolume", "expected_utility", "distinct_count")]
+        print(f"| {name} | {','.join(map(str, seeds))} | {' | '.join(cols)} | 0 | | |")
+
+    if spec:
+        alone("specialists alone", spec)
     if "interp_shared" in runs:
-        r = runs["interp_shared"]
-        seeds = sorted(r)
-        print(
-            f"| shared-init specialists alone | {','.join(map(str, seeds))} | "
-            f"{ms([r[s]['specialists']['hypervolume'] for s in seeds])} | | 2 | 0 | | |"
-        )
+        alone("shared-init specialists alone", {s: m["specialists"] for s, m in runs["interp_shared"].items()})
     print("\nPer seed, re-evaluated hypervolume (distinct points):\n")
     labels = [x for x in LABELS if x in runs]
     print("| seed | specialists | " + " | ".join(names[x] for x in labels) + " |")
@@ -134,7 +134,8 @@ def main() -> None:
             else ""
             for x in labels
         ]
-        print(f"| {s} | {fmt(spec_hv[s]) if s in spec_hv else ''} | " + " | ".join(cells) + " |")
+        sp = f"{fmt(spec[s]['hypervolume'])} ({spec[s]['distinct_count']})" if s in spec else ""
+        print(f"| {s} | {sp} | " + " | ".join(cells) + " |")
     print(
         "\nThe rule of 'beat'/'lost': the mean paired difference beyond 2 SEM of the paired differences and the "
         "same sign in more than half of the seeds (the report's); otherwise tied. The shared-init row pairs "

@@ -71,7 +71,7 @@ def metrics(hv: float, eu: float = 1.0, distinct: int = 3, spec: float = 10.0) -
         "episodes": 10,
         "children": 48,
         "front": {"hypervolume": hv, "expected_utility": eu, "distinct_count": distinct},
-        "specialists": {"hypervolume": spec},
+        "specialists": {"hypervolume": spec, "expected_utility": 0.5, "distinct_count": 1},
     }
 
 
@@ -104,7 +104,9 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
     assert "30 ± 1.15" in paper  # mean ± SEM of 30, 32, 28
     gentle = rows["MAPEX, gentle form (1 epoch, lr 0.0001, beta 0.1, omega_max 20)"]
     assert "tied: +1.7%" in gentle and "higher in 2/3" in gentle
-    assert rows["specialists alone"].split("|")[3].strip() == "10 ± 0"
+    # specialists alone: their own front's scores (here one specialist dominates: 1 distinct point)
+    assert [c.strip() for c in rows["specialists alone"].split("|")[3:7]] == ["10 ± 0", "0.5 ± 0", "1 ± 0", "0"]
+    assert rows["0"].split("|")[2].strip() == "10 (1)"
 
 
 def test_summary_without_scores_names_the_folder(tmp_path):
