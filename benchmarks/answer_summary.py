@@ -73,6 +73,8 @@ def paired(runs: dict, a: str, b: str) -> str:
     x = np.array([runs[a][s]["front"]["hypervolume"] for s in seeds])
     y = np.array([runs[b][s]["front"]["hypervolume"] for s in seeds])
     d = x - y
+    if not d.any():
+        return f"identical in {len(seeds)}/{len(seeds)}"
     (dm, dsem), (bm, _) = mean_sem(d), mean_sem(y)
     word = {"beat": "**beat**", "lost": "**lost**", "tied": "tied"}[verdict_outcome(d, y, 0.05, 2.0)]
     z = f"{abs(dm) / dsem:.1f}" if dsem > 0 else "inf"

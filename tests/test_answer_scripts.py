@@ -180,3 +180,61 @@ def test_answer_seeds_override_rewrites_the_params_files_and_the_plan(tmp_path):
     names = [line.split("\t")[0] for line in (work / "plan.tsv").read_text().splitlines()]
     assert [n for n in names if n.startswith("spec_td3_")] == ["spec_td3_3", "spec_td3_5"]
     assert [n for n in names if n.startswith("spec_shared_")] == ["spec_shared_3", "spec_shared_5"]
+
+
+def tiny_hopper3() -> dict:
+    """TINY_CHAIN on the 3-objective mo-hopper-v5 (40-step episodes), MAPEX and warm-up only."""
+    params = merge(
+        TINY_CHAIN,
+        {
+            "env": {"id": "mo-hopper-v5", "max_episode_steps": 40, "reference_point": [-100.0, -3390.0, -1510.0]},
+            "objectives": [0, 1, 2],
+            "methods": ["mapex_td3", "warmup_only_td3"],
+            "td3": {"buffer_size": 2000},
+            "extract": {"iterations": 3, "facet_bridge_ratio": 3.0},
+            "evaluate": {"episodes": 1},
+        },
+    )
+    for key in ("td3_seeds", "extract_from", "extract_variants", "warmup_from", "interpolate_from"):
+        params.pop(key, None)
+    return with_lists(params)
+
+
+def test_facets_refuses_two_objectives_naming_the_file(tmp_path):
+    p = tmp_path / "two.yaml"
+    p.write_text(yaml.safe_dump(with_lists(merge(TINY_CHAIN, {"methods": ["mapex_td3"]}))))
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "PLAN_ONLY": "1"}
+    r = subprocess.run(
+        ["bash", "benchmarks/facets.sh", str(tmp_path / "w"), str(p), "1"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=120,
+    )
+    assert r.returncode != 0 and f"{p}: objectives [0, 1]: the facet rule needs 3 or more objectives" in r.stderr
+
+
+@pytest.mark.integration
+@pytest.mark.slow  # three specialists and three extractions: slow keeps `make test` within 8 minutes
+def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_path):
+    p = tmp_path / "tiny3.yaml"
+    p.write_text(yaml.safe_dump(tiny_hopper3()))
+    work = tmp_path / "w"
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT)}
+    r = subprocess.run(
+        ["bash", "benchmarks/facets.sh", str(work), str(p), "2"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+    )
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "failed: none" in (work / "logs" / "queue.log").read_text()
+    assert yaml.safe_load((work / "before.yaml").read_text())["extract"]["facet_bridge_ratio"] is None
+    assert yaml.safe_load((work / "after.yaml").read_text())["extract"]["facet_bridge_ratio"] == 3.0
+    # one job per specialist: three objectives of seed 0, each with its own provenance record
+    assert sorted(f.name for f in (work / "provenance" / "specialists" / "seed0").iterdir()) == [
+        "obj0.json", "obj1.json", "obj2.json"]
+    for form in ("after", "before"):
+        assert "warm-up only" in (work / "report" / form / "report.md").read_text()
+    summary = (work / "summary.md").read_text()
+    rows = {line.split("|")[1].strip(): line for line in summary.splitlines() if line.startswith("| ")}
+    for name in ("MAPEX, facet rule (after)", "MAPEX, every facet (before)", "warm-up only", "specialists alone"):
+        assert name in rows, summary
+    assert "tied" in rows["MAPEX, facet rule (after)"] or "–" in rows["MAPEX, facet rule (after)"]  # one seed: no verdict
+    seed0 = rows["0"].split("|")
+    assert seed0[-3].count(":") == 3, seed0  # the three specialists' return vectors
