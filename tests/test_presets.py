@@ -110,19 +110,23 @@ def test_presets_set_pderls_rl_sync_period_of_their_env():
 def test_three_objective_presets():
     """A paper-scale and a quickstart-scale preset for each 3-objective env, all three objectives,
     the reference point of presets/reference_points.yaml, and extraction values set explicitly
-    (the paper has none for these envs); the paper-scale ones carry the paper's budgets."""
+    (the paper has none for these envs); the paper-scale ones carry the paper's budgets. The facets
+    preset (benchmarks/facets.sh) has the facet rule on, which the script turns off for "before"."""
     refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
-    assert {p.stem for p in NOBJ} == {"mo-hopper-v5", "mo-hopper-v5-quick", "mo-ant-v5", "mo-ant-v5-quick"}
+    assert {p.stem for p in NOBJ} == {"mo-hopper-v5", "mo-hopper-v5-quick", "mo-ant-v5", "mo-ant-v5-quick",
+                                    "mo-hopper-v5-facets"}
     for path in NOBJ:
         raw = load_params(path)
         env = section(raw, "env", EnvParams, path)
-        assert env.id == path.stem.removesuffix("-quick") and raw["objectives"] == [0, 1, 2]
+        assert env.id == path.stem.removesuffix("-quick").removesuffix("-facets") and raw["objectives"] == [0, 1, 2]
         assert env.reference_point == refs[env.id] and env.max_episode_steps == 750
         assert all(raw["extract"].get(k) is not None for k in ("epochs", "beta", "omega_max")), path
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
         td3 = section(raw, "td3", TD3Params, path)
         assert td3.secondary_critics
-        if not path.stem.endswith("-quick"):
+        if path.stem.endswith("-facets"):
+            assert raw["extract"]["facet_bridge_ratio"] is not None and ts.total_steps >= 1_000_000
+        elif not path.stem.endswith("-quick"):
             assert ts == TrainSpecialistParams(total_steps=2_000_000)
             assert td3 == TD3Params()
             ex = section(raw, "extract", ExtractParams, path)
