@@ -115,6 +115,7 @@ def main() -> None:
             f"| {name} | {','.join(map(str, seeds))} | {ms(hv)} | {ms(eu)} | {ms(dc)} | "
             f"{'/'.join(map(str, kids))} | {vs_w} | {vs_i} |"
         )
+
     # specialists alone: their own front's distinct points (1 where one specialist dominates the other)
     def alone(name: str, by_seed: dict[int, dict]) -> None:
         seeds = sorted(by_seed)

@@ -76,7 +76,10 @@ def main() -> None:
             continue
         r = runs[label]
         seeds = sorted(r)
-        cols = [ms([r[s]["front"][k] for s in seeds]) for k in ("hypervolume", "expected_utility", "distinct_count", "sparsity")]
+        cols = [
+            ms([r[s]["front"][k] for s in seeds])
+            for k in ("hypervolume", "expected_utility", "distinct_count", "sparsity")
+        ]
         spec_scores.update({s: r[s]["specialists"] for s in seeds})
         kids = "/".join(map(str, sorted({r[s]["children"] for s in seeds})))
         vs_b = paired(runs, label, "before") if label != "before" else "–"
@@ -84,15 +87,24 @@ def main() -> None:
         print(f"| {name} | {','.join(map(str, seeds))} | {' | '.join(cols)} | {kids} | {vs_b} | {vs_w} |")
     if spec_scores:
         seeds = sorted(spec_scores)
-        cols = [ms([spec_scores[s][k] for s in seeds]) for k in ("hypervolume", "expected_utility", "distinct_count", "sparsity")]
+        cols = [
+            ms([spec_scores[s][k] for s in seeds])
+            for k in ("hypervolume", "expected_utility", "distinct_count", "sparsity")
+        ]
         print(f"| specialists alone | {','.join(map(str, seeds))} | {' | '.join(cols)} | 0 | | |")
     print("\nPer seed, re-evaluated hypervolume (distinct points), and the specialists' returns:\n")
     labels = [x for x in LABELS if x in runs]
-    print("| seed | specialists | " + " | ".join(LABELS[x] for x in labels) + " | specialists' returns (objective: vector) | dominated |")
+    print(
+        "| seed | specialists | "
+        + " | ".join(LABELS[x] for x in labels)
+        + " | specialists' returns (objective: vector) | dominated |"
+    )
     print("|---|---|" + "---|" * len(labels) + "---|---|")
     for s in sorted({s for r in runs.values() for s in r}):
         cells = [
-            f"{fmt(runs[x][s]['front']['hypervolume'])} ({runs[x][s]['front']['distinct_count']})" if s in runs[x] else ""
+            f"{fmt(runs[x][s]['front']['hypervolume'])} ({runs[x][s]['front']['distinct_count']})"
+            if s in runs[x]
+            else ""
             for x in labels
         ]
         sp = f"{fmt(spec_scores[s]['hypervolume'])} ({spec_scores[s]['distinct_count']})" if s in spec_scores else ""

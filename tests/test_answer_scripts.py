@@ -206,7 +206,11 @@ def test_facets_refuses_two_objectives_naming_the_file(tmp_path):
     env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "PLAN_ONLY": "1"}
     r = subprocess.run(
         ["bash", "benchmarks/facets.sh", str(tmp_path / "w"), str(p), "1"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=120,
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert r.returncode != 0 and f"{p}: objectives [0, 1]: the facet rule needs 3 or more objectives" in r.stderr
 
@@ -220,7 +224,11 @@ def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_pa
     env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT)}
     r = subprocess.run(
         ["bash", "benchmarks/facets.sh", str(work), str(p), "2"],
-        cwd=ROOT, env=env, capture_output=True, text=True, timeout=900,
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "failed: none" in (work / "logs" / "queue.log").read_text()
@@ -228,13 +236,18 @@ def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_pa
     assert yaml.safe_load((work / "after.yaml").read_text())["extract"]["facet_bridge_ratio"] == 3.0
     # one job per specialist: three objectives of seed 0, each with its own provenance record
     assert sorted(f.name for f in (work / "provenance" / "specialists" / "seed0").iterdir()) == [
-        "obj0.json", "obj1.json", "obj2.json"]
+        "obj0.json",
+        "obj1.json",
+        "obj2.json",
+    ]
     for form in ("after", "before"):
         assert "warm-up only" in (work / "report" / form / "report.md").read_text()
     summary = (work / "summary.md").read_text()
     rows = {line.split("|")[1].strip(): line for line in summary.splitlines() if line.startswith("| ")}
     for name in ("MAPEX, facet rule (after)", "MAPEX, every facet (before)", "warm-up only", "specialists alone"):
         assert name in rows, summary
-    assert "tied" in rows["MAPEX, facet rule (after)"] or "–" in rows["MAPEX, facet rule (after)"]  # one seed: no verdict
+    assert (
+        "tied" in rows["MAPEX, facet rule (after)"] or "–" in rows["MAPEX, facet rule (after)"]
+    )  # one seed: no verdict
     seed0 = rows["0"].split("|")
     assert seed0[-3].count(":") == 3, seed0  # the three specialists' return vectors

@@ -113,8 +113,13 @@ def test_three_objective_presets():
     (the paper has none for these envs); the paper-scale ones carry the paper's budgets. The facets
     preset (benchmarks/facets.sh) has the facet rule on, which the script turns off for "before"."""
     refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
-    assert {p.stem for p in NOBJ} == {"mo-hopper-v5", "mo-hopper-v5-quick", "mo-ant-v5", "mo-ant-v5-quick",
-                                    "mo-hopper-v5-facets"}
+    assert {p.stem for p in NOBJ} == {
+        "mo-hopper-v5",
+        "mo-hopper-v5-quick",
+        "mo-ant-v5",
+        "mo-ant-v5-quick",
+        "mo-hopper-v5-facets",
+    }
     for path in NOBJ:
         raw = load_params(path)
         env = section(raw, "env", EnvParams, path)
