@@ -59,6 +59,11 @@ def fmt(x: float) -> str:
     return f"{x:.3g}" if abs(x) < 1e4 else f"{x:.3e}".replace("e+0", "e")
 
 
+def hv_cell(scores: dict | None) -> str:
+    """A per-seed table cell: hypervolume (distinct points) of a front's scores, '' where there is none."""
+    return f"{fmt(scores['hypervolume'])} ({scores['distinct_count']})" if scores else ""
+
+
 def ms(values: list[float]) -> str:
     m, s = mean_sem(np.array(values, dtype=float))
     return f"{fmt(m)} ± {fmt(s)}" if len(values) > 1 else fmt(m)
@@ -131,14 +136,11 @@ def main() -> None:
     print("| seed | specialists | " + " | ".join(names[x] for x in labels) + " |")
     print("|---|---|" + "---|" * len(labels))
     for s in sorted({s for r in runs.values() for s in r}):
-        cells = [
-            f"{fmt(runs[x][s]['front']['hypervolume'])} ({runs[x][s]['front']['distinct_count']})"
-            if s in runs[x]
-            else ""
-            for x in labels
-        ]
-        sp = f"{fmt(spec[s]['hypervolume'])} ({spec[s]['distinct_count']})" if s in spec else ""
-        print(f"| {s} | {sp} | " + " | ".join(cells) + " |")
+        print(
+            f"| {s} | {hv_cell(spec.get(s))} | "
+            + " | ".join(hv_cell(runs[x][s]["front"] if s in runs[x] else None) for x in labels)
+            + " |"
+        )
     print(
         "\nThe rule of 'beat'/'lost': the mean paired difference beyond 2 SEM of the paired differences and the "
         "same sign in more than half of the seeds (the report's); otherwise tied. The shared-init row pairs "

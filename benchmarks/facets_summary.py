@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from answer_summary import fmt, ms, paired  # noqa: E402
+from answer_summary import hv_cell, ms, paired  # noqa: E402
 
 LABELS = {
     "after": "MAPEX, facet rule (after)",
@@ -101,13 +101,8 @@ def main() -> None:
     )
     print("|---|---|" + "---|" * len(labels) + "---|---|")
     for s in sorted({s for r in runs.values() for s in r}):
-        cells = [
-            f"{fmt(runs[x][s]['front']['hypervolume'])} ({runs[x][s]['front']['distinct_count']})"
-            if s in runs[x]
-            else ""
-            for x in labels
-        ]
-        sp = f"{fmt(spec_scores[s]['hypervolume'])} ({spec_scores[s]['distinct_count']})" if s in spec_scores else ""
+        cells = [hv_cell(runs[x][s]["front"] if s in runs[x] else None) for x in labels]
+        sp = hv_cell(spec_scores.get(s))
         spec = specialists(w, s)
         vec = "; ".join(f"{k}: (" + ", ".join(f"{v:.0f}" for v in r) + ")" for k, r in spec)
         print(f"| {s} | {sp} | " + " | ".join(cells) + f" | {vec} | {', '.join(dominated(spec)) or 'none'} |")

@@ -17,6 +17,24 @@ from support.tiny_params import TINY_CHAIN, merge, with_lists
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_design(script: str, params: dict, tmp_path: Path, slots: int, timeout: int, **env: str):
+    """Run benchmarks/SCRIPT on PARAMS (written to tmp_path) into tmp_path/w with extra env
+    variables; returns the finished process and the work folder."""
+    p = tmp_path / "params.yaml"
+    p.write_text(yaml.safe_dump(params))
+    work = tmp_path / "w"
+    full = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), **env}
+    r = subprocess.run(
+        ["bash", f"benchmarks/{script}", str(work), str(p), str(slots)],
+        cwd=ROOT,
+        env=full,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    return r, work
+
+
 def run_queue(plan: Path, log: Path, slots: int = 2) -> subprocess.CompletedProcess:
     return subprocess.run(
         [
@@ -132,18 +150,7 @@ def test_answer_design_runs_and_reports_on_a_tiny_preset(tmp_path):
             },
         )
     )
-    p = tmp_path / "tiny.yaml"
-    p.write_text(yaml.safe_dump(params))
-    work = tmp_path / "w"
-    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "SHARED_SEEDS": "0"}
-    r = subprocess.run(
-        ["bash", "benchmarks/answer.sh", str(work), str(p), "2"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    r, work = run_design("answer.sh", params, tmp_path, 2, 900, SHARED_SEEDS="0")
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     queue = (work / "logs" / "queue.log").read_text()
     assert "failed: none" in queue, queue
@@ -160,19 +167,8 @@ def test_answer_seeds_override_rewrites_the_params_files_and_the_plan(tmp_path):
     # SEEDS adds seeds to a finished run (docs/results.md section 11): the three params files get the
     # new seeds with their generated run lists in step, and the plan covers exactly those seeds
     params = with_lists(merge(TINY_CHAIN, {"seeds": [0, 1], "methods": ["mapex_td3", "warmup_only_td3"]}))
-    p = tmp_path / "tiny.yaml"
-    p.write_text(yaml.safe_dump(params))
-    work = tmp_path / "w"
-    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "SEEDS": "3 5", "PLAN_ONLY": "1"}
-    env.pop("SHARED_SEEDS", None)
-    r = subprocess.run(
-        ["bash", "benchmarks/answer.sh", str(work), str(p), "1"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    # SHARED_SEEDS unset: the shared-init seeds follow SEEDS
+    r, work = run_design("answer.sh", params, tmp_path, 1, 300, SEEDS="3 5", PLAN_ONLY="1", SHARED_SEEDS="")
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     for form in ("paper", "gentle", "shared"):
         written = yaml.safe_load((work / f"{form}.yaml").read_text())
@@ -201,35 +197,16 @@ def tiny_hopper3() -> dict:
 
 
 def test_facets_refuses_two_objectives_naming_the_file(tmp_path):
-    p = tmp_path / "two.yaml"
-    p.write_text(yaml.safe_dump(with_lists(merge(TINY_CHAIN, {"methods": ["mapex_td3"]}))))
-    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT), "PLAN_ONLY": "1"}
-    r = subprocess.run(
-        ["bash", "benchmarks/facets.sh", str(tmp_path / "w"), str(p), "1"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    params = with_lists(merge(TINY_CHAIN, {"methods": ["mapex_td3"]}))
+    r, _ = run_design("facets.sh", params, tmp_path, 1, 120, PLAN_ONLY="1")
+    p = tmp_path / "params.yaml"
     assert r.returncode != 0 and f"{p}: objectives [0, 1]: the facet rule needs 3 or more objectives" in r.stderr
 
 
 @pytest.mark.integration
 @pytest.mark.slow  # three specialists and three extractions: slow keeps `make test` within 8 minutes
 def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_path):
-    p = tmp_path / "tiny3.yaml"
-    p.write_text(yaml.safe_dump(tiny_hopper3()))
-    work = tmp_path / "w"
-    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": str(ROOT)}
-    r = subprocess.run(
-        ["bash", "benchmarks/facets.sh", str(work), str(p), "2"],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    r, work = run_design("facets.sh", tiny_hopper3(), tmp_path, 2, 900)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "failed: none" in (work / "logs" / "queue.log").read_text()
     assert yaml.safe_load((work / "before.yaml").read_text())["extract"]["facet_bridge_ratio"] is None
