@@ -47,9 +47,10 @@ def form_names(w: Path) -> dict[str, str]:
     return out
 
 
-def load(w: Path) -> dict[str, dict[int, dict]]:
+def load(w: Path, labels=LABELS) -> dict[str, dict[int, dict]]:
+    """WORKDIR/score/LABEL/seedS/metrics.json of each of `labels`, by label and seed."""
     out: dict[str, dict[int, dict]] = {}
-    for label in LABELS:
+    for label in labels:
         for f in sorted((w / "score" / label).glob("seed*/metrics.json")):
             out.setdefault(label, {})[int(f.parent.name[4:])] = json.loads(f.read_text())
     return out

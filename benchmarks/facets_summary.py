@@ -13,26 +13,17 @@ leaves a front with fewer corners than objectives, and the facet rule little to 
 from __future__ import annotations
 
 import csv
-import json
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from answer_summary import hv_cell, ms, paired  # noqa: E402
+from answer_summary import hv_cell, load, ms, paired  # noqa: E402
 
 LABELS = {
     "after": "MAPEX, facet rule (after)",
     "before": "MAPEX, every facet (before)",
     "warmup": "warm-up only",
 }
-
-
-def load(w: Path) -> dict[str, dict[int, dict]]:
-    out: dict[str, dict[int, dict]] = {}
-    for label in LABELS:
-        for f in sorted((w / "score" / label).glob("seed*/metrics.json")):
-            out.setdefault(label, {})[int(f.parent.name[4:])] = json.loads(f.read_text())
-    return out
 
 
 def specialists(w: Path, seed: int) -> list[tuple[int, list[float]]]:
@@ -57,7 +48,7 @@ def dominated(spec: list[tuple[int, list[float]]]) -> list[str]:
 
 def main() -> None:
     w = Path(sys.argv[1])
-    runs = load(w)
+    runs = load(w, LABELS)
     if not runs:
         raise SystemExit(f"{w}/score: no LABEL/seedS/metrics.json (run benchmarks/facets.sh first)")
     any_run = next(iter(next(iter(runs.values())).values()))
