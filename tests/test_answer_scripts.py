@@ -228,3 +228,50 @@ def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_pa
     )  # one seed: no verdict
     seed0 = rows["0"].split("|")
     assert seed0[-3].count(":") == 3, seed0  # the three specialists' return vectors
+
+
+def test_facets_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
+    """A thin curved front (issue 31's arc) changes the gaps at ratio 3; a triangle of three of its
+    points does not."""
+    import numpy as np
+    import torch
+
+    t = np.linspace(0, np.pi / 2, 12)
+    arc = np.stack([np.cos(t), np.sin(t), np.sin(2 * t)], axis=1)
+    # iteration 0: the arc's two ends and a middle point; iteration 1: the rest of the arc
+    start = [0, 6, 11]
+    members = [{"iteration": 0, "returns": arc[i].tolist()} for i in start]
+    members += [{"iteration": 1, "returns": arc[i].tolist()} for i in range(12) if i not in start]
+    members += [{"iteration": 2, "returns": [0.0, 0.0, 0.0]}]
+    f = tmp_path / "fronts" / "after" / "seed0" / "population.pt"
+    f.parent.mkdir(parents=True)
+    torch.save({"meta": {"n_objectives": 3}, "members": members}, f)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/facets_replay.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert r.returncode == 0, r.stderr
+    rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| 0 ")]
+    rows = [[c.strip() for c in row] for row in rows]
+    # iteration 1 draws from one triangle (unchanged by the rule); iteration 2 from the whole
+    # arc, whose 10 facets the rule replaces by 3 facets and 7 steps (tests/test_gaps.py)
+    assert rows[0][:7] == ["0", "1", "3", "3", "1", "1", "no"]
+    assert rows[1][:7] == ["0", "2", "12", "12", "10", "10", "yes"]
+    assert float(rows[1][7]) < 3.0
+
+
+def test_facets_replay_refuses_two_objectives_naming_the_file(tmp_path):
+    import torch
+
+    f = tmp_path / "fronts" / "after" / "seed0" / "population.pt"
+    f.parent.mkdir(parents=True)
+    torch.save({"meta": {"n_objectives": 2}, "members": [{"iteration": 1, "returns": [0.0, 0.0]}]}, f)
+    r = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks/facets_replay.py"), str(tmp_path)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert r.returncode != 0 and f"{f}: 2 objectives; the facet rule is for 3 or more" in r.stderr
