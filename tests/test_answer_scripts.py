@@ -35,6 +35,16 @@ def run_design(script: str, params: dict, tmp_path: Path, slots: int, timeout: i
     return r, work
 
 
+def run_script(script: str, *args: Path) -> subprocess.CompletedProcess:
+    """python benchmarks/SCRIPT ARGS..., with the repository importable; the finished process."""
+    return subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), *map(str, args)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+
+
 def run_queue(plan: Path, log: Path, slots: int = 2) -> subprocess.CompletedProcess:
     return subprocess.run(
         [
@@ -108,12 +118,7 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
     # the forms' rows are named with the values in answer.sh's params files (here Hopper's paper values)
     (tmp_path / "paper.yaml").write_text("extract: {epochs: 10, lr: 0.0003, beta: 0.1, omega_max: 20.0}\n")
     (tmp_path / "gentle.yaml").write_text("extract: {epochs: 1, lr: 0.0001, beta: 0.1, omega_max: 20.0}\n")
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks/answer_summary.py"), str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+    out = run_script("answer_summary.py", tmp_path)
     assert out.returncode == 0, out.stderr
     rows = {line.split("|")[1].strip(): line for line in out.stdout.splitlines() if line.startswith("| ")}
     paper = rows["MAPEX, paper form (10 epochs, lr 0.0003, beta 0.1, omega_max 20)"]
@@ -128,12 +133,7 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
 
 
 def test_summary_without_scores_names_the_folder(tmp_path):
-    out = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks/answer_summary.py"), str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+    out = run_script("answer_summary.py", tmp_path)
     assert out.returncode != 0 and f"{tmp_path}/score: no LABEL/seedS/metrics.json" in out.stderr
 
 
@@ -246,12 +246,7 @@ def test_facets_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
     f = tmp_path / "fronts" / "after" / "seed0" / "population.pt"
     f.parent.mkdir(parents=True)
     torch.save({"meta": {"n_objectives": 3}, "members": members}, f)
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks/facets_replay.py"), str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+    r = run_script("facets_replay.py", tmp_path)
     assert r.returncode == 0, r.stderr
     rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| 0 ")]
     rows = [[c.strip() for c in row] for row in rows]
@@ -268,10 +263,5 @@ def test_facets_replay_refuses_two_objectives_naming_the_file(tmp_path):
     f = tmp_path / "fronts" / "after" / "seed0" / "population.pt"
     f.parent.mkdir(parents=True)
     torch.save({"meta": {"n_objectives": 2}, "members": [{"iteration": 1, "returns": [0.0, 0.0]}]}, f)
-    r = subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks/facets_replay.py"), str(tmp_path)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+    r = run_script("facets_replay.py", tmp_path)
     assert r.returncode != 0 and f"{f}: 2 objectives; the facet rule is for 3 or more" in r.stderr
