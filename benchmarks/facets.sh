@@ -9,7 +9,8 @@
 # MAPEX "before" (facet_bridge_ratio null: the roulette over every facet of the hull) and warm-up
 # only; every member re-evaluated (evaluate.episodes) and scored; then WORKDIR/summary.md
 # (benchmarks/facets_summary.py: per seed and mean ± SEM, after paired against before and both
-# against warm-up only, with the report's rule) and one report per MAPEX form under WORKDIR/report/.
+# against warm-up only, with the report's rule), one report per MAPEX form under WORKDIR/report/,
+# and WORKDIR/replay.md (benchmarks/facets_replay.py: whether the rule changed any iteration's gaps).
 # Jobs run through benchmarks/jobqueue.py on SLOTS cores (default: nproc), each once its inputs'
 # provenance records exist. Rerunning continues: finished outputs are kept and killed specialists and
 # extractions resume (WORKDIR/resume) as long as the code they run is byte for byte the same (run it
@@ -86,3 +87,11 @@ report after "$W/after.yaml" mapex_td3=after warmup_only_td3=warmup
 report before "$W/before.yaml" mapex_td3=before warmup_only_td3=warmup
 "$PY" benchmarks/facets_summary.py "$W" > "$W/summary.md"
 echo "summary: $W/summary.md"
+# did the rule change any draw? each iteration's gaps with and without it (benchmarks/facets_replay.py)
+ratio=$("$PY" -c "import yaml,sys; print(yaml.safe_load(open(sys.argv[1]))['extract'].get('facet_bridge_ratio'))" "$W/after.yaml")
+if [ "$ratio" = None ]; then
+  echo "replay: skipped ($P sets extract.facet_bridge_ratio null: 'after' is 'before')"
+else
+  "$PY" benchmarks/facets_replay.py "$W" --ratio "$ratio" > "$W/replay.md"
+  echo "replay: $W/replay.md"
+fi

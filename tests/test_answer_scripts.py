@@ -228,6 +228,10 @@ def test_facets_design_runs_before_and_after_on_a_tiny_3_objective_preset(tmp_pa
     )  # one seed: no verdict
     seed0 = rows["0"].split("|")
     assert seed0[-3].count(":") == 3, seed0  # the three specialists' return vectors
+    # the replay: one row per iteration of each seed, at the preset's ratio
+    replay = (work / "replay.md").read_text()
+    assert "facet_bridge_ratio 3.0" in replay
+    assert sum(line.startswith("| 0 |") for line in replay.splitlines()) == tiny_hopper3()["extract"]["iterations"]
 
 
 def test_facets_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
