@@ -22,9 +22,10 @@ import torch
 from pipeline.extraction.gaps import front_gaps
 
 
-def first_changing_ratio(returns: np.ndarray, below: float) -> float | None:
-    """The largest ratio r on the grid below - 0.1, below - 0.2, ..., 1.0 whose gaps differ from every facet's."""
-    every = sorted(front_gaps(returns, None)[0])
+def first_changing_ratio(returns: np.ndarray, below: float, every: list[tuple[int, ...]]) -> float | None:
+    """The largest ratio r on the grid below - 0.1, below - 0.2, ..., 1.0 whose gaps differ from
+    `every` (front_gaps(returns, None)'s gaps)."""
+    every = sorted(every)
     for r in np.round(np.arange(below - 0.1, 0.99, -0.1), 1):
         if sorted(front_gaps(returns, float(r))[0]) != every:
             return float(r)
@@ -56,7 +57,7 @@ def main() -> None:
             every, _ = front_gaps(r, None)
             ruled, _ = front_gaps(r, a.ratio)
             points = len({v for g in every for v in g})
-            first = first_changing_ratio(r, a.ratio)
+            first = first_changing_ratio(r, a.ratio, every)
             differ = "yes" if sorted(every) != sorted(ruled) else "no"
             print(
                 f"| {path.parent.name[4:]} | {i} | {len(r)} | {points} | {len(every)} | {len(ruled)} | {differ} | "
