@@ -142,11 +142,13 @@ def main() -> None:
             + " | ".join(hv_cell(runs[x][s]["front"] if s in runs[x] else None) for x in labels)
             + " |"
         )
-    print(
+    rule = (
         "\nThe rule of 'beat'/'lost': the mean paired difference beyond 2 SEM of the paired differences and the "
-        "same sign in more than half of the seeds (the report's); otherwise tied. The shared-init row pairs "
-        "different specialists of the same seed."
+        "same sign in more than half of the seeds (the report's); otherwise tied."
     )
+    if "interp_shared" in runs:
+        rule += " The shared-init row pairs different specialists of the same seed."
+    print(rule)
 
 
 if __name__ == "__main__":

@@ -130,6 +130,19 @@ def test_summary_pairs_methods_by_seed_with_the_reports_rule(tmp_path):
     # specialists alone: their own front's scores (here one specialist dominates: 1 distinct point)
     assert [c.strip() for c in rows["specialists alone"].split("|")[3:7]] == ["10 ± 0", "0.5 ± 0", "1 ± 0", "0"]
     assert rows["0"].split("|")[2].strip() == "10 (1)"
+    # no shared-init run: neither its row nor the footnote about it
+    assert "shared-init" not in out.stdout
+
+    f = tmp_path / "score" / "interp_shared" / "seed0" / "metrics.json"
+    f.parent.mkdir(parents=True)
+    f.write_text(json.dumps(metrics(26.0, spec=12.0)))
+    out = run_script("answer_summary.py", tmp_path)
+    assert out.returncode == 0, out.stderr
+    rows = {line.split("|")[1].strip(): line for line in out.stdout.splitlines() if line.startswith("| ")}
+    # one seed: the value alone, no ± (cells: seeds, hypervolume)
+    assert [c.strip() for c in rows["interpolation, shared-init specialists"].split("|")[2:4]] == ["0", "26"]
+    assert [c.strip() for c in rows["shared-init specialists alone"].split("|")[2:4]] == ["0", "12"]
+    assert "The shared-init row pairs different specialists of the same seed." in out.stdout
 
 
 def test_summary_without_scores_names_the_folder(tmp_path):
