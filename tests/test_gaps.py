@@ -381,7 +381,7 @@ def test_two_objectives_select_exactly_as_before_and_draw_the_same():
         ids, lengths = ex.front_edges(returns)
         ref_ids, ref_lengths = reference_front_edges(returns)
         np.testing.assert_array_equal(ids, ref_ids)
-        np.testing.assert_array_equal(lengths, ref_lengths)
+        np.testing.assert_allclose(lengths, ref_lengths, rtol=1e-12, atol=0)  # two computations
         new, old = np.random.default_rng(trial), np.random.default_rng(trial)
         for _ in range(3):
             got, want = ex.select_parents(returns, new), reference_select_parents(returns, old)
@@ -789,7 +789,11 @@ def test_graph_minimax_against_floyd_warshall():
             ref[a, b] = ref[b, a] = np.linalg.norm(pts[a] - pts[b])
         for k in range(n):  # minimax closure: the best path's longest step
             ref = np.minimum(ref, np.maximum(ref[:, [k]], ref[[k], :]))
-        np.testing.assert_array_equal(fm.graph_minimax(pts, edges), ref)
+        # the same distances summed in another order (the library's norms may go through BLAS,
+        # whose kernel the CPU picks): equal to the last few bits, not bit for bit
+        got = fm.graph_minimax(pts, edges)
+        np.testing.assert_array_equal(np.isinf(got), np.isinf(ref))
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=0)
 
 
 def test_regular_simplex_volume_by_hand():

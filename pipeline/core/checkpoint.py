@@ -92,6 +92,8 @@ def load_policy(path: str | Path, target: bool = False):
         actor = actor_from_meta(meta)
         try:
             actor.load_state_dict(obj[key])
+        except ArtifactError as exc:  # an imported program refused by its inspection (pt2check)
+            raise ArtifactError(f"{path}: {key}: {exc}") from None
         except (RuntimeError, KeyError, ValueError) as exc:
             raise ArtifactError(f"{path}: {key} weights do not match its metadata ({exc})") from None
         nets.append(actor.eval())

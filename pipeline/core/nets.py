@@ -13,6 +13,8 @@ from typing import Sequence
 import torch
 from torch import nn
 
+from pipeline.core.pt2check import check_pt2
+
 
 def mlp(in_dim: int, hidden_sizes: Sequence[int], out_dim: int) -> nn.Sequential:
     layers: list[nn.Module] = []
@@ -167,6 +169,9 @@ class ExportedActor(ScriptedActor):
 
     @staticmethod
     def _load(f) -> nn.Module:
+        # a program from elsewhere can run Python while torch.export.load reads it: the archive is
+        # inspected first, every time (pipeline/core/pt2check.py; docs/trust.md)
+        check_pt2(f.getvalue())
         return torch.export.load(f).module()
 
     def train(self, mode: bool = True) -> "ExportedActor":

@@ -95,6 +95,8 @@ def load_policy_set(path: str | Path) -> PolicySet:
         actor = actor_from_meta(meta)
         try:
             actor.load_state_dict(state)
+        except ArtifactError as exc:  # an imported program refused by its inspection (pt2check)
+            raise ArtifactError(f"{path}: actor {name!r}: {exc}") from None
         except (RuntimeError, KeyError, TypeError) as exc:
             raise ArtifactError(f"{path}: weights of actor {name!r} do not match its metadata ({exc})") from None
         actors.append(actor.eval())

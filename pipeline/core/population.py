@@ -81,7 +81,10 @@ def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
     for cls in (ScriptedActor, ExportedActor):
         if cls.KEY in member.actor:
             data = member.actor[cls.KEY].numpy().tobytes()
-            return cls.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
+            try:
+                return cls.from_bytes(data, meta.get("action_low"), meta.get("action_high")).eval()
+            except ArtifactError as exc:  # a program refused by its inspection (pt2check)
+                raise ArtifactError(f"a {member.origin} member (iteration {member.iteration}): {exc}") from None
     cls = NormalizedActor if NORMALIZED_KEYS[0] in member.actor else Actor
     actor = cls(meta["obs_dim"], meta["act_dim"], member.hidden_sizes, meta["action_low"], meta["action_high"])
     actor.load_state_dict(member.actor)

@@ -27,7 +27,7 @@ from pipeline.core.nets import ExportedActor, ScriptedActor
 
 LOADERS = {
     "torchscript": lambda data: torch.jit.load(io.BytesIO(data), map_location="cpu"),
-    "torch_export": lambda data: torch.export.load(io.BytesIO(data)).module(),
+    "torch_export": lambda data: ExportedActor._load(io.BytesIO(data)),  # inspected before it loads
 }
 
 

@@ -375,6 +375,8 @@ def read_torch_export(path: Path, spec: EnvSpec) -> tuple[ExportedActor, _Declar
     data = path.read_bytes()
     try:
         actor = ExportedActor.from_bytes(data, spec.action_low, spec.action_high)
+    except ArtifactError as exc:  # pt2check refused the archive before torch.export.load saw it
+        raise ArtifactError(f"{path}: {exc}") from None
     except Exception as exc:  # torch.export.load raises many kinds on a file that is not a program
         first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
         raise ArtifactError(
