@@ -9,7 +9,8 @@
 #                   subprocesses one after another, long training) and the tests marked `slow`
 #   make test       everything not marked slow (the integration files too), about 6.5 min
 #   make test-slow  the tests marked slow (sweeps on a Ray cluster, the every-method DVC chain)
-# CI (.ci/run) runs lint, test and test-slow. An unmarked new test file lands in the fast tier.
+#   make test-kernels  the fast tier again under other CPU kernels than this machine's own
+# CI (.ci/run) runs lint, test, test-kernels and test-slow. An unmarked new test file lands in the fast tier.
 #
 # torch: the CPU build is installed first, so nothing later pulls the multi-GB CUDA build.
 # TORCH_SPEC and TORCH_INDEX choose another build, e.g. for a CUDA 12.8 machine:
@@ -23,7 +24,7 @@ BIN := $(VENV)/bin
 # each test file runs whole in one worker (--dist loadfile), so module fixtures are built once.
 TEST_WORKERS ?= 2
 
-.PHONY: install repro test test-fast test-slow lint format bench clean-venv
+.PHONY: install repro test test-fast test-kernels test-slow lint format bench clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -62,6 +63,16 @@ test-fast: install
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow and not integration"
+
+# The fast tier again, computed with other kernels than this CPU picks (.ci/other_kernels.py: an
+# OpenBLAS core type it does not pick; torch's AVX2 paths where it has AVX-512): a test that pins
+# one CPU's last bits fails here, on the developer's machine, before it fails on another. CI runs it.
+test-kernels: install
+	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
+	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
+	@echo "kernels: $$($(BIN)/python .ci/other_kernels.py)"
+	env $$($(BIN)/python .ci/other_kernels.py) PATH="$(CURDIR)/$(BIN):$$PATH" \
+	  python -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow and not integration"
 
 # The tests marked slow (sweeps on a Ray cluster, every method's stages through one DVC chain:
 # about 4 minutes more), which `make test` leaves out to stay within 8 minutes; CI runs both.
