@@ -28,6 +28,7 @@ import torch
 
 # The grid and the mix live in pipeline.core.mixing (extraction's hybrid start reuses them);
 # imported here under their old names, which the stage and the tests use.
+from pipeline.core.cost import Stopwatch, cost_row
 from pipeline.core.mixing import architecture_problem as architecture_problem
 from pipeline.core.mixing import chosen_specialists as chosen_specialists
 from pipeline.core.mixing import grid_resolution as grid_resolution
@@ -57,6 +58,7 @@ def interpolate(
     seed: int,
     envs: Sequence[gym.Env],
     on_member: Callable[[Member], None] | None = None,
+    costs: list[dict] | None = None,
 ) -> list[Member]:
     """The interpolation baseline's population: every starting policy evaluated (members
     0 .. n_start - 1, as extraction's population starts), then one member per point of the grid
@@ -68,7 +70,9 @@ def interpolate(
     for grid point j (so its hypervolume curve is on the iteration axis of a MAPEX run making
     per_iteration children an iteration), env_samples the env frames of every evaluation so
     far: its only cost. Raises ValueError (one line) when the specialists' actors cannot be
-    mixed (`starts_problem`), before any episode runs."""
+    mixed (`starts_problem`), before any episode runs. `costs`, a list, receives the rows of
+    pipeline.core.cost.COST_FIELDS: the starting policies' evaluation (phase "start"), then per
+    iteration its grid points' mixing ("train") and evaluation (phase "interpolated")."""
     problem = starts_problem(starts)
     if problem is not None:
         raise ValueError(problem)
@@ -93,29 +97,44 @@ def interpolate(
     def run(actor: Actor, i: int) -> EvalResult:
         return evaluate_policy(actor, list(envs), eval_seeds(seed, EVAL_STREAM, i, eval_episodes))
 
-    for i, s in enumerate(starts):
-        add(
-            s.actor,
-            run(s.actor, i),
-            origin="specialist",
-            objective=s.objective,
-            iteration=0,
-            parents=[],
-            target_weight=None,
-            policy_name=s.name,
-        )
+    with Stopwatch() as ev:
+        for i, s in enumerate(starts):
+            add(
+                s.actor,
+                run(s.actor, i),
+                origin="specialist",
+                objective=s.objective,
+                iteration=0,
+                parents=[],
+                target_weight=None,
+                policy_name=s.name,
+            )
+    rows = [cost_row(0, "start", len(starts), None, ev)]
     chosen = chosen_specialists(starts, [m.returns for m in members], n_objectives)
     actors = [starts[i].actor for i in chosen]
     for j, w in enumerate(mixing_weights(n_objectives, policies)):
-        actor = mix_actors(actors, w)
+        with Stopwatch() as mix:
+            actor = mix_actors(actors, w)
+        with Stopwatch() as ev:
+            res = run(actor, len(members))
+        it = j // per_iteration + 1
+        if rows[-1]["iteration"] != it:
+            rows.append(cost_row(it, ORIGIN, 0, None, None))
+        row = rows[-1]
+        row["policies"] += 1
+        for key, sw in (("train", mix), ("eval", ev)):
+            row[f"{key}_wall_s"] = round(row[f"{key}_wall_s"] + sw.wall, 4)
+            row[f"{key}_cpu_s"] = round(row[f"{key}_cpu_s"] + sw.cpu, 4)
         add(
             actor,
-            run(actor, len(members)),
+            res,
             origin=ORIGIN,
             objective=None,
-            iteration=j // per_iteration + 1,
+            iteration=it,
             parents=[i for i, x in zip(chosen, w) if x > 0],
             target_weight=list(w),
             policy_name=None,
         )
+    if costs is not None:
+        costs.extend(rows)
     return members
