@@ -97,6 +97,14 @@ def extract(
     is not an input here. With --provenance, what produced the run (pipeline.core.provenance)
     goes to that file, outside OUT.
 
+    Not in the paper, off by default (docs/manual.md, "Hybrid extraction", "Early stopping"):
+    extract.init interpolate starts each child from its parents' mixed weights (falling back to
+    the paper's start, counted in meta init_fallbacks, where they cannot be mixed);
+    extract.seed_interpolation adds the interpolation baseline's policies to the starting
+    population (origin 'interpolated'); extract.stop_patience stops the run early (meta
+    stopped_at). The provenance record's cost holds each iteration's training and evaluation
+    seconds.
+
     A child whose training diverges (a NaN or infinity in its warm-up or advantage-weighted
     loss or its weights, e.g. from a critic that holds one) stops the stage with one line
     naming the seed, iteration, step and loss, and exit code 3; nothing is written and the

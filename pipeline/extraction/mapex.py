@@ -41,6 +41,11 @@ Deviations from the paper, each a param unless it is a necessary reading:
 - `precision: bf16` (default fp32, which the paper's results assume): the children's matrix
   products in bfloat16, the critics and parents cast once, master weights, Adam and every sum
   in fp32 (pipeline/core/precision.py).
+- `init: interpolate` (default warmup = the paper; the hybrid extraction, not in the paper):
+  a child starts from its parents' weights mixed with equal coefficients (`interpolated_start`)
+  instead of a random network, without the warm-up unless `warmup_after_interpolate`; a child
+  whose parents cannot be mixed into one (`interpolation_problem`) starts as the paper's and
+  says so in its record. The paper's advantage-weighted phase follows either way.
 An advantage always weights exactly the row it was computed for (the precursor code paired
 them with resampled rows, a bug not reproduced here).
 

@@ -5,7 +5,9 @@
 paper's shared MAPEX table, or the precursor code's value where the paper gives none.
 Two settings deviate from the paper and say so in their descriptions: `advantage_norm: none`,
 the default (a mix of units, see pipeline/extraction/mapex.py), and `children_per_iteration` above 1
-(K children per iteration from the same front, trained together).
+(K children per iteration from the same front, trained together). Five more are not in the paper
+and off by default (EXTENSION_KEYS): the hybrid extraction (`init`, `warmup_after_interpolate`,
+`seed_interpolation`) and early stopping (`stop_patience`, `stop_min_gain`).
 """
 
 from __future__ import annotations
