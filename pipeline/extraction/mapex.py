@@ -365,7 +365,7 @@ class ChildConfig:
     adv: AdvantageConfig
     facet_bridge_ratio: float | None = None  # N >= 3: which facets the roulette draws from (gaps.front_gaps)
     precision: str = "fp32"  # resolved (pipeline.core.precision): "fp32" or "bf16"
-    # the hybrid extraction (not in the paper; `child_start`): "warmup" (the paper) or "interpolate"
+    # the hybrid extraction (not in the paper; `start_child`): "warmup" (the paper) or "interpolate"
     init: str = "warmup"
     warmup_after_interpolate: bool = False  # init "interpolate": warm up from the interpolated start too
 
@@ -397,7 +397,7 @@ class ChildStart:
     hybrid: Hybrid
     a_bar: torch.Tensor  # (N, act_dim) mean parent action at each hybrid state ((0, act_dim) without warm-up)
     actor: Actor  # freshly initialised (or interpolated from its parents), on the device
-    warmup_steps: int = 0  # the warm-up's steps for this child (0: none, an interpolated start)
+    warmup_steps: int  # the warm-up's steps for this child (0: none, an interpolated start)
     init: str | None = None  # as ChildRecord.init
     fallback: str | None = None  # as ChildRecord.fallback
 

@@ -220,11 +220,6 @@ class ExtractionRun:
         return self.iteration >= self.cfg.iterations or self.stopped_at is not None
 
     @property
-    def fallbacks(self) -> dict[str, int]:
-        """Why children of init interpolate fell back to the paper's warm-up: reason -> count."""
-        return dict(self._fallbacks)
-
-    @property
     def samples(self) -> int:
         """Env frames spent on evaluation so far (the only env interaction of extraction)."""
         return self.members[-1].env_samples if self.members else 0
