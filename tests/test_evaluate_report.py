@@ -1144,3 +1144,20 @@ def test_report_puts_a_cost_column_beside_every_verdict_and_draws_hypervolume_ag
     drawn = {line.get_label() for line in fig.axes[0].get_lines()}
     assert any("MAPEX-TD3" in d for d in drawn) and any("warm-up only" in d for d in drawn)
     assert fig.axes[0].get_xscale() == "log"
+
+
+def test_cost_table_shows_an_early_stop_and_the_fallbacks_only_where_a_run_has_them():
+    from pipeline.reporting.cost import cost_table
+
+    plain = [_run("mapex_td3", s, 1.0) for s in SEEDS]
+    assert cost_table(plain, {}) == ""  # nothing recorded: no table
+    runs = [_run("mapex_td3", s, 1.0) for s in SEEDS]
+    for r, stop in zip(runs, (5, None)):
+        r.origin = np.array(["specialist", "specialist", "child", "child", "child"])
+        r.metrics |= {"stopped_at": stop, "init_fallbacks": {"a parent has hidden sizes [64, 64]": 1}}
+    table = cost_table(runs, {("td3", 0): 12.0})
+    header, _, row, spec = table.splitlines()
+    assert "stopped early after iteration" in header and "children that fell back to warm-up" in header
+    assert "of which interpolated seeds" not in header  # no run seeded
+    assert "| 5, not stopped |" in row and "| 2 of 6 |" in row
+    assert spec.startswith("| TD3 specialists") and "| 12 |" in spec

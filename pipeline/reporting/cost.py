@@ -128,8 +128,9 @@ def cost_table(runs: list[Run], specialists: dict[tuple[str, int], float]) -> st
     extraction's interpolated seeds), its wall seconds, the re-evaluation's core-seconds, and
     the extensions' record (early stop, fallbacks; those three columns only where a run has
     them); then per kind of specialists their core-seconds per seed. '' when no run recorded a
-    cost."""
-    if not any(method_core_seconds(r) is not None for r in runs) and not specialists:
+    cost, an early stop or fallbacks."""
+    extensions = any("stopped_at" in r.metrics or "init_fallbacks" in r.metrics for r in runs)
+    if not any(method_core_seconds(r) is not None for r in runs) and not specialists and not extensions:
         return ""
     header = [
         "Method",
