@@ -12,11 +12,26 @@ record (`pipeline.core.provenance.write_provenance`, key "cost"), which only the
 
 from __future__ import annotations
 
+import os
 import resource
 import time
 from dataclasses import dataclass
 
-LOADED = time.monotonic()  # when the stage's code was loaded: the start of its wall seconds
+
+def _process_start() -> float:
+    """When this process started, on the time.monotonic clock (Linux: from /proc, whose uptime is
+    that clock's; elsewhere: when this module was loaded, after the interpreter's start-up)."""
+    try:
+        with open("/proc/self/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime, after the name
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return time.monotonic() - max(uptime - ticks / os.sysconf("SC_CLK_TCK"), 0.0)
+    except (OSError, ValueError, IndexError):
+        return time.monotonic()
+
+
+STARTED = _process_start()  # the start of a process's wall seconds, as of its CPU seconds
 
 
 def cpu_seconds() -> float:
@@ -27,8 +42,8 @@ def cpu_seconds() -> float:
 
 
 def process_cost() -> dict[str, float]:
-    """This process's cost so far: {"cpu_seconds", "wall_seconds"} (wall: since its code loaded)."""
-    return {"cpu_seconds": round(cpu_seconds(), 3), "wall_seconds": round(time.monotonic() - LOADED, 3)}
+    """This process's cost so far: {"cpu_seconds", "wall_seconds"}, both since it started."""
+    return {"cpu_seconds": round(cpu_seconds(), 3), "wall_seconds": round(time.monotonic() - STARTED, 3)}
 
 
 @dataclass
