@@ -107,13 +107,19 @@ def read_specialist_costs(root: Path | None, runs: list[Run]) -> dict[tuple[str,
     return out
 
 
+def seconds(x: float, like: float | None = None) -> str:
+    """Seconds to about three figures: '1,234', '56.7', '0.12' (decimals as for `like`, default x)."""
+    size = abs(x if like is None else like)
+    return f"{x:,.0f}" if size >= 100 else f"{x:.1f}" if size >= 10 else f"{x:.2f}"
+
+
 def fmt_seconds(values: list[float | None]) -> str:
-    """'1,234 ± 56' core-seconds over seeds ('n/a' where none recorded; '(k of n seeds)' where some)."""
+    """'1,234 ± 56' seconds over seeds (`seconds`; 'n/a' where none recorded; '(k of n seeds)' where some)."""
     v = [x for x in values if x is not None]
     if not v:
         return "n/a"
     mean, sem = mean_sem(v)
-    text = f"{mean:,.0f}" if len(v) < 2 else f"{mean:,.0f} ± {sem:,.0f}"
+    text = seconds(mean) if len(v) < 2 else f"{seconds(mean)} ± {seconds(sem, mean)}"
     return text if len(v) == len(values) else f"{text} ({len(v)} of {len(values)} seeds)"
 
 
