@@ -97,6 +97,18 @@ def test_without_training_steps_the_child_is_the_interpolated_policy(stacked):
         assert same(actor, mix_actors([actors[p] for p in rec.parents], [1 / len(rec.parents)] * len(rec.parents)))
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (benchmarks/device/check.sh runs it there)")
+def test_cuda_stacked_children_without_training_steps_are_the_interpolated_policy():
+    """The CUDA path (fused Adam, rows drawn on the device): masked warm-up steps of zero gradient
+    leave an interpolated child exactly at its start there too."""
+    buffers, _, actors = inputs()
+    cuda = [a.to("cuda") for a in actors]
+    out = make_children(RETURNS, cuda, buffers, None, config(epochs=0), child_seeds(3, 1, 2), "cuda")
+    for actor, rec in out:
+        mixed = mix_actors([actors[p] for p in rec.parents], [1 / len(rec.parents)] * len(rec.parents))
+        assert same(actor.cpu(), mixed)
+
+
 def test_warmup_after_interpolate_warms_up_from_the_interpolated_start():
     buffers, _, actors = inputs()
     start = ex.start_child(RETURNS, actors, buffers, config(warmup_after=True), np.random.default_rng(5), 77, "cpu")
