@@ -13,6 +13,8 @@ report() {
   done
   [ -n "$seeds" ] || { echo "$name: no seed has all of $*; skipped"; return 0; }
   local methods=""
+  # the specialists' records: the report's cost table costs them per seed and kind
+  [ -d "$W/provenance/specialists" ] && mkdir -p "$t/provenance" && ln -s "$W/provenance/specialists" "$t/provenance/specialists"
   for ml in "$@"; do
     local m=${ml%%=*} l=${ml#*=}
     methods="$methods${methods:+, }$m"

@@ -18,7 +18,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots, slot_sources
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.extract import ExtractParams
+from pipeline.params.extract import ExtractParams, without_default_extensions
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, TRAINED_KINDS, method_name
 from stages.common import (
     PARAMS_OPTION,
@@ -97,6 +97,14 @@ def extract(
     is not an input here. With --provenance, what produced the run (pipeline.core.provenance)
     goes to that file, outside OUT.
 
+    Not in the paper, off by default (docs/manual.md, "Hybrid extraction", "Early stopping"):
+    extract.init interpolate starts each child from its parents' mixed weights (falling back to
+    the paper's start, counted in meta init_fallbacks, where they cannot be mixed);
+    extract.seed_interpolation adds the interpolation baseline's policies to the starting
+    population (origin 'interpolated'); extract.stop_patience stops the run early (meta
+    stopped_at). The provenance record's cost holds each iteration's training and evaluation
+    seconds.
+
     A child whose training diverges (a NaN or infinity in its warm-up or advantage-weighted
     loss or its weights, e.g. from a critic that holds one) stops the stage with one line
     naming the seed, iteration, step and loss, and exit code 3; nothing is written and the
@@ -140,7 +148,10 @@ def extract(
     env_cfg = env_p.model_dump(exclude={"objective_names", "reference_point"})
     config = {
         "env": env_cfg,
-        "extract": without_fp32(cfg.model_dump(exclude={"facet_bridge_ratio"} if spec.n_objectives == 2 else None)),
+        # the extensions (hybrid extraction, early stopping) only where set: a paper run's record is as before them
+        "extract": without_default_extensions(
+            without_fp32(cfg.model_dump(exclude={"facet_bridge_ratio"} if spec.n_objectives == 2 else None))
+        ),
         "seed": seed,
         "variant": variant,
         "kind": kind,
@@ -166,10 +177,14 @@ def extract(
                 "collection_frames": sum(int(s.buffer_attrs.get("collection_frames", 0)) for s in slots),
                 # imported slots beside slots trained here: where each came from (the report says it)
                 **({"specialist_sources": sources} if sources else {}),
+                # the extensions that ran: fallbacks, seeds, the early stop ({} for a paper run)
+                **run.record(),
             },
         )
         write_text_atomic(out / "history.csv", history_csv(run.history))
+        finished.append(run)
 
+    finished: list[ExtractionRun] = []  # the run whose outputs `save` wrote: its costs go to the provenance record
     who = f"extract {method} seed {seed}"
     with progress_send(cfg.iterations * cfg.children_per_iteration, who, unit="child") as send:
         drive(
@@ -181,4 +196,4 @@ def extract(
             save=save,
             send=send,
         )
-    write_provenance(provenance, "extract", device, precision)
+    write_provenance(provenance, "extract", device, precision, {"iterations": finished[0].costs})

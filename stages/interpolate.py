@@ -101,6 +101,7 @@ def interpolate(
         if problem is not None:  # e.g. imported specialists of different nets
             raise ArtifactError(f"{specialists}: cannot interpolate: {problem}")
         total = len(starts) + len(mixing_weights(spec.n_objectives, policies))
+        costs: list[dict] = []  # per-iteration cost rows, for the provenance record
         with progress(total, f"interpolate {kind} seed {seed}", unit="policy") as bar:
 
             def shown(member) -> None:
@@ -108,7 +109,7 @@ def interpolate(
                 bar.update(1)
 
             members = interpolate_policies(
-                starts, spec.n_objectives, policies, ext.children_per_iteration, episodes, seed, envs, shown
+                starts, spec.n_objectives, policies, ext.children_per_iteration, episodes, seed, envs, shown, costs
             )
     finally:
         for env in envs:
@@ -122,4 +123,4 @@ def interpolate(
     }
     run_meta = meta | {"seed": seed, "method": method_name("interpolate", kind), "params": config}
     save_population(out / "population.pt", members, run_meta)
-    write_provenance(provenance, "interpolate", "cpu")
+    write_provenance(provenance, "interpolate", "cpu", cost={"iterations": costs})

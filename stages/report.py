@@ -12,7 +12,8 @@ from pipeline.core.envs import objective_names
 from pipeline.params import RunParams, section
 from pipeline.params.methods import label
 from pipeline.params.report import ReportParams
-from pipeline.reporting.figures import front_caption, front_figure, history_figure
+from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
+from pipeline.reporting.figures import cost_figure, front_caption, front_figure, history_figure
 from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.report import report_markdown
 from pipeline.reporting.runs import Run, check_comparable, load_runs
@@ -51,7 +52,10 @@ def report(
     to reach each other's hypervolume (when both ran), one front figure per seed
     (front_seedS.png: starting policies apart from the rest; with 3 or more objectives every
     pair of objectives and a 3-D view), the hypervolume history
-    (hypervolume.png) and what produced each run (its stages' provenance); with --render, a link
+    (hypervolume.png), what each front cost (core-seconds of the stage that made it, its
+    re-evaluation and its specialists, from the provenance records; a cost column beside the
+    verdicts; cost.png, hypervolume against cumulative core-seconds, where any cost was
+    recorded) and what produced each run (its stages' provenance); with --render, a link
     to stage render's explorer.html and thumbnails of each filmed front's ends and middle
     (thumbs/). The folder is built beside OUT and renamed
     into place when complete.
@@ -80,6 +84,15 @@ def report(
         "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
         "the method ran (solid) and the same members re-evaluated (dashed)."
     )
+    if any(method_core_seconds(r) is not None for r in runs):
+        figures["cost"] = cost_figure(runs, env_p.id, cfg.figure_width)
+        captions["cost.png"] = (
+            "Re-evaluated hypervolume of the population after each iteration against the cumulative core-seconds "
+            "of the stage that made it (log axis; the specialists' not included): a curve (mean ± SEM over seeds) "
+            "where the stage recorded per-iteration costs (extraction, interpolation; the hybrid extraction's "
+            "interpolated seeds in its first point), one point at the final front where it recorded only its "
+            "total; a method with no recorded cost is not drawn."
+        )
     context = {
         "evaluation episodes per member": str(runs[0].metrics["episodes"]),
         "starting policies per specialist": starting_policies_line(runs),
@@ -97,6 +110,7 @@ def report(
         cfg.noise_sems,
         cfg.weak_specialist_fraction,
         cfg.weak_specialist_min_return,
+        read_specialist_costs(provenance, runs),
     )
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():

@@ -6,7 +6,8 @@ Outputs (in OUT):
   metrics.json     front and specialist-only metrics (pipeline.evaluation.metrics; "specialists" = every
                    starting policy, all of each specialist's policy set), their HV ratio, the
                    extraction-time hypervolume, and the run's context, with the number of
-                   starting policies and of children (DVC metrics).
+                   starting policies and of children (DVC metrics); for an extraction that ran
+                   one of the extensions, what it recorded (EXTENSION_META).
   hypervolume.csv  one row per extraction iteration t, for the population of every member made
                    by iteration t: iteration, population, env_samples (cumulative, extraction),
                    hypervolume_extract (of the extraction-time returns, the paper's learning
@@ -34,6 +35,9 @@ from pipeline.evaluation.metrics import hypervolume_history, population_summary
 from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params.score import ScoreParams
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, read_params, reports_errors
+
+# What population.pt's meta says of extraction's extensions (pipeline.extraction.run.ExtractionRun.record)
+EXTENSION_META = ("stopped_at", "init_fallbacks", "seed_interpolation")
 
 # read_evaluated, check_same_run, META_KEYS and EVALUATION_KEYS: pipeline.evaluation.evaluated (export reads them too)
 
@@ -105,6 +109,9 @@ def score(
         "env_samples_collection": int(meta.get("collection_frames", 0)),
         # imported slots beside slots trained here (stage train_specialist_imported): where each came from
         **({"specialist_sources": meta["specialist_sources"]} if "specialist_sources" in meta else {}),
+        # the extensions of extraction that ran (not in the paper; absent from a paper run's metrics):
+        # the early stop (stopped_at: an iteration or null), init interpolate's fallbacks, the seeds
+        **{k: meta[k] for k in EXTENSION_META if k in meta},
         **summary,
         "extraction_hypervolume": float(history["hypervolume_extract"][-1]),
         "reference_point": ref.tolist(),

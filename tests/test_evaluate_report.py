@@ -1051,3 +1051,112 @@ def test_weak_specialist_params_defaults_and_accepted_values():
     )
     assert (p.weak_specialist_fraction, p.weak_specialist_min_return) == (None, [100.0, None])
     assert section({"report": {"weak_specialist_fraction": 1}}, "report", ReportParams).weak_specialist_fraction == 1
+
+
+# ---------------------------------------------------------------- what each front cost
+
+
+def _cost_rows(iterations: list[int], per_iteration: float) -> list[dict]:
+    """Per-iteration cost rows (pipeline.core.cost.COST_FIELDS): the start, then one per iteration,
+    each `per_iteration` core-seconds, a quarter of it evaluating."""
+    rows = [
+        {
+            "iteration": 0,
+            "phase": "start",
+            "policies": 2,
+            "train_wall_s": 0.0,
+            "train_cpu_s": 0.0,
+            "eval_wall_s": 1.0,
+            "eval_cpu_s": 1.0,
+        }
+    ]
+    for it in iterations:
+        rows.append(
+            {
+                "iteration": it,
+                "phase": "children",
+                "policies": 1,
+                "train_wall_s": 0.75 * per_iteration,
+                "train_cpu_s": 0.75 * per_iteration,
+                "eval_wall_s": 0.25 * per_iteration,
+                "eval_cpu_s": 0.25 * per_iteration,
+            }
+        )
+    return rows
+
+
+def test_report_puts_a_cost_column_beside_every_verdict_and_draws_hypervolume_against_core_seconds(runs, tmp_path):
+    """With cost records (the extract stage's per-iteration rows, the specialists' process seconds),
+    the report has a cost table, a cost column beside the verdict and cost.png; each method's
+    core-seconds are the sum of its rows, and the figure's curve ends at that sum."""
+    from pipeline.reporting.cost import cost_curve, method_core_seconds
+    from pipeline.reporting.figures import cost_figure
+    from pipeline.reporting.runs import load_runs
+
+    root = tmp_path / "runs"
+    shutil.copytree(runs, root)
+    its = sorted(
+        {
+            int(line.split(",")[0])
+            for line in (root / "score" / "mapex_td3" / "seed0" / "hypervolume.csv").read_text().splitlines()[1:]
+        }
+        - {0}
+    )
+    per = {"mapex_td3": 100.0, "warmup_only_td3": 10.0}  # core-seconds per iteration
+    for v in VARIANTS:
+        for s in SEEDS:
+            record = root / "provenance" / "fronts" / v / f"seed{s}.json"
+            record.parent.mkdir(parents=True, exist_ok=True)
+            cost = {"cpu_seconds": 999.0, "wall_seconds": 500.0, "iterations": _cost_rows(its, per[v] * (1 + s))}
+            record.write_text(json.dumps({"stage": "extract", **PROVENANCE, "cost": cost}))
+    for s in SEEDS:
+        spec = root / "provenance" / "specialists" / "td3" / f"seed{s}.json"
+        spec.parent.mkdir(parents=True, exist_ok=True)
+        spec.write_text(json.dumps({"stage": "train_specialist", **PROVENANCE, "cost": {"cpu_seconds": 3000.0 + s}}))
+    code, out = invoke(*report_args(root, tmp_path / "report", provenance=root / "provenance"))
+    assert code == 0, out
+    text = (tmp_path / "report" / "report.md").read_text()
+    total = {v: [1.0 + per[v] * (1 + s) * len(its) for s in SEEDS] for v in VARIANTS}
+    mean = {v: float(np.mean(total[v])) for v in VARIANTS}
+    # the cost column beside the verdict
+    verdicts_part = text.split("## Verdicts", 1)[1].split("## ", 1)[0]
+    row = next(line for line in verdicts_part.splitlines() if line.startswith("| MAPEX-TD3 vs warm-up only (TD3) |"))
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert (cells[3], cells[4]) == ("451", "46.0")  # mean of 301 and 601; of 31 and 61 (3 figures)
+    assert cells[5] == f"{mean['mapex_td3'] / mean['warmup_only_td3']:,.1f}x"
+    assert "core-s (first)" in verdicts_part and cells[1] in ("beat", "lost to", "tied with")
+    # the cost table: per method, and the specialists on their own line
+    cost_part = text.split("## What each front cost", 1)[1].split("## ", 1)[0]
+    mapex_row = next(line for line in cost_part.splitlines() if line.startswith("| MAPEX-TD3 |"))
+    assert "| 451 ± 150 |" in mapex_row  # SEM of 301 and 601: 150
+    spec_row = next(line for line in cost_part.splitlines() if line.startswith("| TD3 specialists"))
+    assert "3,000 ± 0" in spec_row  # 3000 and 3001: mean 3000.5 ± 0.5, to whole seconds at that size
+    # the figure: a file, captioned, whose curve for each run ends at its total
+    assert (tmp_path / "report" / "cost.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "](cost.png)" in text
+    loaded = [r for r in load_runs(root / "score", root / "evaluate", root / "provenance")]
+    for r in loaded:
+        x, y = cost_curve(r)
+        assert x[-1] == pytest.approx(method_core_seconds(r)) and y[-1] == r.history["hypervolume"][-1]
+        assert np.all(np.diff(x) > 0)
+    fig = cost_figure(loaded, ENV_ID, 8.0)
+    drawn = {line.get_label() for line in fig.axes[0].get_lines()}
+    assert any("MAPEX-TD3" in d for d in drawn) and any("warm-up only" in d for d in drawn)
+    assert fig.axes[0].get_xscale() == "log"
+
+
+def test_cost_table_shows_an_early_stop_and_the_fallbacks_only_where_a_run_has_them():
+    from pipeline.reporting.cost import cost_table
+
+    plain = [_run("mapex_td3", s, 1.0) for s in SEEDS]
+    assert cost_table(plain, {}) == ""  # nothing recorded: no table
+    runs = [_run("mapex_td3", s, 1.0) for s in SEEDS]
+    for r, stop in zip(runs, (5, None)):
+        r.origin = np.array(["specialist", "specialist", "child", "child", "child"])
+        r.metrics |= {"stopped_at": stop, "init_fallbacks": {"a parent has hidden sizes [64, 64]": 1}}
+    table = cost_table(runs, {("td3", 0): 12.0})
+    header, _, row, spec = table.splitlines()
+    assert "stopped early after iteration" in header and "children that fell back to warm-up" in header
+    assert "of which interpolated seeds" not in header  # no run seeded
+    assert "| 5, not stopped |" in row and "| 2 of 6 |" in row
+    assert spec.startswith("| TD3 specialists") and "| 12.0 |" in spec

@@ -316,3 +316,40 @@ def test_facet_bridge_ratio_is_not_an_input_with_two_objectives(specialists, tmp
     _population_equal(tmp_path / "a" / "population.pt", tmp_path / "b" / "population.pt")
     (_, meta_a), (_, meta_b) = (load_population(tmp_path / d / "population.pt") for d in "ab")
     assert meta_a == meta_b and "facet_bridge_ratio" not in meta_a["params"]["extract"]
+
+
+def test_hybrid_extraction_end_to_end_records_seeds_fallbacks_stop_and_costs(specialists, tmp_path):
+    """extract.init interpolate with seeds and early stopping through the command: the seeds are
+    members of origin 'interpolated', the children start from their parents' mix (children
+    32-32 like the specialists) or, at 16-16, fall back and say why; the stop and the fallbacks
+    are in the meta, the costs in the provenance record."""
+    hybrid = dict(init="interpolate", seed_interpolation=3, stop_patience=1, stop_min_gain=1e9)  # stops after 1
+    params = write_params(tmp_path / "params.yaml", hidden_sizes=[32, 32], **hybrid)
+    record = tmp_path / "provenance.json"
+    cmd = extract_cmd(specialists, tmp_path / "out", params, tmp_path / "resume")
+    r = mapex(*cmd, "--provenance", str(record), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members, meta = load_population(tmp_path / "out" / "population.pt")
+    assert [m.origin for m in members] == ["specialist"] * 2 + ["interpolated"] * 3 + ["child"]
+    assert meta["stopped_at"] == 1 and meta["seed_interpolation"] == {"policies": 3, "problem": None}
+    assert members[-1].init == "interpolated" and meta["init_fallbacks"] == {}
+    # children 16-16 from 32-32 parents: the paper's start, counted
+    narrow = write_params(tmp_path / "narrow.yaml", **hybrid)
+    r = mapex(*extract_cmd(specialists, tmp_path / "narrow", narrow, tmp_path / "resume3"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    members_n, meta_n = load_population(tmp_path / "narrow" / "population.pt")
+    assert members_n[-1].init == "warmup" and sum(meta_n["init_fallbacks"].values()) == 1
+    assert "hidden sizes [32, 32]" in next(iter(meta_n["init_fallbacks"]))
+    extract = meta["params"]["extract"]
+    assert extract["init"] == "interpolate" and extract["stop_patience"] == 1
+    cost = json.loads(record.read_text())["cost"]
+    assert cost["cpu_seconds"] > 0 and cost["wall_seconds"] > 0
+    assert [row["phase"] for row in cost["iterations"]] == ["start", "seeds", "children"]
+    assert cost["iterations"][1]["policies"] == 3 and cost["iterations"][2]["train_cpu_s"] > 0
+    # a paper run's meta and params say nothing of the extensions
+    plain = write_params(tmp_path / "plain.yaml")
+    r = mapex(*extract_cmd(specialists, tmp_path / "plain", plain, tmp_path / "resume2"), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    _, meta = load_population(tmp_path / "plain" / "population.pt")
+    assert not {"stopped_at", "init_fallbacks", "seed_interpolation"} & set(meta)
+    assert not {"init", "seed_interpolation", "stop_patience", "stop_min_gain"} & set(meta["params"]["extract"])

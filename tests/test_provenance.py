@@ -68,3 +68,22 @@ def test_torch_floor_refuses_the_weights_only_bypass_and_admits_the_makefile_pin
     assert torch_req.specifier.contains(pin) and torch_req.specifier.contains(f"{pin}+cpu")
     for old in ("2.3.0", "2.5.1"):
         assert not torch_req.specifier.contains(old), old
+
+
+def test_every_record_says_what_its_process_cost_and_a_stopwatch_measures_a_block(tmp_path):
+    from pipeline.core.cost import Stopwatch, cost_row, cpu_seconds
+
+    before = cpu_seconds()
+    with Stopwatch() as sw:
+        x = 0
+        for i in range(300_000):  # some CPU work
+            x += i * i
+    assert sw.cpu > 0 and sw.wall > 0 and cpu_seconds() - before >= sw.cpu
+    row = cost_row(3, "children", 2, sw, None)
+    assert row["iteration"] == 3 and row["eval_cpu_s"] == 0.0 and row["train_cpu_s"] == round(sw.cpu, 4)
+    path = tmp_path / "record.json"
+    prov.write_provenance(path, "extract", "cpu", "fp32", {"iterations": [row]})
+    cost = json.loads(path.read_text())["cost"]
+    # the process's seconds since it started: this test process has run a while, imports included
+    assert cost["cpu_seconds"] >= sw.cpu and cost["wall_seconds"] > sw.wall
+    assert cost["iterations"] == [row]

@@ -20,7 +20,7 @@ source benchmarks/device/setup.sh "${WHEELS:-.whl}" > "$OUT/setup.txt" 2>&1  # n
 cat "$OUT/setup.txt"
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader | tee "$OUT/gpu.txt"
 if [ "$WHAT" != bench ]; then
-  timeout 300 python3 -m pytest -q -p no:cacheprovider -rs tests/test_batched_specialists.py tests/test_extract_children.py \
+  timeout 300 python3 -m pytest -q -p no:cacheprovider -rs tests/test_batched_specialists.py tests/test_extract_children.py tests/test_hybrid_extraction.py \
     tests/test_train_specialist.py tests/test_extract_stage.py tests/test_pderl.py::test_runs_on_cuda_and_resumes 2>&1 | tail -60 | tee "$OUT/cuda_tests.txt"
 fi
 if [ "$WHAT" != tests ]; then

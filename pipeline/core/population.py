@@ -13,6 +13,9 @@ population.pt (format "mapex.population", version 3), loadable with torch.load(w
         objective      the objective of the specialist the starting policy came from (None for a child)
         policy_name    its name in that specialist's policy set ("rl", "pop3", ...; "policy" when
                        the specialist gave a single policy.pt), None for a child
+        init           (optional: only a child of the hybrid extraction, extract.init interpolate, has
+                       it) "interpolated" (started from its parents' mixed weights) or "warmup" (fell
+                       back to the paper's warm-up; meta "init_fallbacks" says why)
         iteration      0 for starting policies, i >= 1 for the children made in iteration i
                        (extract.children_per_iteration of them, consecutive ids)
         parents        policy ids of the parents ([] for starting policies)
@@ -68,9 +71,19 @@ class Member:
     hidden_sizes: list[int]
     actor: dict[str, torch.Tensor] = field(repr=False)
     policy_name: str | None = None  # the starting policy's name in its specialist's policy set; None for a child
+    # Only a child of the hybrid extraction (extract.init interpolate, not in the paper) has it: "interpolated"
+    # (started from its parents' mixed weights) or "warmup" (fell back to the paper's start). An optional key:
+    # saved only where set, so every other population keeps its bytes (OPTIONAL_KEYS).
+    init: str | None = None
 
 
 MEMBER_KEYS = tuple(f.name for f in fields(Member))
+OPTIONAL_KEYS = ("init",)  # member keys saved only when not None; a population without them still loads
+
+
+def member_record(member: Member) -> dict[str, Any]:
+    """A member as population.pt stores it: its fields, the OPTIONAL_KEYS only where set."""
+    return {k: v for k, v in asdict(member).items() if k not in OPTIONAL_KEYS or v is not None}
 
 
 def member_actor(member: Member, meta: dict[str, Any]) -> Actor | ScriptedActor:
@@ -97,7 +110,12 @@ def actor_state(actor: Actor) -> dict[str, torch.Tensor]:
 
 def save_population(path: str | Path, members: list[Member], meta: dict[str, Any]) -> None:
     torch_save_atomic(
-        {"format": FORMAT, "format_version": FORMAT_VERSION, "meta": meta, "members": [asdict(m) for m in members]},
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "meta": meta,
+            "members": [member_record(m) for m in members],
+        },
         path,
     )
 
@@ -134,7 +152,7 @@ def load_population(path: str | Path, meta_keys: Sequence[str] = ()) -> tuple[li
     missing = [k for k in ("n_objectives", *meta_keys) if k not in meta]
     if missing:
         raise ArtifactError(f"{path}: population metadata has no {', '.join(map(repr, dict.fromkeys(missing)))} key")
-    required = MEMBER_KEYS if version >= 2 else tuple(k for k in MEMBER_KEYS if k != "policy_name")
+    required = tuple(k for k in MEMBER_KEYS if k not in OPTIONAL_KEYS and (version >= 2 or k != "policy_name"))
     members = []
     for i, record in enumerate(obj["members"]):
         if not isinstance(record, dict):
@@ -142,7 +160,7 @@ def load_population(path: str | Path, meta_keys: Sequence[str] = ()) -> tuple[li
         lacking = [k for k in required if k not in record]
         if lacking:
             raise ArtifactError(f"{path}: member {i} has no {', '.join(map(repr, lacking))} key")
-        unknown = sorted(set(record) - set(required))
+        unknown = sorted(set(record) - set(required) - set(OPTIONAL_KEYS))
         if unknown:
             raise ArtifactError(f"{path}: member {i} has unknown key(s) {unknown} (format_version {version})")
         if version < 2:

@@ -28,6 +28,7 @@ from typing import Any
 import torch
 
 from pipeline.core.artifacts import write_text_atomic
+from pipeline.core.cost import process_cost
 
 ROOT = Path(__file__).resolve().parents[2]
 LIBRARIES = ("mapex", "torch", "numpy", "mujoco", "gymnasium", "mo-gymnasium", "zarr")
@@ -108,16 +109,24 @@ def provenance(device: torch.device | str = "cpu") -> dict[str, Any]:
 
 
 def write_provenance(
-    path: Path | None, stage: str, device: torch.device | str = "cpu", precision: str | None = None
+    path: Path | None,
+    stage: str,
+    device: torch.device | str = "cpu",
+    precision: str | None = None,
+    cost: dict[str, Any] | None = None,
 ) -> None:
     """Write the record of this run of `stage` to `path` (JSON, atomically): {"stage": ...,
-    and `provenance(device)`'s keys}, and "precision": what the stage computed in ("fp32" or
-    "bf16", its `precision` param resolved: pipeline.core.precision) for a stage that has one.
-    Nothing when `path` is None (no --provenance given). Stages call it after their outputs
-    are written: a record stands for a finished run."""
+    and `provenance(device)`'s keys}, "precision": what the stage computed in ("fp32" or
+    "bf16", its `precision` param resolved: pipeline.core.precision) for a stage that has one,
+    and "cost": this process's core-seconds and wall seconds (pipeline.core.cost.process_cost;
+    a stage resumed from a checkpoint: its last process only) updated with `cost`, what the
+    stage adds (extraction and interpolation: "iterations", their per-iteration rows, which
+    survive a resume). Nothing when `path` is None (no --provenance given). Stages call it
+    after their outputs are written: a record stands for a finished run."""
     if path is None:
         return
     record = {"stage": stage, **provenance(device)}
     if precision is not None:
         record["precision"] = precision
+    record["cost"] = {**process_cost(), **(cost or {})}
     write_text_atomic(path, json.dumps(record, indent=2) + "\n")

@@ -349,8 +349,9 @@ def train_stacked(
     actor = StackedActor([c.actor for c in children])
     rows, mask = stack_schedules(
         [
-            warmup_schedule(n, cfg.warmup_steps, cfg.warmup_batch_size, rng, gen, device)
-            for n, rng, gen in zip(data.lengths, rngs, gens)
+            # each child's own warm-up steps: 0 for one interpolated from its parents (extract.init)
+            warmup_schedule(n, c.warmup_steps, cfg.warmup_batch_size, rng, gen, device)
+            for n, rng, gen, c in zip(data.lengths, rngs, gens, children)
         ]
     )
     stacked_warm_up(

@@ -41,6 +41,11 @@ Deviations from the paper, each a param unless it is a necessary reading:
 - `precision: bf16` (default fp32, which the paper's results assume): the children's matrix
   products in bfloat16, the critics and parents cast once, master weights, Adam and every sum
   in fp32 (pipeline/core/precision.py).
+- `init: interpolate` (default warmup = the paper; the hybrid extraction, not in the paper):
+  a child starts from its parents' weights mixed with equal coefficients (`interpolated_start`)
+  instead of a random network, without the warm-up unless `warmup_after_interpolate`; a child
+  whose parents cannot be mixed into one (`interpolation_problem`) starts as the paper's and
+  says so in its record. The paper's advantage-weighted phase follows either way.
 An advantage always weights exactly the row it was computed for (the precursor code paired
 them with resampled rows, a bug not reproduced here).
 
@@ -63,6 +68,7 @@ import numpy as np
 import torch
 
 from pipeline.core.finite import check_finite, due, weights
+from pipeline.core.mixing import architecture_problem, mix_actors
 from pipeline.core.nets import Actor, CriticEnsemble
 from pipeline.core.optim import adam_step, child_adam, clear_grads
 from pipeline.core.pareto import population_scale
@@ -359,6 +365,9 @@ class ChildConfig:
     adv: AdvantageConfig
     facet_bridge_ratio: float | None = None  # N >= 3: which facets the roulette draws from (gaps.front_gaps)
     precision: str = "fp32"  # resolved (pipeline.core.precision): "fp32" or "bf16"
+    # the hybrid extraction (not in the paper; `start_child`): "warmup" (the paper) or "interpolate"
+    init: str = "warmup"
+    warmup_after_interpolate: bool = False  # init "interpolate": warm up from the interpolated start too
 
 
 class ChildSeeds(NamedTuple):
@@ -375,6 +384,8 @@ class ChildRecord:
     weight: np.ndarray  # (m,) unit target weight
     counts: np.ndarray  # (m,) hybrid rows drawn from each buffer
     stats: dict[str, float]
+    init: str | None = None  # init "interpolate": "interpolated" or "warmup" (the fallback); None: the paper's
+    fallback: str | None = None  # why the child fell back to the paper's warm-up (init "interpolate")
 
 
 @dataclass
@@ -384,12 +395,44 @@ class ChildStart:
     parents: tuple[int, ...]
     weight: np.ndarray  # (m,) unit target weight
     hybrid: Hybrid
-    a_bar: torch.Tensor  # (N, act_dim) mean parent action at each hybrid state
-    actor: Actor  # freshly initialised, on the device
+    a_bar: torch.Tensor  # (N, act_dim) mean parent action at each hybrid state ((0, act_dim) without warm-up)
+    actor: Actor  # freshly initialised (or interpolated from its parents), on the device
+    warmup_steps: int  # the warm-up's steps for this child (0: none, an interpolated start)
+    init: str | None = None  # as ChildRecord.init
+    fallback: str | None = None  # as ChildRecord.fallback
 
     def record(self, n_buffers: int, stats: dict[str, float]) -> ChildRecord:
         counts = np.bincount(self.hybrid.origin.cpu().numpy(), minlength=n_buffers)
-        return ChildRecord(parents=self.parents, weight=self.weight, counts=counts, stats=stats)
+        return ChildRecord(
+            parents=self.parents, weight=self.weight, counts=counts, stats=stats, init=self.init, fallback=self.fallback
+        )
+
+
+def interpolation_problem(parents: Sequence[Actor], hidden_sizes: Sequence[int]) -> str | None:
+    """Why a child of `hidden_sizes` cannot start from its parents' mixed weights (None if it
+    can): every parent must be a plain `Actor` (not one that normalises observations, nor a
+    program brought in whole) of the children's hidden sizes, all with the same action bounds
+    (pipeline.core.mixing.architecture_problem), so that the mix is a child like any other (one
+    stack of K children shares one shape)."""
+    for p in parents:
+        if type(p) is not Actor:
+            return f"a parent is a {type(p).__name__}, not a plain actor of the children's architecture"
+        widths = [m.out_features for m in p.net if isinstance(m, torch.nn.Linear)][:-1]
+        if widths != list(hidden_sizes):
+            return f"a parent has hidden sizes {widths}, the children extract.hidden_sizes {list(hidden_sizes)}"
+    return architecture_problem(parents, [f"parent {i}" for i in range(len(parents))])
+
+
+def interpolated_start(parents: Sequence[Actor]) -> Actor:
+    """The hybrid extraction's child before training (not in the paper): its parents' weights
+    mixed with equal coefficients 1/N (pipeline.core.mixing.mix_actors), on the CPU.
+
+    Why equal coefficients: the target weight is the direction of the centroid of the parents'
+    normalised returns, so the point of the parents' simplex it points at is that centroid, the
+    mix 1/N of each parent (exactly, where returns are linear in the mixing weights). The
+    target weight's own components (one per objective) name no parent unless the parents are
+    the specialists themselves, where both readings give the same mix for 2 objectives."""
+    return mix_actors(parents, [1 / len(parents)] * len(parents))
 
 
 def start_child(
@@ -406,11 +449,26 @@ def start_child(
 
     returns: (n, m) mean returns of the population; actors: its n policies. Draws from `rng`
     in a fixed order (parents, then hybrid rows); torch's global generator is left untouched.
+
+    cfg.init "interpolate" (the hybrid extraction, not in the paper): the actor is instead the
+    parents' weights mixed (`interpolated_start`), with no warm-up unless
+    cfg.warmup_after_interpolate; where the parents cannot be mixed (`interpolation_problem`)
+    the child falls back to the paper's start, and its record says why.
     """
     parents = select_parents(returns, rng, cfg.facet_bridge_ratio)
     w = target_weight(returns, parents, cfg.weight_norm)
     hybrid = build_hybrid(buffers, w, cfg.child_buffer_size, rng, device)
-    a_bar = mean_parent_action([actors[p] for p in parents], hybrid.obs, precision=cfg.precision)
+    mine = [actors[p] for p in parents]
+    if cfg.init == "interpolate":
+        fallback = interpolation_problem(mine, cfg.hidden_sizes)
+        if fallback is None:
+            steps = cfg.warmup_steps if cfg.warmup_after_interpolate else 0
+            a_bar = (
+                mean_parent_action(mine, hybrid.obs, precision=cfg.precision) if steps else hybrid.action[:0].clone()
+            )
+            actor = interpolated_start(mine).to(device)
+            return ChildStart(parents, w, hybrid, a_bar, actor, steps, "interpolated")
+    a_bar = mean_parent_action(mine, hybrid.obs, precision=cfg.precision)
     ref = actors[parents[0]]
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(torch_seed)
@@ -421,7 +479,9 @@ def start_child(
             (ref.centre - ref.scale).cpu(),
             (ref.centre + ref.scale).cpu(),
         )
-    return ChildStart(parents, w, hybrid, a_bar, actor.to(device))
+    if cfg.init == "interpolate":
+        return ChildStart(parents, w, hybrid, a_bar, actor.to(device), cfg.warmup_steps, "warmup", fallback)
+    return ChildStart(parents, w, hybrid, a_bar, actor.to(device), cfg.warmup_steps)
 
 
 def make_child(
@@ -445,7 +505,7 @@ def make_child(
         child.actor,
         child.hybrid.obs,
         child.a_bar,
-        cfg.warmup_steps,
+        child.warmup_steps,
         cfg.warmup_lr,
         cfg.warmup_batch_size,
         rng,

@@ -5,7 +5,9 @@
 paper's shared MAPEX table, or the precursor code's value where the paper gives none.
 Two settings deviate from the paper and say so in their descriptions: `advantage_norm: none`,
 the default (a mix of units, see pipeline/extraction/mapex.py), and `children_per_iteration` above 1
-(K children per iteration from the same front, trained together).
+(K children per iteration from the same front, trained together). Five more are not in the paper
+and off by default (EXTENSION_KEYS): the hybrid extraction (`init`, `warmup_after_interpolate`,
+`seed_interpolation`) and early stopping (`stop_patience`, `stop_min_gain`).
 """
 
 from __future__ import annotations
@@ -81,6 +83,40 @@ class ExtractParams(Strict):
         "an edge whose ends the mesh's boundary joins in steps shorter than 1/ratio of it is left out, and the steps "
         "along a thin front become 2-parent gaps; null = every facet of the mesh (the rule before). N = 2 never reads it",
     )
+    # ---- the hybrid extraction (not in the paper; docs/manual.md, "Hybrid extraction") and early stopping
+    init: Literal["warmup", "interpolate"] = Field(
+        "warmup",
+        description="how a child starts: warmup = a fresh random network warmed up on the mean parent action (the "
+        "paper); interpolate = its parents' weights mixed with equal coefficients 1/N (the point of the parents' "
+        "simplex that the target weight points at), where the parents are plain actors of the children's "
+        "hidden_sizes and action bounds, else the paper's warm-up (a fallback, counted in the report); not in the paper",
+    )
+    warmup_after_interpolate: bool = Field(
+        False,
+        description="init interpolate only: also run the warm-up (warmup_steps onto the mean parent action) from the "
+        "interpolated start; false = straight to the advantage-weighted phase",
+    )
+    seed_interpolation: int = Field(
+        0,
+        ge=0,
+        description="seed the population, after the starting policies, with the policies of the interpolation "
+        "baseline's grid of at most this many points between the specialists (evaluated like any member, origin "
+        "'interpolated'), so gap selection sends children into the gaps interpolation leaves; 0 = off (the paper); "
+        "skipped, and recorded, where the specialists cannot be mixed",
+    )
+    stop_patience: int = Field(
+        0,
+        ge=0,
+        description="stop the extraction early once its hypervolume (extraction-time returns, scaled by the starting "
+        "policies' range, reference at their minimum) has risen by at most stop_min_gain over this many iterations; "
+        "0 = off (the paper: every iteration runs)",
+    )
+    stop_min_gain: float = Field(
+        0.01,
+        ge=0,
+        description="stop_patience > 0: the relative rise of that hypervolume over stop_patience iterations below "
+        "which the run stops (0.01 = 1%)",
+    )
     device: Literal["auto", "cpu", "cuda"] = Field("auto", description="'auto' picks cuda when present")
     precision: PrecisionChoice = precision_field(
         "the children's training (their warm-up and advantage-weighted regression, the critics and parents they "
@@ -105,4 +141,23 @@ class ExtractParams(Strict):
 # so its dvc.yaml stage (warmup_only) lists only WARMUP_ONLY_KEYS: changing extract.beta, say,
 # leaves every warm-up-only front up to date. A test checks dvc.yaml against this list.
 AWR_KEYS = ("epochs", "beta", "omega_max", "lr", "batch_size", "max_grad_norm", "advantage_recompute", "advantage_norm")
-WARMUP_ONLY_KEYS = tuple(k for k in ExtractParams.model_fields if k not in AWR_KEYS)
+# The hybrid extraction's and early stopping's keys (not in the paper). The warm-up-only ablation
+# reads none of them either (variant_config sets them to their defaults), and a run whose keys are
+# at their defaults records none of them (`without_default_extensions`), so that its artifacts and
+# resume fingerprint are byte for byte those from before the keys existed.
+EXTENSION_KEYS = ("init", "warmup_after_interpolate", "seed_interpolation", "stop_patience", "stop_min_gain")
+WARMUP_ONLY_KEYS = tuple(k for k in ExtractParams.model_fields if k not in AWR_KEYS + EXTENSION_KEYS)
+
+
+def without_default_extensions(dump: dict) -> dict:
+    """An `extract` model_dump without the EXTENSION_KEYS that are off or not read: the switches
+    init, seed_interpolation and stop_patience where at their defaults (off), and
+    warmup_after_interpolate (read only with init interpolate) and stop_min_gain (only with
+    stop_patience > 0) where their switch is off. With every extension off, the record of a run
+    is what it was before they existed."""
+    fields = ExtractParams.model_fields
+    on = {
+        k: dump.get(k, fields[k].default) != fields[k].default for k in ("init", "seed_interpolation", "stop_patience")
+    }
+    keep = on | {"warmup_after_interpolate": on["init"], "stop_min_gain": on["stop_patience"]}
+    return {k: v for k, v in dump.items() if k not in EXTENSION_KEYS or keep[k]}

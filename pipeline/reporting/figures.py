@@ -389,3 +389,49 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
     _shared_legend(fig, [ax_it])
     fig.suptitle(f"Hypervolume of the population as each method runs: {env_id}")
     return fig
+
+
+def _sem(a: np.ndarray) -> float:
+    return float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else 0.0
+
+
+def cost_figure(runs: list[Run], env_id: str, width: float) -> Figure:
+    """Re-evaluated hypervolume of the population against the cumulative core-seconds of the
+    stage that made it (pipeline.reporting.cost), per method, as its front grows: a curve
+    (mean ± SEM over seeds, each seed's step curve on the union of their core-seconds) where the
+    stage recorded per-iteration costs (extraction, interpolation), one point (mean ± SEM of
+    both) at its total and final hypervolume where it recorded only its process's seconds. A
+    method with no recorded cost is not drawn. Core-seconds on a log axis: methods differ by
+    orders of magnitude."""
+    from pipeline.reporting.cost import cost_curve, method_core_seconds
+
+    fig = _figure(width, width * 0.45)
+    ax = fig.subplots()
+    for v in methods_in(runs):
+        rs = [r for r in runs if r.method == v]
+        curves = [c for r in rs if (c := cost_curve(r)) is not None]
+        if curves:
+            grid = np.unique(np.concatenate([x for x, _ in curves]))
+            grid = grid[grid > 0]
+            _band(ax, grid, np.stack([step_values(x, y, grid) for x, y in curves]), colour(v), label(v), len(curves))
+            continue
+        points = [(c, r.metrics["front"]["hypervolume"]) for r in rs if (c := method_core_seconds(r)) is not None]
+        if points:
+            x, y = np.array(points, dtype=float).T
+            ax.errorbar(
+                x.mean(),
+                y.mean(),
+                xerr=_sem(x),
+                yerr=_sem(y),
+                fmt="o",
+                color=colour(v),
+                label=f"{label(v)}: final front (mean of {len(x)} seed{'s' if len(x) > 1 else ''})",
+            )
+    ax.set_xscale("log")
+    ax.set_xlabel("core-seconds of the stage making the front (cumulative; specialists not included)")
+    ax.set_ylabel("re-evaluated hypervolume")
+    ax.grid(alpha=0.3, which="both")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize="small", loc="best")
+    fig.suptitle(f"Hypervolume against compute as each front grows: {env_id}")
+    return fig

@@ -14,6 +14,7 @@ strings computed from the numbers. Mean +- SEM across seeds as in the paper's Ta
 from __future__ import annotations
 
 from pipeline.params.methods import label
+from pipeline.reporting.cost import cost_table, verdict_cost_table
 from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.specialists import own_returns_table, weak_sentence, weak_specialists
 from pipeline.reporting.tables import details_table, paper_table, provenance_table, sample_efficiency_table
@@ -30,9 +31,12 @@ def report_markdown(
     noise_sems: float = 2.0,
     weak_fraction: float | None = 0.5,
     weak_min_return: list[float | None] | None = None,
+    specialist_costs: dict[tuple[str, int], float] | None = None,
 ) -> str:
-    """The whole report.md: weak-specialist warnings and verdicts, tables, figures (name ->
-    caption, files beside report.md), provenance, definitions."""
+    """The whole report.md: weak-specialist warnings and verdicts (and what each side cost),
+    tables, what each front cost (`specialist_costs`: (kind, seed) -> the specialists'
+    core-seconds, pipeline.reporting.cost.read_specialist_costs), figures (name -> caption, files
+    beside report.md), provenance, definitions."""
     seeds = sorted({r.seed for r in runs})
     ref = runs[0].metrics.get("reference_point")
     # where the score stage took it from: env.reference_point, or the env's entry in the table
@@ -57,6 +61,17 @@ def report_markdown(
             or ["- No pair of comparable methods was run (see pipeline/reporting/verdicts.py VERDICT_PAIRS)."]
         ),
         "",
+        *(
+            [
+                "Each verdict beside what each side cost: the core-seconds of the stage that made each method's "
+                "front (mean over its seeds; its evaluation episodes included, the specialists not: they are "
+                "shared; 'What each front cost' below).",
+                "",
+                vc,
+            ]
+            if (vc := verdict_cost_table(said, runs))
+            else []
+        ),
         *(
             [
                 "## Specialists on their own objectives",
@@ -96,6 +111,25 @@ def report_markdown(
                 eff,
             ]
             if (eff := sample_efficiency_table(runs))
+            else []
+        ),
+        *(
+            [
+                "## What each front cost",
+                "",
+                "Core-seconds (CPU seconds of every thread; a GPU's own time is not in them) of the stage that made "
+                "each method's population, mean ± SEM over seeds: for extraction and interpolation the sum of their "
+                "per-iteration records (training and evaluating every member, the starting policies' evaluation and "
+                "the hybrid extraction's interpolated seeds, on their own line, included; kept across a resume), for "
+                "the other methods the stage process's (a resumed run: its last process only). Loading the inputs "
+                "is in 'wall s' but in no per-iteration record. 'core-s re-evaluating': the evaluate stage's, which "
+                "every method pays per member. The specialists are costed once per seed and kind, apart: every "
+                "method of that kind starts from them. From the records under data/provenance; 'n/a' where a stage "
+                "recorded none (run by hand without --provenance, or before costs were recorded).",
+                "",
+                ct,
+            ]
+            if (ct := cost_table(runs, specialist_costs or {}))
             else []
         ),
         "## Figures",
@@ -142,6 +176,9 @@ def report_markdown(
         "(fewer episodes, each member evaluated once); above the re-evaluated HV it shows selection optimism.",
         "- Hypervolume history: after each iteration, the hypervolume of every member made so far, on "
         "extraction-time returns (what the paper plots) and on the same members' re-evaluated returns.",
+        "- Core-seconds: CPU seconds (user + system) of every thread of a stage's process and of the worker "
+        "processes it waited for (pipeline/core/cost.py); on a CPU, the compute a run took whatever its "
+        "thread count.",
         "",
     ]
     return "\n".join(lines)

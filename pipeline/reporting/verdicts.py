@@ -34,6 +34,9 @@ VERDICT_PAIRS = (
 class Verdict:
     outcome: str  # "beat", "lost", "tied" or "unknown" (no seed has both variants)
     sentence: str
+    a: str | None = None  # the methods compared (a beat, lost to or tied with b)
+    b: str | None = None
+    difference: str = ""  # the paired difference in short: "+5.7%, 3.4 SEM, higher in 3 of 3"
 
 
 def verdict_outcome(d: np.ndarray, warm: np.ndarray, min_difference: float, noise_sems: float) -> str:
@@ -115,12 +118,17 @@ def hv_verdict(
             f"Rule: with one seed, a difference within ±{min_difference * 100:g}% of {lb}'s hypervolume "
             f"(report.min_difference) counts as a tie."
         )
+    if n > 1:
+        z_short = f", {abs(dm) / dsem:.1f} SEM" if dsem > 0 else ""
+        short = f"{_percent(dm, bm)}{z_short}, higher in {int((d > 0).sum())} of {n}"
+    else:
+        short = f"{_percent(float(d[0]), float(y[0]))}, one seed"
     verb = {"beat": "beat", "lost": "lost to", "tied": "tied with"}[outcome]
     text = (
         f"At this scale ({n} seed{'s' if n > 1 else ''}, up to {iters} iterations), {what} {verb} {lb} on "
         f"re-evaluated hypervolume. {numbers} {rule}"
     )
-    return Verdict(outcome, text)
+    return Verdict(outcome, text, a, b, short)
 
 
 def verdicts(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> list[Verdict]:
