@@ -85,8 +85,18 @@ def hex_colour(name: str) -> str:
 def explorer_html(panels: list[dict], objective_names: list[str], title: str) -> str:
     """The page: `panels` (method, label, colour, seed, points as `point_record` gives them)."""
     data = {"panels": panels, "objectives": objective_names}
-    blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
-    return PAGE.replace("__TITLE__", html.escape(title)).replace("__DATA__", blob)
+    return PAGE.replace("__TITLE__", html.escape(title)).replace("__DATA__", script_json(data))
+
+
+# What a JSON text inside <script> must not hold literally: `<`, `>` and `&` (so that no `</script>`
+# or `<!--` can end or bend the element) and U+2028/U+2029 (line breaks to older JavaScript parsers).
+_SCRIPT_ESCAPES = {ord("<"): "\\u003c", ord(">"): "\\u003e", ord("&"): "\\u0026", 0x2028: "\\u2028", 0x2029: "\\u2029"}
+
+
+def script_json(data) -> str:
+    """`data` as JSON that can sit inside a <script> element whatever its strings hold: the
+    characters HTML would read there are written as JSON's \\uXXXX escapes (the same value)."""
+    return json.dumps(data, separators=(",", ":")).translate(_SCRIPT_ESCAPES)
 
 
 PAGE = """<!doctype html>
@@ -128,12 +138,17 @@ function star(cx, cy, r) {
   }
   return p.join(" ");
 }
+// Every string from params or artifacts reaches the page as text (textContent, setAttribute),
+// never as markup; a path becomes a relative URL with each segment percent-encoded, so no
+// scheme (javascript:) or quote in it can mean anything but the file's name.
+const url = (path) => path.split("/").map(encodeURIComponent).join("/");
+const nodesByKey = new Map();
 function show(panel, p, node) {
   const v = document.getElementById("clip"), note = document.getElementById("noclip");
   document.querySelectorAll(".pt.sel").forEach((e) => e.classList.remove("sel"));
-  document.querySelectorAll('.pt[data-key="' + node.dataset.key + '"]').forEach((e) => e.classList.add("sel"));
+  (nodesByKey.get(node.dataset.key) || []).forEach((e) => e.classList.add("sel"));
   if (p.clip) {
-    if (v.getAttribute("src") !== p.clip.mp4) { v.setAttribute("src", p.clip.mp4); v.load(); }
+    if (v.getAttribute("src") !== url(p.clip.mp4)) { v.setAttribute("src", url(p.clip.mp4)); v.load(); }
     v.play().catch(() => {});
     note.textContent = "";
   } else {
@@ -149,9 +164,21 @@ function show(panel, p, node) {
   rows.push(["target weight", p.target_weight ? p.target_weight.join(", ") : "-"]);
   rows.push(["iteration", p.iteration]);
   rows.push(["on the front", p.on_front ? "yes" : "no (dominated)"]);
-  rows.push(["exported file", p.export ? '<a href="' + p.export + '">' + p.export + "</a>" : "- (stage export did not run for it)"]);
+  let link = "- (stage export did not run for it)";
+  if (p.export) {
+    link = document.createElement("a");
+    link.setAttribute("href", url(p.export));
+    link.textContent = p.export;
+  }
+  rows.push(["exported file", link]);
   const t = document.getElementById("info");
-  t.innerHTML = rows.map((r) => "<tr><td>" + r[0] + "</td><td>" + r[1] + "</td></tr>").join("");
+  t.replaceChildren(...rows.map(([name, value]) => {
+    const tr = document.createElement("tr"), a = document.createElement("td"), b = document.createElement("td");
+    a.textContent = String(name);
+    if (value instanceof Node) b.appendChild(value); else b.textContent = String(value);
+    tr.append(a, b);
+    return tr;
+  }));
   t.dataset.key = node.dataset.key;
 }
 function plot(panel, i, j, parent) {
@@ -175,6 +202,8 @@ function plot(panel, i, j, parent) {
       : el("circle", { cx: cx, cy: cy, r: 5, fill: panel.colour }, svg);
     node.setAttribute("class", "pt" + (p.on_front ? "" : " off"));
     node.dataset.key = panel.method + "/" + panel.seed + "/" + p.id;
+    if (!nodesByKey.has(node.dataset.key)) nodesByKey.set(node.dataset.key, []);
+    nodesByKey.get(node.dataset.key).push(node);
     node.dataset.clip = p.clip ? p.clip.mp4 : "";
     const title = el("title", {}, node);
     title.textContent = "member " + p.id + ": " + p.returns.map(fmt).join(", ");
@@ -193,6 +222,6 @@ for (const panel of DATA.panels) {
   for (let i = 0; i < n; i++) for (let j = i + 1; j < n; j++) plot(panel, i, j, s);
   root.appendChild(s);
 }
-if (!DATA.panels.length) root.insertAdjacentHTML("beforeend", "<p>No front to show.</p>");
+if (!DATA.panels.length) { const none = document.createElement("p"); none.textContent = "No front to show."; root.appendChild(none); }
 </script></body></html>
 """
