@@ -24,7 +24,7 @@ from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, save_population
 from pipeline.evaluation.episodes import EvalResult
-from pipeline.evaluation.render import gl_problem
+from pipeline.evaluation.render import Camera, Film, film_episode, gl_problem, make_render_env, root_body
 
 ENV, STEPS = "mo-halfcheetah-v5", 30
 FRAMES, WIDTH, HEIGHT = 8, 64, 48
@@ -155,7 +155,7 @@ def test_a_rerun_renders_only_what_is_missing_and_removes_what_no_front_lists(cl
     (clips / "stale_0009.mp4").write_bytes(b"x")
     result = run_render(cli, rendered)
     assert result.exit_code == 0, result.output
-    assert "1 clip(s) rendered, 2 kept" in result.output
+    assert "1 clip(s) rendered in" in result.output and "2 kept" in result.output
     after = {p.name: p.stat().st_mtime_ns for p in clips.iterdir()}
     assert "stale_0009.mp4" not in after
     assert after["member_0000.mp4"] == before["member_0000.mp4"]  # untouched
@@ -315,3 +315,103 @@ def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rend
     assert text.index("member_0001.png") < text.index("member_0003.png") < text.index("member_0000.png")
     assert "(../render/clips/mapex_td3/seed0/member_0003.mp4)" in text
     assert gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [1]).count("thumbs/") == 0
+
+
+# -- the camera follows the robot ------------------------------------------------------------------
+
+# An open-loop gait found by random search over sinusoids (one frequency, a phase and an amplitude
+# per joint): it drives mo-halfcheetah-v5 11 to 19 m in 200 steps (10 s) from reset seeds 0 to 3.
+GAIT_HZ = 3.43
+GAIT_PHASE = [4.4, 0.81, 3.27, 0.42, 1.08, 1.97]
+GAIT_AMP = [1.56, 1.43, 1.3, 0.77, 0.95, 1.53]
+RUN_STEPS = 200
+
+
+class Gait(torch.nn.Module):
+    """A policy that ignores its observation: the gait's action at its own step count (dt 0.05 s)."""
+
+    def __init__(self):
+        super().__init__()
+        self.t = 0
+
+    def forward(self, obs):
+        phase = 2 * np.pi * GAIT_HZ * self.t * 0.05 + np.array(GAIT_PHASE)
+        self.t += 1
+        return torch.as_tensor(np.clip(np.array(GAIT_AMP) * np.sin(phase), -1, 1), dtype=torch.float32)[None]
+
+
+def project(scene, point: np.ndarray, width: int, height: int) -> tuple[float, float]:
+    """The pixel (column, row from the top) where `point` (world, m) appears in a frame drawn from
+    `scene`'s camera: MuJoCo's pinhole (its pose, and its frustum from the model's fovy)."""
+    import mujoco
+
+    cam = mujoco.mjv_averageCamera(scene.camera[0], scene.camera[1])  # what a mono frame is drawn from
+    forward, up = np.array(cam.forward), np.array(cam.up)
+    right = np.cross(forward, up)
+    rel = point - np.array(cam.pos)
+    depth = rel @ forward
+    assert depth > cam.frustum_near, "behind the camera"
+    half_h = (cam.frustum_top - cam.frustum_bottom) / 2
+    x = (rel @ right) / depth * cam.frustum_near - cam.frustum_center
+    y = (rel @ up) / depth * cam.frustum_near - (cam.frustum_top + cam.frustum_bottom) / 2
+    return (1 + x / (half_h * width / height)) * width / 2, (1 - y / half_h) * height / 2
+
+
+class Watching(Camera):
+    """The stage's camera, noting after each frame where the root body appears in it and which
+    body the segmentation pass draws at that pixel (0: the world, the floor)."""
+
+    def __init__(self, env, film, fixed: bool = False):
+        super().__init__(env, film)
+        self.env, self.seen, self.xs = env, [], []
+        if fixed:  # what the env's own render camera does: a free camera that stands still
+            import mujoco
+
+            self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+            self.camera.lookat[:] = env.unwrapped.data.subtree_com[root_body(self.model)]
+
+    def frame(self, data):
+        image = super().frame(data)
+        root = root_body(self.model)
+        u, v = project(self.scene, np.array(data.xpos[root]), image.shape[1], image.shape[0])
+        self.renderer.enable_segmentation_rendering()
+        seg = self.renderer.render()
+        self.renderer.disable_segmentation_rendering()
+        body = 0
+        if 0 <= u < image.shape[1] and 0 <= v < image.shape[0]:
+            r, c = int(v), int(u)
+            patch = seg[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3].reshape(-1, 2)
+            bodies = [self.model.geom_bodyid[g] for g, kind in patch if kind == 5 and g >= 0]  # 5: mjOBJ_GEOM
+            body = max(bodies, default=0)
+        self.seen.append((u, v, body))
+        self.xs.append(float(data.xpos[root][0]))
+        return image
+
+
+def film_the_gait(fixed: bool):
+    film = Film(ENV, RUN_STEPS, None, 5, None, 160, 120, None, None, -15.0, 90.0, 0, 0, 0)
+    env = make_render_env(film)
+    camera = Watching(env, film, fixed)
+    try:
+        clip = film_episode(Gait(), env, camera, film)
+    finally:
+        camera.close()
+        env.close()
+    return clip, camera
+
+
+def test_the_camera_keeps_a_fast_runner_in_the_frame(gl):
+    clip, camera = film_the_gait(fixed=False)
+    assert clip.steps == RUN_STEPS and len(clip.frames) == RUN_STEPS // 5 + 1
+    assert camera.xs[-1] - camera.xs[0] > 5, f"the gait ran {camera.xs[-1] - camera.xs[0]:.1f} m, not fast enough"
+    for k, (u, v, body) in enumerate(camera.seen):
+        assert 0 <= u < 160 and 0 <= v < 120, f"frame {k}: the root body is drawn at ({u:.0f}, {v:.0f}), off the frame"
+        assert body > 0, f"frame {k}: no robot drawn where the root body projects ({u:.0f}, {v:.0f})"
+
+
+def test_a_camera_that_stands_still_loses_the_same_runner(gl):
+    """The check above can fail: from a camera that stands still, the runner leaves the frame."""
+    _, camera = film_the_gait(fixed=True)
+    inside = [0 <= u < 160 and 0 <= v < 120 for u, v, _ in camera.seen]
+    assert inside[0] and camera.seen[0][2] > 0  # the projection and the pixels agree at the start
+    assert not all(inside), "a fixed camera kept the runner in view: the gait is too slow to test the camera"
