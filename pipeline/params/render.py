@@ -18,12 +18,12 @@ class RenderParams(Strict):
     )
     seeds: list[int] | None = Field(None, description="seeds whose fronts are filmed (each in `seeds`); null = all")
     frames: int | None = Field(
-        150, gt=0, description="frames per clip (the first ones of the episode); null = the whole capped episode"
+        200, gt=0, description="frames per clip (the first ones of the episode); null = the whole capped episode"
     )
     every: int = Field(1, ge=1, description="one frame every this many env steps (2 halves a clip's frames per step)")
     fps: int | None = Field(None, gt=0, le=120, description="clip frame rate; null = the env's real time / every")
-    width: int = Field(240, ge=16, le=1920, description="frame width in pixels (even: H.264 needs it)")
-    height: int = Field(180, ge=16, le=1080, description="frame height in pixels (even: H.264 needs it)")
+    width: int = Field(320, ge=16, le=1920, description="frame width in pixels (even: H.264 needs it)")
+    height: int = Field(240, ge=16, le=1080, description="frame height in pixels (even: H.264 needs it)")
     camera: str | int | None = Field(
         None,
         description="a camera of the env's MuJoCo model (name or id); null = one that follows the robot's root body",
