@@ -148,10 +148,11 @@ def render(
             if rec is not None:
                 clip = {"mp4": f"clips/{stem}.mp4", "thumb": f"thumbs/{stem}.png"}
                 clip |= {k: rec[k] for k in ("returns", "episode_steps", "frames", "fps")}
-            export = None
+            export = export_file = None
             if r.method in exported and i in r.front:
-                export = os.path.relpath(export_root / r.method / f"seed{r.seed}" / f"member_{i:04d}.pt", out)
-            points.append(point_record(r, i, clip, export))
+                export_file = export_root / r.method / f"seed{r.seed}" / f"member_{i:04d}.pt"
+                export = os.path.relpath(export_file, out)
+            points.append(point_record(r, i, clip, export, None if export_file is None else export_file.as_posix()))
         panels.append(
             {
                 "method": r.method,

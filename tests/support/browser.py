@@ -41,7 +41,8 @@ class Watched:
 
 @contextmanager
 def open_browser(width: int = 1280, height: int = 900):
-    """Yields `new_page(path) -> (page, Watched)`; skips the test where the tools are missing."""
+    """Yields `new_page(path) -> (page, Watched)`, which closes the page it opened before; skips
+    the test where the tools are missing."""
     exe = chromium()
     if exe is None:
         pytest.skip("no chromium: apt-get install chromium (make test installs it when run as root)")
@@ -56,9 +57,14 @@ def open_browser(width: int = 1280, height: int = 900):
         )
         context = browser.new_context(offline=True, viewport={"width": width, "height": height})
 
+        opened = []
+
         def new_page(path: Path):
+            while opened:  # one page at a time: an earlier test's clip stops playing
+                opened.pop().close()
             watched = Watched()
             page = context.new_page()
+            opened.append(page)
             page.on("request", lambda r: watched.requests.append(r.url))
             page.on("console", lambda m: watched.console_errors.append(m.text) if m.type == "error" else None)
             page.on("pageerror", lambda e: watched.page_errors.append(str(e)))
