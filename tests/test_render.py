@@ -6,19 +6,15 @@ Skips, saying why, where no OpenGL backend renders MuJoCo or no chromium is inst
 
 from __future__ import annotations
 
-import base64
 import json
 import os
-import shutil
-import subprocess
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
+from support.browser import open_browser
 
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
@@ -176,130 +172,35 @@ def test_no_gl_backend_is_one_line_naming_mujoco_gl(monkeypatch):
     assert "\n" not in problem
 
 
-# -- the page in a real browser ------------------------------------------------------------------
+# -- the page in a real browser (Playwright driving Debian's chromium: tests/support/browser.py) --
 
 
-def chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
-
-
-class Browser:
-    """Headless chromium driven over the DevTools protocol on a pipe (--remote-debugging-pipe:
-    NUL-terminated JSON on fds 3 and 4), so no websocket library is needed."""
-
-    def __init__(self, exe: str, profile: Path):
-        to_child, self._write = os.pipe()
-        self._read, from_child = os.pipe()
-
-        def fds() -> None:
-            os.dup2(to_child, 3)
-            os.dup2(from_child, 4)
-
-        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run"]
-        flags += ["--disable-background-networking", "--disable-component-update", "--disable-sync"]
-        flags += ["--autoplay-policy=no-user-gesture-required", "--window-size=1100,800"]
-        self.proc = subprocess.Popen(
-            [exe, *flags, f"--user-data-dir={profile}", "--remote-debugging-pipe", "about:blank"],
-            preexec_fn=fds,
-            close_fds=False,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        os.close(to_child)
-        os.close(from_child)
-        self._buf, self._id, self.session = b"", 0, None
-        targets = self.call("Target.getTargets")["targetInfos"]
-        page = next(t for t in targets if t["type"] == "page")
-        self.session = self.call("Target.attachToTarget", targetId=page["targetId"], flatten=True)["sessionId"]
-
-    def call(self, method: str, **params):
-        self._id += 1
-        msg = {"id": self._id, "method": method, "params": params}
-        if self.session and not method.startswith("Target."):
-            msg["sessionId"] = self.session
-        os.write(self._write, json.dumps(msg).encode() + b"\0")
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            while b"\0" not in self._buf:
-                chunk = os.read(self._read, 1 << 16)
-                if not chunk:
-                    raise RuntimeError("chromium closed the DevTools pipe")
-                self._buf += chunk
-            raw, self._buf = self._buf.split(b"\0", 1)
-            reply = json.loads(raw)
-            if reply.get("id") == self._id:
-                if "error" in reply:
-                    raise RuntimeError(f"{method}: {reply['error']}")
-                return reply.get("result", {})
-        raise TimeoutError(method)
-
-    def js(self, expr: str):
-        result = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
-        if "exceptionDetails" in result:
-            raise RuntimeError(f"{expr}: {result['exceptionDetails']}")
-        return result["result"].get("value")
-
-    def wait(self, expr: str, timeout: float = 20):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            value = self.js(expr)
-            if value:
-                return value
-            time.sleep(0.1)
-        raise TimeoutError(f"{expr} stayed false for {timeout} s")
-
-    def close(self):
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        os.close(self._write)
-        os.close(self._read)
-
-
-@pytest.fixture
-def browser(tmp_path):
-    exe = chromium()
-    if exe is None:
-        pytest.skip("no chromium: apt-get install chromium (make test installs it when run as root)")
-    b = Browser(exe, Path(tempfile.mkdtemp(dir=tmp_path, prefix="profile")))
-    yield b
-    b.close()
-
-
-def test_explorer_plays_the_clip_of_the_point_clicked(rendered, browser, tmp_path):
-    page = rendered / "render" / "explorer.html"
-    browser.call("Page.enable")
-    browser.call("Page.navigate", url=page.as_uri())
-    browser.wait("document.readyState === 'complete' && document.querySelectorAll('.pt').length > 0")
-    # one panel (one method, one seed), one projection for 2 objectives; specialists are stars
-    assert browser.js("document.querySelectorAll('section').length") == 1
-    assert browser.js("document.querySelectorAll('polygon.pt').length") == 2
-    key = "mapex_td3/0/3"
-    box = browser.js(
-        f"(() => {{ const r = document.querySelector('.pt[data-key=\"{key}\"]').getBoundingClientRect();"
-        " return [r.x + r.width / 2, r.y + r.height / 2]; })()"
-    )
-    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
-        browser.call("Input.dispatchMouseEvent", type=kind, x=box[0], y=box[1], button="left", clickCount=1)
-    src = browser.wait("document.getElementById('clip').currentSrc")
-    assert src.endswith("clips/mapex_td3/seed0/member_0003.mp4"), src
-    # the clip really loads and decodes in the browser (H.264), and the table shows its record
-    state = browser.wait(
-        "(() => { const v = document.getElementById('clip');"
-        " return v.error ? 'error ' + v.error.code : (v.readyState >= 2 ? [v.videoWidth, v.videoHeight] : null); })()"
-    )
-    assert state == [WIDTH, HEIGHT], state
-    info = browser.js("document.getElementById('info').innerText")
-    assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
-    shot = browser.call("Page.captureScreenshot", format="png")["data"]
-    (tmp_path / "explorer.png").write_bytes(base64.b64decode(shot))
-    assert (tmp_path / "explorer.png").stat().st_size > 5000
+def test_explorer_plays_the_clip_of_the_point_clicked(rendered, tmp_path):
+    with open_browser() as new_page:
+        page, watched = new_page(rendered / "render" / "explorer.html")
+        page.wait_for_selector(".pt")
+        # one plot (one seed), one projection for 2 objectives; the specialists are stars
+        assert page.locator("section").count() == 1 and page.locator("svg.plot").count() == 1
+        assert page.locator("polygon.pt").count() == 2
+        key = "mapex_td3/0/3"
+        page.hover(f".pt[data-key='{key}']")
+        page.click(f".pt[data-key='{key}']")
+        src = page.wait_for_function("document.getElementById('clip').currentSrc").json_value()
+        assert src.endswith("clips/mapex_td3/seed0/member_0003.mp4"), src
+        # the clip really loads and decodes in the browser (H.264), plays, and the table shows its record
+        state = page.wait_for_function(
+            "(() => { const v = document.getElementById('clip');"
+            " return v.error ? 'error ' + v.error.code : (v.readyState >= 2 ? [v.videoWidth, v.videoHeight] : null); })()"
+        ).json_value()
+        assert state == [WIDTH, HEIGHT], state
+        t0 = page.evaluate("document.getElementById('clip').currentTime")
+        page.wait_for_timeout(300)
+        assert page.evaluate("document.getElementById('clip').currentTime") != t0
+        info = page.locator("#info").inner_text()
+        assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
+        page.screenshot(path=str(tmp_path / "explorer.png"))
+        assert (tmp_path / "explorer.png").stat().st_size > 5000
+        assert not watched.network() and not watched.console_errors and not watched.page_errors, watched
 
 
 def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rendered, tmp_path):
