@@ -130,7 +130,7 @@ h1{font-size:18px;margin:4px 0 6px}h2{font-size:15px;margin:14px 0 4px}
 .legend button.off{opacity:.4;text-decoration:line-through}
 .swatch{display:inline-block;width:11px;height:11px;border-radius:50%;margin-right:5px;vertical-align:-1px;border:1px solid #222}
 .pref label{white-space:nowrap}.pref input[type=range]{width:110px;vertical-align:middle}
-.plots{display:flex;flex-wrap:wrap;gap:8px}
+.plots{display:flex;flex-wrap:wrap;gap:8px}#seeds{display:flex;flex-wrap:wrap;gap:0 18px}
 svg.plot{background:#fafafa;border:1px solid #ddd}
 .pt{cursor:pointer;stroke:#222;stroke-width:.7}.pt.hollow{fill:#fff!important;stroke-width:1.5}
 .pt.sel{stroke:#000;stroke-width:3}.pt.pick{stroke:#d00;stroke-width:3}
@@ -214,7 +214,7 @@ function marker(svg, item, cx, cy) {
   const p = item.p, spec = p.origin === "specialist";
   const node = spec ? el("polygon", { points: star(cx, cy, 9) }, svg) : el("circle", { cx: cx, cy: cy, r: 5 }, svg);
   node.setAttribute("fill", item.panel.colour);
-  if (!p.on_front) node.setAttribute("stroke", item.panel.colour);
+  if (!p.on_front) node.style.stroke = item.panel.colour;  // hollow: the method's colour as its outline
   node.setAttribute("class", "pt" + (p.on_front ? "" : " hollow") + (hidden.has(item.panel.method) ? " gone" : ""));
   node.dataset.key = item.key;
   node.dataset.method = item.panel.method;
@@ -442,7 +442,7 @@ for (const seed of SEEDS) {
   sec.dataset.seed = String(seed);
   tag("h2", "seed " + seed + " (front sizes: " + counts.join(", ") + ")", sec);
   const row = tag("div", null, sec, "plots");
-  if (N === 2) scatter(row, items, 0, 1, 480, 380);
+  if (N === 2) { scatter(row, items, 0, 1, 480, 380); sec.style.maxWidth = "484px"; }  // seeds side by side
   else {
     for (let i = 0; i < N; i++) for (let j = i + 1; j < N; j++) scatter(row, items, i, j, 340, 280);
     if (N === 3) view3d(row, items, 420, 400);
