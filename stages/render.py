@@ -72,7 +72,8 @@ def render(
 
     Each member plays one deterministic episode from reset seed render.episode_seed, to its
     end (the episode's returns), filmed offscreen (MUJOCO_GL: egl, else osmesa, unless set)
-    for its first render.frames frames at render.width x render.height. Per member:
+    by a camera that follows the robot (render.camera: null) for its first render.frames frames
+    at render.width x render.height, render.processes clips at a time. Per member:
     OUT/clips/METHOD/seedS/member_<id>.mp4 (H.264) and .json (its episode's returns, steps,
     frames, the clip's key), OUT/thumbs/METHOD/seedS/member_<id>.png (the middle frame).
 
