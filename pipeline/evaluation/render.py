@@ -7,6 +7,11 @@ works with no GPU), else OSMesa; each is tried in a child process, so a backend 
 leaves this process clean for the next. Where none works, `RenderError` is one line naming
 MUJOCO_GL, what was tried and what to install.
 
+`Camera` draws the env's MuJoCo state with its own `mujoco.Renderer` and, by default, a tracking
+camera on the robot's root body (the env's render camera stands still, and a runner leaves its
+frame within a second). `film_clips` films a list of members with one env and camera: stage
+render runs it in several processes at once (pipeline.core.workers).
+
 The clips are encoded by imageio-ffmpeg (its wheel carries its own ffmpeg) in one thread with
 the bit-exact flags, so the same frames give the same bytes.
 """
