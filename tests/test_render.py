@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -316,3 +317,38 @@ def test_a_camera_that_stands_still_loses_the_same_runner(gl):
     inside = [0 <= u < 160 and 0 <= v < 120 for u, v, _ in camera.seen]
     assert inside[0] and camera.seen[0][2] > 0  # the projection and the pixels agree at the start
     assert not all(inside), "a fixed camera kept the runner in view: the gait is too slow to test the camera"
+
+
+def test_the_stage_page_shows_hostile_names_and_paths_as_text(cli, rendered, tmp_path):
+    """End to end: objective names from params and an export folder whose name holds quotes,
+    spaces and markup, through the stage into the page, shown as text with no script run."""
+    hostile = ["<img src=x onerror=window.__pwned=1>", '"></script><script>window.__pwned=2</script>']
+    for sub in ("fronts", "evaluate"):
+        shutil.copytree(rendered / sub, tmp_path / sub)
+    params = yaml.safe_load(params_file(tmp_path, processes=1).read_text())
+    params["env"]["objective_names"] = hostile
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    export = tmp_path / 'it\'s an "export" <b>'
+    args = [
+        "render",
+        "--fronts",
+        tmp_path / "fronts",
+        "--evaluated",
+        tmp_path / "evaluate",
+        "--out",
+        tmp_path / "render",
+    ]
+    result = cli(*args, "--export", export, "--params", tmp_path / "params.yaml")
+    assert result.exit_code == 0, result.output
+    with open_browser() as new_page:
+        page, watched = new_page(tmp_path / "render" / "explorer.html")
+        page.wait_for_selector(".pt")
+        page.click(".pt[data-key='mapex_td3/0/3']")
+        info = page.locator("#info").inner_text()
+        assert all(name in info for name in hostile), info
+        assert page.locator("#info a").inner_text().endswith("member_0003.pt")
+        assert page.locator("svg.plot text.axis").all_text_contents() == hostile
+        assert page.evaluate("window.__pwned") is None
+        assert page.evaluate("document.querySelectorAll('img, b').length") == 0
+        assert not watched.dialogs and not watched.console_errors and not watched.page_errors, watched
+        assert not watched.network(), watched.requests
