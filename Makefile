@@ -51,11 +51,12 @@ test: install
 	@# onnx), so tests/test_sweep.py, tests/test_morld.py and the ONNX export test run instead of skipping
 	$(BIN)/pip install -q -e ".[dev,sweep,baselines,onnx]" >> $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install of .[dev,sweep,baselines,onnx] failed (log: $(VENV)/install.log)"; exit 1; }
-	@# a headless browser for tests/test_render.py's explorer test (Debian's chromium): installed
-	@# with apt when missing and root, else that test skips saying why
+	@# a headless browser for the explorer's tests (tests/test_explorer.py, tests/test_render.py:
+	@# Playwright, from the dev extra, drives Debian's chromium, so it downloads no browser): installed
+	@# with apt when missing and root, else those tests skip saying why
 	@command -v chromium >/dev/null || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null \
 	  && { apt-get install -y -q chromium || { apt-get update -q && apt-get install -y -q chromium; }; } \
-	  >> $(VENV)/install.log 2>&1; } || echo "no chromium: the explorer's browser test will skip"
+	  >> $(VENV)/install.log 2>&1; } || echo "no chromium: the explorer's browser tests will skip"
 	PATH="$(CURDIR)/$(BIN):$$PATH" python -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # The fast tier: the same suite less the files marked integration (pyproject.toml's markers).

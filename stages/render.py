@@ -13,14 +13,14 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.envs import objective_names
-from pipeline.core.population import member_actor
 from pipeline.core.provenance import write_provenance
-from pipeline.evaluation.render import Film, choose_gl, clip_fps, clip_key, film_episode, make_render_env, write_clip
+from pipeline.core.workers import split_evenly
+from pipeline.evaluation.render import Film, choose_gl, clip_key, film_clips
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.methods import colour, label
 from pipeline.params.render import RenderParams
 from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
-from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
+from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 INDEX_FORMAT = "mapex.render"
 INDEX_VERSION = 1
@@ -72,7 +72,8 @@ def render(
 
     Each member plays one deterministic episode from reset seed render.episode_seed, to its
     end (the episode's returns), filmed offscreen (MUJOCO_GL: egl, else osmesa, unless set)
-    for its first render.frames frames at render.width x render.height. Per member:
+    by a camera that follows the robot (render.camera: null) for its first render.frames frames
+    at render.width x render.height, render.processes clips at a time. Per member:
     OUT/clips/METHOD/seedS/member_<id>.mp4 (H.264) and .json (its episode's returns, steps,
     frames, the clip's key), OUT/thumbs/METHOD/seedS/member_<id>.png (the middle frame).
 
@@ -94,7 +95,7 @@ def render(
         raise ParamsError(f"{params}: render.seeds lists {stray}, which seeds = {run_p.seeds} does not run")
     film = Film(
         env_p.id, env_p.max_episode_steps, cfg.frames, cfg.every, cfg.fps, cfg.width, cfg.height, cfg.camera,
-        cfg.episode_seed,
+        cfg.distance, cfg.elevation, cfg.azimuth, cfg.shadow_size, cfg.samples, cfg.episode_seed,
     )  # fmt: skip
     runs = [
         load_front_run(fronts / m / f"seed{s}" / "population.pt", evaluated / m / f"seed{s}")
@@ -121,22 +122,21 @@ def render(
             records[(r.method, r.seed, i)] = old
         else:
             todo.append((r, i, key, paths))
-    backend, spent, frames = None, 0.0, 0
+    backend = choose_gl() if todo else None
     if todo:
-        backend = choose_gl()
-        env = make_render_env(film)
-        fps = clip_fps(film, env)
-        with progress(len(todo), "render", unit="clip") as bar:
-            for r, i, key, (mp4, png, rec) in todo:
-                t0 = time.perf_counter()
-                clip = film_episode(member_actor(r.members[i], r.meta), env, film)
-                spent += time.perf_counter() - t0
-                frames += len(clip.frames)
-                info = {"method": r.method, "seed": r.seed, "id": i, "episode_seed": film.episode_seed, "key": key}
-                records[(r.method, r.seed, i)] = write_clip(clip, fps, mp4, png, rec, info)
-                bar.set_postfix_str(f"{1000 * spent / frames:.0f} ms/frame ({backend})")
-                bar.update(1)
-        env.close()
+        jobs_of = [
+            [(r.members[i], r.meta, paths, {"method": r.method, "seed": r.seed, "id": i, "episode_seed": film.episode_seed,
+              "key": key}) for r, i, key, paths in part]
+            for part in split_evenly(todo, cfg.processes)
+        ]  # fmt: skip
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        gl_threads = max(1, cores // len(jobs_of))  # Mesa's rasteriser threads per process
+        t0 = time.perf_counter()
+        with progress(len(todo), f"render ({backend}, {len(jobs_of)} process(es))", unit="clip") as bar:
+            run_parts(film_clips, [(film, jobs, gl_threads) for jobs in jobs_of], bar, lambda k: f"render part {k}", "")
+        spent = time.perf_counter() - t0
+    for r, i, key, (mp4, png, rec) in todo:
+        records[(r.method, r.seed, i)] = json.loads(rec.read_text())
     prune(out, keep)
     names = objective_names(env_p.id, runs[0].means.shape[1], env_p.objective_names)
     panels = []
@@ -149,10 +149,11 @@ def render(
             if rec is not None:
                 clip = {"mp4": f"clips/{stem}.mp4", "thumb": f"thumbs/{stem}.png"}
                 clip |= {k: rec[k] for k in ("returns", "episode_steps", "frames", "fps")}
-            export = None
+            export = export_file = None
             if r.method in exported and i in r.front:
-                export = os.path.relpath(export_root / r.method / f"seed{r.seed}" / f"member_{i:04d}.pt", out)
-            points.append(point_record(r, i, clip, export))
+                export_file = export_root / r.method / f"seed{r.seed}" / f"member_{i:04d}.pt"
+                export = os.path.relpath(export_file, out)
+            points.append(point_record(r, i, clip, export, None if export_file is None else export_file.as_posix()))
         panels.append(
             {
                 "method": r.method,
@@ -171,7 +172,7 @@ def render(
         if stale.is_dir() and not any(stale.iterdir()):
             shutil.rmtree(stale)
     write_provenance(provenance, "render", "cpu")
-    rate = f", {1000 * spent / frames:.0f} ms per frame with MUJOCO_GL={backend}" if frames else ""
+    rate = f" in {spent:.1f} s with MUJOCO_GL={backend}" if todo else ""
     typer.echo(
-        f"render: {len(todo)} clip(s) rendered, {len(jobs) - len(todo)} kept{rate}; {out / 'explorer.html'}", err=True
+        f"render: {len(todo)} clip(s) rendered{rate}, {len(jobs) - len(todo)} kept; {out / 'explorer.html'}", err=True
     )

@@ -6,25 +6,22 @@ Skips, saying why, where no OpenGL backend renders MuJoCo or no chromium is inst
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import shutil
-import subprocess
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
+from support.browser import open_browser
 
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, save_population
 from pipeline.evaluation.episodes import EvalResult
-from pipeline.evaluation.render import gl_problem
+from pipeline.evaluation.render import Camera, Film, film_episode, gl_problem, make_render_env, root_body
 
 ENV, STEPS = "mo-halfcheetah-v5", 30
 FRAMES, WIDTH, HEIGHT = 8, 64, 48
@@ -155,7 +152,7 @@ def test_a_rerun_renders_only_what_is_missing_and_removes_what_no_front_lists(cl
     (clips / "stale_0009.mp4").write_bytes(b"x")
     result = run_render(cli, rendered)
     assert result.exit_code == 0, result.output
-    assert "1 clip(s) rendered, 2 kept" in result.output
+    assert "1 clip(s) rendered in" in result.output and "2 kept" in result.output
     after = {p.name: p.stat().st_mtime_ns for p in clips.iterdir()}
     assert "stale_0009.mp4" not in after
     assert after["member_0000.mp4"] == before["member_0000.mp4"]  # untouched
@@ -176,130 +173,35 @@ def test_no_gl_backend_is_one_line_naming_mujoco_gl(monkeypatch):
     assert "\n" not in problem
 
 
-# -- the page in a real browser ------------------------------------------------------------------
+# -- the page in a real browser (Playwright driving Debian's chromium: tests/support/browser.py) --
 
 
-def chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        found = shutil.which(name)
-        if found:
-            return found
-    return None
-
-
-class Browser:
-    """Headless chromium driven over the DevTools protocol on a pipe (--remote-debugging-pipe:
-    NUL-terminated JSON on fds 3 and 4), so no websocket library is needed."""
-
-    def __init__(self, exe: str, profile: Path):
-        to_child, self._write = os.pipe()
-        self._read, from_child = os.pipe()
-
-        def fds() -> None:
-            os.dup2(to_child, 3)
-            os.dup2(from_child, 4)
-
-        flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run"]
-        flags += ["--disable-background-networking", "--disable-component-update", "--disable-sync"]
-        flags += ["--autoplay-policy=no-user-gesture-required", "--window-size=1100,800"]
-        self.proc = subprocess.Popen(
-            [exe, *flags, f"--user-data-dir={profile}", "--remote-debugging-pipe", "about:blank"],
-            preexec_fn=fds,
-            close_fds=False,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        os.close(to_child)
-        os.close(from_child)
-        self._buf, self._id, self.session = b"", 0, None
-        targets = self.call("Target.getTargets")["targetInfos"]
-        page = next(t for t in targets if t["type"] == "page")
-        self.session = self.call("Target.attachToTarget", targetId=page["targetId"], flatten=True)["sessionId"]
-
-    def call(self, method: str, **params):
-        self._id += 1
-        msg = {"id": self._id, "method": method, "params": params}
-        if self.session and not method.startswith("Target."):
-            msg["sessionId"] = self.session
-        os.write(self._write, json.dumps(msg).encode() + b"\0")
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            while b"\0" not in self._buf:
-                chunk = os.read(self._read, 1 << 16)
-                if not chunk:
-                    raise RuntimeError("chromium closed the DevTools pipe")
-                self._buf += chunk
-            raw, self._buf = self._buf.split(b"\0", 1)
-            reply = json.loads(raw)
-            if reply.get("id") == self._id:
-                if "error" in reply:
-                    raise RuntimeError(f"{method}: {reply['error']}")
-                return reply.get("result", {})
-        raise TimeoutError(method)
-
-    def js(self, expr: str):
-        result = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
-        if "exceptionDetails" in result:
-            raise RuntimeError(f"{expr}: {result['exceptionDetails']}")
-        return result["result"].get("value")
-
-    def wait(self, expr: str, timeout: float = 20):
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            value = self.js(expr)
-            if value:
-                return value
-            time.sleep(0.1)
-        raise TimeoutError(f"{expr} stayed false for {timeout} s")
-
-    def close(self):
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        os.close(self._write)
-        os.close(self._read)
-
-
-@pytest.fixture
-def browser(tmp_path):
-    exe = chromium()
-    if exe is None:
-        pytest.skip("no chromium: apt-get install chromium (make test installs it when run as root)")
-    b = Browser(exe, Path(tempfile.mkdtemp(dir=tmp_path, prefix="profile")))
-    yield b
-    b.close()
-
-
-def test_explorer_plays_the_clip_of_the_point_clicked(rendered, browser, tmp_path):
-    page = rendered / "render" / "explorer.html"
-    browser.call("Page.enable")
-    browser.call("Page.navigate", url=page.as_uri())
-    browser.wait("document.readyState === 'complete' && document.querySelectorAll('.pt').length > 0")
-    # one panel (one method, one seed), one projection for 2 objectives; specialists are stars
-    assert browser.js("document.querySelectorAll('section').length") == 1
-    assert browser.js("document.querySelectorAll('polygon.pt').length") == 2
-    key = "mapex_td3/0/3"
-    box = browser.js(
-        f"(() => {{ const r = document.querySelector('.pt[data-key=\"{key}\"]').getBoundingClientRect();"
-        " return [r.x + r.width / 2, r.y + r.height / 2]; })()"
-    )
-    for kind in ("mouseMoved", "mousePressed", "mouseReleased"):
-        browser.call("Input.dispatchMouseEvent", type=kind, x=box[0], y=box[1], button="left", clickCount=1)
-    src = browser.wait("document.getElementById('clip').currentSrc")
-    assert src.endswith("clips/mapex_td3/seed0/member_0003.mp4"), src
-    # the clip really loads and decodes in the browser (H.264), and the table shows its record
-    state = browser.wait(
-        "(() => { const v = document.getElementById('clip');"
-        " return v.error ? 'error ' + v.error.code : (v.readyState >= 2 ? [v.videoWidth, v.videoHeight] : null); })()"
-    )
-    assert state == [WIDTH, HEIGHT], state
-    info = browser.js("document.getElementById('info').innerText")
-    assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
-    shot = browser.call("Page.captureScreenshot", format="png")["data"]
-    (tmp_path / "explorer.png").write_bytes(base64.b64decode(shot))
-    assert (tmp_path / "explorer.png").stat().st_size > 5000
+def test_explorer_plays_the_clip_of_the_point_clicked(rendered, tmp_path):
+    with open_browser() as new_page:
+        page, watched = new_page(rendered / "render" / "explorer.html")
+        page.wait_for_selector(".pt")
+        # one plot (one seed), one projection for 2 objectives; the specialists are stars
+        assert page.locator("section").count() == 1 and page.locator("svg.plot").count() == 1
+        assert page.locator("polygon.pt").count() == 2
+        key = "mapex_td3/0/3"
+        page.hover(f".pt[data-key='{key}']")
+        page.click(f".pt[data-key='{key}']")
+        src = page.wait_for_function("document.getElementById('clip').currentSrc").json_value()
+        assert src.endswith("clips/mapex_td3/seed0/member_0003.mp4"), src
+        # the clip really loads and decodes in the browser (H.264), plays, and the table shows its record
+        state = page.wait_for_function(
+            "(() => { const v = document.getElementById('clip');"
+            " return v.error ? 'error ' + v.error.code : (v.readyState >= 2 ? [v.videoWidth, v.videoHeight] : null); })()"
+        ).json_value()
+        assert state == [WIDTH, HEIGHT], state
+        t0 = page.evaluate("document.getElementById('clip').currentTime")
+        page.wait_for_timeout(300)
+        assert page.evaluate("document.getElementById('clip').currentTime") != t0
+        info = page.locator("#info").inner_text()
+        assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
+        page.screenshot(path=str(tmp_path / "explorer.png"))
+        assert (tmp_path / "explorer.png").stat().st_size > 5000
+        assert not watched.network() and not watched.console_errors and not watched.page_errors, watched
 
 
 def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rendered, tmp_path):
@@ -315,3 +217,138 @@ def test_the_report_links_the_explorer_and_shows_the_fronts_ends_and_middle(rend
     assert text.index("member_0001.png") < text.index("member_0003.png") < text.index("member_0000.png")
     assert "(../render/clips/mapex_td3/seed0/member_0003.mp4)" in text
     assert gallery_markdown(rendered / "render", out, tmp_path, ["mapex_td3"], [1]).count("thumbs/") == 0
+
+
+# -- the camera follows the robot ------------------------------------------------------------------
+
+# An open-loop gait found by random search over sinusoids (one frequency, a phase and an amplitude
+# per joint): it drives mo-halfcheetah-v5 11 to 19 m in 200 steps (10 s) from reset seeds 0 to 3.
+GAIT_HZ = 3.43
+GAIT_PHASE = [4.4, 0.81, 3.27, 0.42, 1.08, 1.97]
+GAIT_AMP = [1.56, 1.43, 1.3, 0.77, 0.95, 1.53]
+RUN_STEPS = 200
+
+
+class Gait(torch.nn.Module):
+    """A policy that ignores its observation: the gait's action at its own step count (dt 0.05 s)."""
+
+    def __init__(self):
+        super().__init__()
+        self.t = 0
+
+    def forward(self, obs):
+        phase = 2 * np.pi * GAIT_HZ * self.t * 0.05 + np.array(GAIT_PHASE)
+        self.t += 1
+        return torch.as_tensor(np.clip(np.array(GAIT_AMP) * np.sin(phase), -1, 1), dtype=torch.float32)[None]
+
+
+def project(scene, point: np.ndarray, width: int, height: int) -> tuple[float, float]:
+    """The pixel (column, row from the top) where `point` (world, m) appears in a frame drawn from
+    `scene`'s camera: MuJoCo's pinhole (its pose, and its frustum from the model's fovy)."""
+    import mujoco
+
+    cam = mujoco.mjv_averageCamera(scene.camera[0], scene.camera[1])  # what a mono frame is drawn from
+    forward, up = np.array(cam.forward), np.array(cam.up)
+    right = np.cross(forward, up)
+    rel = point - np.array(cam.pos)
+    depth = rel @ forward
+    assert depth > cam.frustum_near, "behind the camera"
+    half_h = (cam.frustum_top - cam.frustum_bottom) / 2
+    x = (rel @ right) / depth * cam.frustum_near - cam.frustum_center
+    y = (rel @ up) / depth * cam.frustum_near - (cam.frustum_top + cam.frustum_bottom) / 2
+    return (1 + x / (half_h * width / height)) * width / 2, (1 - y / half_h) * height / 2
+
+
+class Watching(Camera):
+    """The stage's camera, noting after each frame where the root body appears in it and which
+    body the segmentation pass draws at that pixel (0: the world, the floor)."""
+
+    def __init__(self, env, film, fixed: bool = False):
+        super().__init__(env, film)
+        self.env, self.seen, self.xs = env, [], []
+        if fixed:  # what the env's own render camera does: a free camera that stands still
+            import mujoco
+
+            self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE
+            self.camera.lookat[:] = env.unwrapped.data.subtree_com[root_body(self.model)]
+
+    def frame(self, data):
+        image = super().frame(data)
+        root = root_body(self.model)
+        u, v = project(self.scene, np.array(data.xpos[root]), image.shape[1], image.shape[0])
+        self.renderer.enable_segmentation_rendering()
+        seg = self.renderer.render()
+        self.renderer.disable_segmentation_rendering()
+        body = 0
+        if 0 <= u < image.shape[1] and 0 <= v < image.shape[0]:
+            r, c = int(v), int(u)
+            patch = seg[max(r - 2, 0) : r + 3, max(c - 2, 0) : c + 3].reshape(-1, 2)
+            bodies = [self.model.geom_bodyid[g] for g, kind in patch if kind == 5 and g >= 0]  # 5: mjOBJ_GEOM
+            body = max(bodies, default=0)
+        self.seen.append((u, v, body))
+        self.xs.append(float(data.xpos[root][0]))
+        return image
+
+
+def film_the_gait(fixed: bool):
+    film = Film(ENV, RUN_STEPS, None, 5, None, 160, 120, None, None, -15.0, 90.0, 0, 0, 0)
+    env = make_render_env(film)
+    camera = Watching(env, film, fixed)
+    try:
+        clip = film_episode(Gait(), env, camera, film)
+    finally:
+        camera.close()
+        env.close()
+    return clip, camera
+
+
+def test_the_camera_keeps_a_fast_runner_in_the_frame(gl):
+    clip, camera = film_the_gait(fixed=False)
+    assert clip.steps == RUN_STEPS and len(clip.frames) == RUN_STEPS // 5 + 1
+    assert camera.xs[-1] - camera.xs[0] > 5, f"the gait ran {camera.xs[-1] - camera.xs[0]:.1f} m, not fast enough"
+    for k, (u, v, body) in enumerate(camera.seen):
+        assert 0 <= u < 160 and 0 <= v < 120, f"frame {k}: the root body is drawn at ({u:.0f}, {v:.0f}), off the frame"
+        assert body > 0, f"frame {k}: no robot drawn where the root body projects ({u:.0f}, {v:.0f})"
+
+
+def test_a_camera_that_stands_still_loses_the_same_runner(gl):
+    """The check above can fail: from a camera that stands still, the runner leaves the frame."""
+    _, camera = film_the_gait(fixed=True)
+    inside = [0 <= u < 160 and 0 <= v < 120 for u, v, _ in camera.seen]
+    assert inside[0] and camera.seen[0][2] > 0  # the projection and the pixels agree at the start
+    assert not all(inside), "a fixed camera kept the runner in view: the gait is too slow to test the camera"
+
+
+def test_the_stage_page_shows_hostile_names_and_paths_as_text(cli, rendered, tmp_path):
+    """End to end: objective names from params and an export folder whose name holds quotes,
+    spaces and markup, through the stage into the page, shown as text with no script run."""
+    hostile = ["<img src=x onerror=window.__pwned=1>", '"></script><script>window.__pwned=2</script>']
+    for sub in ("fronts", "evaluate"):
+        shutil.copytree(rendered / sub, tmp_path / sub)
+    params = yaml.safe_load(params_file(tmp_path, processes=1).read_text())
+    params["env"]["objective_names"] = hostile
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    export = tmp_path / 'it\'s an "export" <b>'
+    args = [
+        "render",
+        "--fronts",
+        tmp_path / "fronts",
+        "--evaluated",
+        tmp_path / "evaluate",
+        "--out",
+        tmp_path / "render",
+    ]
+    result = cli(*args, "--export", export, "--params", tmp_path / "params.yaml")
+    assert result.exit_code == 0, result.output
+    with open_browser() as new_page:
+        page, watched = new_page(tmp_path / "render" / "explorer.html")
+        page.wait_for_selector(".pt")
+        page.click(".pt[data-key='mapex_td3/0/3']")
+        info = page.locator("#info").inner_text()
+        assert all(name in info for name in hostile), info
+        assert page.locator("#info a").inner_text().endswith("member_0003.pt")
+        assert page.locator("svg.plot text.axis").all_text_contents() == hostile
+        assert page.evaluate("window.__pwned") is None
+        assert page.evaluate("document.querySelectorAll('img, b').length") == 0
+        assert not watched.dialogs and not watched.console_errors and not watched.page_errors, watched
+        assert not watched.network(), watched.requests

@@ -29,8 +29,9 @@ def gallery_markdown(render: Path, out: Path, tmp: Path, methods: list[str], see
     lines = [
         "## Watch the fronts",
         "",
-        f"[The front explorer]({link}) (open it in a browser; it works offline): one panel per method and "
-        "seed; hover a point to play its policy's clip beside its returns, origin and parents.",
+        f"[The front explorer]({link}) (open it in a browser; it works offline): one plot per seed with "
+        "every method's front; hover a point to play its policy's clip beside its returns, origin and parents, "
+        "or set a weight per objective to pick a trade-off.",
         "",
     ]
     names = index.get("objectives", [])
