@@ -195,14 +195,17 @@ def _parse_bounds(text: Any) -> np.ndarray | None:
 
 def _serialized_array(path: Path, data: dict, key: str) -> np.ndarray | None:
     """The float array a serialized SB3 entry holds (read through the restricted unpickler of
-    pipeline.interop.vecnorm); None where it holds anything else or cannot be read."""
+    pipeline.interop.vecnorm); None where there is none or it holds anything else. A pickle that
+    unpickler refuses (a name of code, a dtype that is not a plain number, an array bigger than
+    the entry, damage) refuses the file with its one line: a zip SB3 wrote never holds one."""
     entry = data.get(key)
     if not isinstance(entry, dict) or not isinstance(entry.get(":serialized:"), str):
         return None
     try:
-        value = restricted_loads(base64.b64decode(entry[":serialized:"]), path, f"data[{key!r}]")
-    except (ArtifactError, binascii.Error, ValueError):
-        return None
+        raw = base64.b64decode(entry[":serialized:"])
+    except (binascii.Error, ValueError) as exc:
+        raise ArtifactError(f"{path}: data[{key!r}] is not base64 ({exc})") from None
+    value = restricted_loads(raw, path, f"data[{key!r}]")
     return value if isinstance(value, np.ndarray) and value.dtype.kind == "f" else None
 
 
