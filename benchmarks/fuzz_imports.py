@@ -237,8 +237,8 @@ def write_zip(path: Path, members: list[tuple[str, bytes]]) -> None:
             zf.writestr(name, data)
 
 
-def build_seeds(folder: Path) -> dict[str, Path]:
-    """The five valid seed files in `folder`, by format."""
+def build_seeds(folder: Path, formats: tuple[str, ...] = FORMATS) -> dict[str, Path]:
+    """Valid seed files of `formats` (all five by default) in `folder`, by format."""
     import torch
     from torch import nn
 
@@ -282,6 +282,8 @@ def build_seeds(folder: Path) -> dict[str, Path]:
     }
     actor |= {"action_scale": torch.ones(ACT), "action_bias": torch.zeros(ACT)}
     torch.save((actor, mlp_state("", [OBS + ACT, HIDDEN, 1], gen)), paths["cleanrl"])
+    if "torchscript" not in formats and "torch_export" not in formats:
+        return {fmt: paths[fmt] for fmt in formats}
 
     class Policy(nn.Module):
         def __init__(self) -> None:
@@ -296,7 +298,7 @@ def build_seeds(folder: Path) -> dict[str, Path]:
     torch.jit.save(torch.jit.script(module), paths["torchscript"])
     program = torch.export.export(module, (torch.zeros(2, OBS),), dynamic_shapes=({0: torch.export.Dim("batch")},))
     torch.export.save(program, paths["torch_export"])
-    return paths
+    return {fmt: paths[fmt] for fmt in formats}
 
 
 # -- mutations ------------------------------------------------------------------------------------
@@ -474,6 +476,23 @@ _Pickler.dispatch = dict(pickle._Pickler.dispatch)
 _Pickler.dispatch[_Built] = _save_built
 
 
+def void_dtype_with_object_field(where: str = "norm_obs") -> bytes:
+    """Statistics whose `where` (norm_obs, or obs_rms.mean) is an array of a void dtype that a
+    BUILD gave an object field while its flags stay 0 (numpy then reads pointers from the file)."""
+    reconstruct = Name("numpy._core.multiarray", "_reconstruct")
+    void = _Built(
+        Call(Name("numpy", "dtype"), ("V8", False, True)),
+        (3, "|", None, ("a",), {"a": (np.dtype("O"), 0)}, 8, 1, 0),
+    )
+    array = _Built(Call(reconstruct, (Name("numpy", "ndarray"), (0,), b"b")), (1, (1,), void, False, b"\x41" * 8))
+    stats = vecnormalize(np.zeros(OBS), np.ones(OBS))
+    if where == "norm_obs":
+        stats.state["norm_obs"] = array
+    else:
+        stats.state["obs_rms"].state["mean"] = array
+    return dumps(stats, 4)
+
+
 def zip_mutation(rng: random.Random, data: bytes) -> bytes:
     members = zip_members(data)
     i = rng.randrange(len(members))
@@ -604,6 +623,8 @@ def mutate(rng: random.Random, fmt: str, kind: str, seed: bytes) -> tuple[bytes,
 def pickle_mutation(rng: random.Random, fmt: str, seed: bytes, change) -> bytes:
     """`change(rng, pickle)` applied to a pickle inside `seed`."""
     if fmt == "stats":
+        if change is pickle_op and rng.random() < 0.2:
+            return void_dtype_with_object_field(rng.choice(("norm_obs", "obs_rms.mean")))
         return change(rng, seed)
     if fmt == "sb3":
         if rng.random() < 0.5:
