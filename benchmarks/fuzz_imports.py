@@ -582,7 +582,9 @@ def pt2_code_case(seed: bytes, payload: bytes, variant: int) -> tuple[bytes, str
         ]
     elif place == "constant use_pickle":
         name = f"{root}/data/constants/model_constants_config.json"
-        config = {"config": {"c": {"path_name": "tensor_0", "is_param": False, "use_pickle": True}}}
+        config = {
+            "config": {"c": {"path_name": "tensor_0", "is_param": False, "use_pickle": True, "tensor_meta": None}}
+        }
         members = [(n, json.dumps(config).encode() if n == name else b) for n, b in members]
         members.append((f"{root}/data/constants/tensor_0", payload))
     elif place == "legacy weights":
@@ -860,8 +862,12 @@ def findings(cases: list[dict], results: list[dict], keep: Path | None) -> list[
     by_id = {c["id"]: c for c in cases}
     out = []
     for r in results:
-        if r["outcome"] in ("crash", "hang") or r["code_ran"]:
-            case = by_id[r["id"]]
+        case = by_id[r["id"]]
+        if (
+            r["outcome"] in ("crash", "hang")
+            or r["code_ran"]
+            or (case["kind"] == "code" and r["outcome"] == "accepted")
+        ):
             item = {k: case[k] for k in ("id", "format", "kind", "what")} | {
                 k: r.get(k) for k in ("outcome", "detail", "tail", "code_ran", "message")
             }
