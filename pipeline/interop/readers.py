@@ -67,6 +67,10 @@ from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricte
 
 FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
+# the builtins a pickle of plain settings may name (containers and numbers, no callables of code)
+PLAIN_BUILTINS = frozenset(
+    {"dict", "list", "tuple", "set", "frozenset", "int", "float", "bool", "str", "bytes", "complex"}
+)
 
 
 class ImportedPolicy(NamedTuple):
@@ -354,7 +358,11 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     if isinstance(kwargs, dict) and ":serialized:" in kwargs:
         if not isinstance(kwargs[":serialized:"], str):
             raise ArtifactError(f"{path}: data['policy_kwargs'] is not a serialized entry")
-        refs = [(m, n) for m, n in _pickle_globals(path, "policy_kwargs", kwargs[":serialized:"]) if m != "builtins"]
+        refs = [
+            (m, n)
+            for m, n in _pickle_globals(path, "policy_kwargs", kwargs[":serialized:"])
+            if not (m == "builtins" and n in PLAIN_BUILTINS)  # builtins.exec, eval, getattr ... are code
+        ]
         activations = [n for m, n in refs if m == "torch.nn.modules.activation"]
         if any(a != "ReLU" for a in activations):
             raise ArtifactError(
