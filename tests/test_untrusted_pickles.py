@@ -144,8 +144,9 @@ def test_a_tiny_file_declaring_a_huge_shape_is_refused_before_allocating(tmp_pat
         assert_refused(out, path, *says)
 
 
-def sb3_zip(tmp_path: Path, last_obs: bytes) -> Path:
-    """The fuzz benchmark's SB3 model.zip (written without SB3), its `_last_obs` replaced by `last_obs`."""
+def sb3_zip(tmp_path: Path, last_obs: bytes | None = None, edit=None, policy: bytes | None = None) -> Path:
+    """The fuzz benchmark's SB3 model.zip (written without SB3), its `_last_obs` replaced by
+    `last_obs`, its `data` changed by `edit(doc)`, its `policy.pth` replaced by `policy`."""
     seed = fuzz.build_seeds(tmp_path / "seeds", ("sb3",))["sb3"]
     out = tmp_path / "model.zip"
     with zipfile.ZipFile(seed) as src, zipfile.ZipFile(out, "w") as dst:
@@ -153,8 +154,13 @@ def sb3_zip(tmp_path: Path, last_obs: bytes) -> Path:
             body = src.read(name)
             if name == "data":
                 doc = json.loads(body)
-                doc["_last_obs"][":serialized:"] = base64.b64encode(last_obs).decode()
+                if last_obs is not None:
+                    doc["_last_obs"][":serialized:"] = base64.b64encode(last_obs).decode()
+                if edit is not None:
+                    edit(doc)
                 body = json.dumps(doc).encode()
+            if name == "policy.pth" and policy is not None:
+                body = policy
             dst.writestr(name, body)
     return out
 
@@ -197,3 +203,41 @@ def test_an_sb3_zip_whose_last_obs_carries_the_attacks_is_refused(tmp_path):
     for (_, path), out, says in zip(files[1:], outs[1:], attacks):
         assert_refused(out, path, "data['_last_obs']", says)
     assert not marker.exists()
+
+
+def test_an_sb3_zip_with_crafted_sizes_or_code_in_its_settings_is_refused(tmp_path):
+    """Tensors saved as expanded views (16384 x 16384 floats from one stored zero: building the
+    actor would allocate 1 GB), a space of 2**40 dims, and policy_kwargs naming builtins.exec."""
+    import torch
+
+    n = 1 << 14
+    one = torch.zeros(1)
+    policy = {
+        "actor.mu.0.weight": one.expand(n, 5),
+        "actor.mu.0.bias": one.expand(n),
+        "actor.mu.2.weight": one.expand(n, n),
+        "actor.mu.2.bias": one.expand(n),
+        "actor.mu.4.weight": one.expand(2, n),
+        "actor.mu.4.bias": torch.zeros(2),
+    }
+    expanded = fuzz.torch_bytes(policy)
+    assert len(expanded) < 10_000
+
+    def huge_space(doc):
+        doc["action_space"]["_shape"] = [2**40]
+
+    def exec_kwargs(doc):
+        payload = fuzz.dumps({"net_arch": fuzz.Call(fuzz.Name("builtins", "exec"), ("print(1)",))}, 4)
+        doc["policy_kwargs"][":serialized:"] = base64.b64encode(payload).decode()
+
+    cases = {
+        "declares tensors of": dict(policy=expanded),
+        "action space is <class 'gymnasium.spaces.box.Box'> of shape [1099511627776]": dict(edit=huge_space),
+        "policy_kwargs refer to code (builtins.exec)": dict(edit=exec_kwargs),
+    }
+    files = []
+    for i, kwargs in enumerate(cases.values()):
+        (tmp_path / str(i)).mkdir()
+        files.append(("sb3", sb3_zip(tmp_path / str(i), **kwargs)))
+    for (_, path), out, says in zip(files, read_isolated(files), cases):
+        assert_refused(out, path, says)
