@@ -55,6 +55,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -297,8 +298,10 @@ def build_seeds(folder: Path, formats: tuple[str, ...] = FORMATS) -> dict[str, P
     torch.manual_seed(0)
     module = Policy().eval()
     torch.jit.save(torch.jit.script(module), paths["torchscript"])
-    program = torch.export.export(module, (torch.zeros(2, OBS),), dynamic_shapes=({0: torch.export.Dim("batch")},))
-    torch.export.save(program, paths["torch_export"])
+    if "torch_export" in formats:
+        batch = {0: torch.export.Dim("batch")}
+        program = torch.export.export(module, (torch.zeros(2, OBS),), dynamic_shapes=(batch,))
+        torch.export.save(program, paths["torch_export"])
     return {fmt: paths[fmt] for fmt in formats}
 
 
@@ -312,7 +315,8 @@ def zip_members(data: bytes) -> list[tuple[str, bytes]]:
 
 def zip_bytes(members: list[tuple[str, bytes]]) -> bytes:
     buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+    with warnings.catch_warnings(), zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as zf:
+        warnings.filterwarnings("ignore", "Duplicate name", UserWarning)  # a duplicate is the point
         for name, data in members:
             zf.writestr(name, data)
     return buf.getvalue()

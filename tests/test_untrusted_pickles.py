@@ -241,3 +241,26 @@ def test_an_sb3_zip_with_crafted_sizes_or_code_in_its_settings_is_refused(tmp_pa
         files.append(("sb3", sb3_zip(tmp_path / str(i), **kwargs)))
     for (_, path), out, says in zip(files, read_isolated(files), cases):
         assert_refused(out, path, says)
+
+
+def test_a_torchscript_archive_whose_tensors_outgrow_their_records_is_refused_before_loading(tmp_path):
+    """torch.jit.load trusts data.pkl for each storage's size: a record emptied while data.pkl
+    still declares its elements crashed it (SIGSEGV, found by the fuzz benchmark). Checked first:
+    an emptied record, a weight whose shape reaches past its storage; the valid file is accepted."""
+    seed = fuzz.build_seeds(tmp_path / "seeds", ("torchscript",))["torchscript"].read_bytes()
+    members = fuzz.zip_members(seed)
+    root = members[0][0].split("/")[0]
+    emptied = [(n, b"" if n == f"{root}/data/3" else b) for n, b in members]
+    weight = b"K\x08K\x05t(K\x05K\x01t"  # net.0.weight: sizes (8, 5), strides (5, 1)
+    data_pkl = dict(members)[f"{root}/data.pkl"]
+    assert data_pkl.count(weight) == 1
+    grown = [(n, b.replace(weight, b"K\tK\x05t(K\x05K\x01t") if n.endswith("data.pkl") else b) for n, b in members]
+    files = [("torchscript", tmp_path / "valid.ts")]
+    files[0][1].write_bytes(seed)
+    for name, archive in (("emptied.ts", emptied), ("grown.ts", grown)):
+        (tmp_path / name).write_bytes(fuzz.zip_bytes(archive))
+        files.append(("torchscript", tmp_path / name))
+    valid, emptied_out, grown_out = read_isolated(files)
+    assert valid["outcome"] == "accepted", valid
+    assert_refused(emptied_out, files[1][1], "declares 8 bytes for storage '3'", "its record has 0 bytes")
+    assert_refused(grown_out, files[2][1], "reaching past the 40 elements of its storage")

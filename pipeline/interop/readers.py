@@ -63,6 +63,7 @@ from torch import nn
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
+from pipeline.interop.tscheck import check_torchscript
 from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
 
 FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
@@ -438,6 +439,7 @@ def read_cleanrl(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
 
 def read_torchscript(path: Path, spec: EnvSpec) -> tuple[ScriptedActor, _Declared, dict[str, Any]]:
     data = path.read_bytes()
+    check_torchscript(data, path)  # tensors that fit their records: torch.jit.load trusts the pickles for that
     try:
         actor = ScriptedActor.from_bytes(data, spec.action_low, spec.action_high)
     except Exception as exc:  # torch.jit.load raises many kinds on damaged bytes
