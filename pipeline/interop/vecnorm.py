@@ -14,7 +14,8 @@ callable it runs (REDUCE, NEWOBJ, INST, OBJ, the EXT codes) by name through
 `Unpickler.find_class`, and BUILD only calls `__setstate__` of an object made by one of them,
 so a `find_class` that allow-lists names is Python's own gate ("Restricting Globals" in the
 pickle docs); persistent ids are refused by the base class. The gate here lets through only
-numpy's array, dtype and scalar reconstruction (plain data, needed for the statistics); every
+numpy's array, dtype and scalar reconstruction (plain data, needed for the statistics: each
+name is answered with a checked rebuilder of this module, see below); every
 name of SB3, Gymnasium's or gym's spaces and numpy.random becomes an inert stand-in that
 records the arguments and state the pickle gives it and runs nothing (their modules are not
 even imported). Any other name (os.system, builtins.eval, ...) stops the read at once with one
@@ -26,7 +27,7 @@ The unpickler is Python's own pure-Python one (`pickle._Unpickler`), for two rea
 cannot give: its dispatch table can be replaced, so BUILD (which calls `__setstate__` on
 whatever object is on the stack) and SETITEM(S)/APPEND(S)/ADDITEMS reach only the objects this
 gate made, and its memo is a dict (the C unpickler grows an array to the largest memo index a
-file names: a 10-byte pickle can ask for gigabytes). numpy's own names are never handed to the
+file names: a 9-byte pickle can ask for 32 GB). numpy's own names are never handed to the
 stream: `numpy.dtype` becomes a constructor of inert dtype tokens, taken only for a short list of
 plain numeric types with a BUILD state that says nothing more than a byte order (numpy lets a
 BUILD on a dtype add fields, an object field among them, while its flags still say "no Python
