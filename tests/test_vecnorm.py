@@ -70,22 +70,36 @@ class ObjectArrayFromBytes:
         return (np.ndarray, ((1,), np.dtype("O"), b"\x41" * 8))
 
 
+class FloatArrayFromBytes:
+    """numpy.ndarray called directly with a plain dtype: still not how numpy pickles an array."""
+
+    def __reduce__(self):
+        return (np.ndarray, ((1,), np.dtype("f8"), b"\x41" * 8))
+
+
 def test_arrays_are_rebuilt_as_numbers_only(tmp_path):
     path = tmp_path / "vecnormalize.pkl"
     path.write_bytes(pickle.dumps({"obs_rms": ObjectArrayFromBytes()}))
-    with pytest.raises(ArtifactError, match=r"not a readable pickle \(numpy\.ndarray called directly") as exc:
-        read_vecnormalize(path)
+    with pytest.raises(ArtifactError, match=r"the pickle asks for dtype 'O8'; only plain numbers") as exc:
+        read_vecnormalize(path)  # the object dtype is refused before ndarray is even reached
     assert "\n" not in str(exc.value)
+    path.write_bytes(pickle.dumps({"obs_rms": FloatArrayFromBytes()}))
+    with pytest.raises(ArtifactError, match=r"the pickle calls numpy\.ndarray directly"):
+        read_vecnormalize(path)
     # float arrays and scalars pickled either way numpy does (protocol 4: _reconstruct and BUILD;
-    # protocol 5: _frombuffer) come back equal
-    values = {"a": np.arange(6, dtype=np.float64).reshape(2, 3), "s": np.float64(2.5)}
+    # protocol 5: _frombuffer) come back equal, big-endian ones too
+    values = {"a": np.arange(6, dtype=np.float64).reshape(2, 3), "s": np.float64(2.5), "b": np.arange(3, dtype=">f4")}
     for protocol in (4, 5):
         back = restricted_loads(pickle.dumps(values, protocol=protocol), path, "the test pickle")
         np.testing.assert_array_equal(back["a"], values["a"])
+        np.testing.assert_array_equal(back["b"], values["b"])
         assert back["s"] == 2.5 and back["a"].dtype == np.float64
-    # an object array whose items the pickle makes (through the same gate) holds only those items
+        assert back["b"].dtype == pickle.loads(pickle.dumps(values["b"], protocol=protocol)).dtype  # as numpy does
+        assert type(back["a"]) is np.ndarray
+    # an object array is refused whatever its items (statistics are numbers)
     mixed = np.array([1.5, "x"], dtype=object)
-    assert list(restricted_loads(pickle.dumps(mixed, protocol=4), path, "the test pickle")) == [1.5, "x"]
+    with pytest.raises(ArtifactError, match=r"asks for dtype 'O8'"):
+        restricted_loads(pickle.dumps(mixed, protocol=4), path, "the test pickle")
 
 
 def test_the_reader_refuses_what_is_not_a_vecnormalize_file(tmp_path):

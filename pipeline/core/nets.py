@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from pipeline.core.pt2check import check_pt2
+from pipeline.core.tscheck import check_torchscript
 
 
 def mlp(in_dim: int, hidden_sizes: Sequence[int], out_dim: int) -> nn.Sequential:
@@ -150,7 +151,10 @@ class ScriptedActor(nn.Module):
 
     @staticmethod
     def _load(f) -> nn.Module:
-        """The module of a file's bytes (`f` a file object)."""
+        """The module of a file's bytes (`f` a BytesIO). The archive's tensor records are checked
+        first, every time (pipeline/core/tscheck.py: torch.jit.load trusts their sizes and can
+        crash on a crafted one), whatever file or remote the bytes came from."""
+        check_torchscript(f.getvalue(), "the TorchScript program")
         return torch.jit.load(f, map_location="cpu")
 
 

@@ -26,7 +26,7 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.nets import ExportedActor, ScriptedActor
 
 LOADERS = {
-    "torchscript": lambda data: torch.jit.load(io.BytesIO(data), map_location="cpu"),
+    "torchscript": lambda data: ScriptedActor._load(io.BytesIO(data)),  # records checked before it loads
     "torch_export": lambda data: ExportedActor._load(io.BytesIO(data)),  # inspected before it loads
 }
 

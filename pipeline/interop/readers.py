@@ -53,7 +53,6 @@ import pickle
 import pickletools
 import re
 import zipfile
-import zlib
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -64,10 +63,15 @@ from torch import nn
 from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
+from pipeline.core.tscheck import check_torchscript
 from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
 
 FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
+# the builtins a pickle of plain settings may name (containers and numbers, no callables of code)
+PLAIN_BUILTINS = frozenset(
+    {"dict", "list", "tuple", "set", "frozenset", "int", "float", "bool", "str", "bytes", "complex"}
+)
 
 
 class ImportedPolicy(NamedTuple):
@@ -100,23 +104,65 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
-    """torch.load(weights_only=True) of a file (or its bytes), unpickling refused with a clear line."""
+MAX_MEMBER = 256 << 20  # bytes of one member of an SB3 zip (a policy of 256-unit MLPs is about 1 MB)
+
+
+def _first_line(exc: BaseException) -> str:
     try:
-        return torch.load(io.BytesIO(data) if data is not None else path, map_location="cpu", weights_only=True)
+        text = str(exc).strip()
+    except Exception:  # the str of an exception carrying a hostile value may itself fail
+        text = ""
+    return text.splitlines()[0][:160] if text else type(exc).__name__
+
+
+def _tensor_bytes(obj: Any) -> int:
+    """The bytes the tensors in `obj` (nested dicts, lists, tuples of them) span, each counted
+    as its shape says (an expanded view counts as what copying it would allocate)."""
+    total, stack, seen = 0, [obj], set()
+    while stack:
+        item = stack.pop()
+        if id(item) in seen:
+            continue
+        seen.add(id(item))
+        if isinstance(item, torch.Tensor):
+            total += item.numel() * item.element_size()
+        elif isinstance(item, dict):
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+    return total
+
+
+def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
+    """torch.load(weights_only=True) of a file (or its bytes), unpickling refused with a clear line;
+    so are tensors that span more bytes than the file holds (a size or stride the file chose: using
+    them would allocate that much) and any other error of torch on damaged bytes."""
+    try:
+        obj = torch.load(io.BytesIO(data) if data is not None else path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ArtifactError(
-            f"{path}: {what} holds Python objects that only unpickling their code could read ({first[:160]}); "
+            f"{path}: {what} holds Python objects that only unpickling their code could read ({_first_line(exc)}); "
             "refused: save the weights as a state dict (or the actor as TorchScript) and import that"
         ) from None
-    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise ArtifactError(f"{path}: {what} is not a readable torch file ({str(exc).splitlines()[0][:160]})") from None
+    except Exception as exc:  # damaged bytes make torch.load raise nearly any built-in error
+        raise ArtifactError(f"{path}: {what} is not a readable torch file ({_first_line(exc)})") from None
+    size = len(data) if data is not None else path.stat().st_size
+    spans = _tensor_bytes(obj)
+    if spans > size:
+        raise ArtifactError(
+            f"{path}: {what} declares tensors of {spans} bytes in {size} bytes (a tensor's size or stride is "
+            "damaged or crafted); refused before using them"
+        )
+    return obj
 
 
 def mlp_actor(path: Path, layers: list[tuple[torch.Tensor, torch.Tensor]], low, high) -> Actor:
     """An `Actor` holding these (weight (out, in), bias (out,)) Linear layers, ReLU between them."""
+    if not layers:
+        raise ArtifactError(f"{path}: no Linear layers found for the actor")
     for i, (w, b) in enumerate(layers):
+        if not isinstance(w, torch.Tensor) or not isinstance(b, torch.Tensor):
+            raise ArtifactError(f"{path}: layer {i} has a weight or bias that is not a tensor")
         if w.ndim != 2 or b.shape != (w.shape[0],):
             raise ArtifactError(f"{path}: layer {i} has weight {tuple(w.shape)} and bias {tuple(b.shape)}")
         if i and w.shape[1] != layers[i - 1][0].shape[0]:
@@ -142,7 +188,23 @@ def _indexed_layers(path: Path, state: dict[str, torch.Tensor], prefix: str) -> 
             f"{path}: the layers of {prefix.rstrip('.')} are {found}; expected Linear layers 0, 2, 4, ... "
             "with one activation between them (an SB3 MLP)"
         )
+    lacking = [f"{prefix}{i}.bias" for i in found if f"{prefix}{i}.bias" not in state]
+    if not found or lacking:
+        raise ArtifactError(
+            f"{path}: no layers {prefix}0, {prefix}2, ... with weights and biases ({lacking[:2]} missing)"
+        )
     return [(state[f"{prefix}{i}.weight"], state[f"{prefix}{i}.bias"]) for i in found]
+
+
+def _flat_dim(path: Path, space: dict, what: str) -> int:
+    """The size of a flat Box as an SB3 zip's `data` declares it (`_shape`, a list of one int)."""
+    shape = space.get("_shape")
+    if type(shape) is not list or len(shape) != 1 or type(shape[0]) is not int or not 0 < shape[0] <= 1 << 20:
+        shown = str(shape)[:60] if type(shape) is list else type(shape).__name__
+        raise ArtifactError(
+            f"{path}: {what} space is {str(space[':type:'])[:80]} of shape {shown}; expected a flat Box"
+        )
+    return shape[0]
 
 
 # -- Stable-Baselines3 --------------------------------------------------------------------------
@@ -195,14 +257,17 @@ def _parse_bounds(text: Any) -> np.ndarray | None:
 
 def _serialized_array(path: Path, data: dict, key: str) -> np.ndarray | None:
     """The float array a serialized SB3 entry holds (read through the restricted unpickler of
-    pipeline.interop.vecnorm); None where it holds anything else or cannot be read."""
+    pipeline.interop.vecnorm); None where there is none or it holds anything else. A pickle that
+    unpickler refuses (a name of code, a dtype that is not a plain number, an array bigger than
+    the entry, damage) refuses the file with its one line: a zip SB3 wrote never holds one."""
     entry = data.get(key)
     if not isinstance(entry, dict) or not isinstance(entry.get(":serialized:"), str):
         return None
     try:
-        value = restricted_loads(base64.b64decode(entry[":serialized:"]), path, f"data[{key!r}]")
-    except (ArtifactError, binascii.Error, ValueError):
-        return None
+        raw = base64.b64decode(entry[":serialized:"])
+    except (binascii.Error, ValueError) as exc:
+        raise ArtifactError(f"{path}: data[{key!r}] is not base64 ({exc})") from None
+    value = restricted_loads(raw, path, f"data[{key!r}]")
     return value if isinstance(value, np.ndarray) and value.dtype.kind == "f" else None
 
 
@@ -234,8 +299,10 @@ def _input_scales(path: Path, optimizer_bytes: bytes | None, obs_dim: int, act_d
 def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     try:
         zf = zipfile.ZipFile(path)
-    except (zipfile.BadZipFile, OSError) as exc:
-        raise ArtifactError(f"{path}: not a readable zip ({exc}); expected a Stable-Baselines3 model.zip") from None
+    except Exception as exc:  # a damaged central directory raises BadZipFile, ValueError, OverflowError, ...
+        raise ArtifactError(
+            f"{path}: not a readable zip ({_first_line(exc)}); expected a Stable-Baselines3 model.zip"
+        ) from None
     with zf:
         names = set(zf.namelist())
         lacking = [n for n in ("data", "policy.pth") if n not in names]
@@ -243,37 +310,42 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
             raise ArtifactError(
                 f"{path}: zip has no {lacking}; expected a Stable-Baselines3 model.zip (data, policy.pth)"
             )
+        wanted = ["data", "policy.pth", "critic.optimizer.pth", "_stable_baselines3_version"]
+        big = [(n, zf.getinfo(n).file_size) for n in wanted if n in names and zf.getinfo(n).file_size > MAX_MEMBER]
+        if big:
+            raise ArtifactError(f"{path}: zip member {big[0][0]} declares {big[0][1]} bytes; at most {MAX_MEMBER} read")
         try:
-            data = json.loads(zf.read("data"))
+            raw = zf.read("data")
             policy_bytes = zf.read("policy.pth")
             critic_opt = zf.read("critic.optimizer.pth") if "critic.optimizer.pth" in names else None
             version = (
-                zf.read("_stable_baselines3_version").decode().strip()
+                zf.read("_stable_baselines3_version").decode(errors="replace").strip()[:80]
                 if "_stable_baselines3_version" in names
                 else None
             )
-        except (zipfile.BadZipFile, zlib.error, OSError, EOFError) as exc:
-            raise ArtifactError(f"{path}: zip is damaged ({exc})") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except Exception as exc:  # zlib.error, BadZipFile (a bad CRC), NotImplementedError (a compression method), ...
+            raise ArtifactError(f"{path}: zip is damaged ({_first_line(exc)})") from None
+        try:
+            data = json.loads(raw)
+        except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
             raise ArtifactError(
-                f"{path}: its 'data' entry is not JSON ({exc}); expected a Stable-Baselines3 model.zip"
+                f"{path}: its 'data' entry is not JSON ({_first_line(exc)}); expected a Stable-Baselines3 model.zip"
             ) from None
     if not isinstance(data, dict):
         raise ArtifactError(f"{path}: its 'data' entry is not a JSON object; expected a Stable-Baselines3 model.zip")
     act_space, obs_space = _space(path, data, "action_space"), _space(path, data, "observation_space")
-    if "spaces.box.Box" not in act_space[":type:"]:
+    if "spaces.box.Box" not in str(act_space[":type:"]):
         raise ArtifactError(
             f"{path}: action space is {act_space[':type:']}, not a continuous Box; MAPEX extracts continuous-control "
             "policies (SB3 TD3, DDPG or SAC)"
         )
-    if "spaces.box.Box" not in obs_space[":type:"] or len(obs_space.get("_shape") or []) != 1:
-        raise ArtifactError(
-            f"{path}: observation space is {obs_space[':type:']} of shape {obs_space.get('_shape')}; expected a flat Box"
-        )
+    if "spaces.box.Box" not in str(obs_space[":type:"]):
+        raise ArtifactError(f"{path}: observation space is {str(obs_space[':type:'])[:80]}; expected a flat Box")
+    obs_dim, act_dim = _flat_dim(path, obs_space, "observation"), _flat_dim(path, act_space, "action")
     policy = data.get("policy_class")
     classes = (
         _pickle_globals(path, "policy_class", policy[":serialized:"])
-        if isinstance(policy, dict) and ":serialized:" in policy
+        if isinstance(policy, dict) and isinstance(policy.get(":serialized:"), str)
         else []
     )
     cls = next((name for module, name in classes if module.startswith("stable_baselines3.")), None)
@@ -285,7 +357,13 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     algorithm = SB3_POLICIES[cls]
     kwargs = data.get("policy_kwargs") or {}
     if isinstance(kwargs, dict) and ":serialized:" in kwargs:
-        refs = [(m, n) for m, n in _pickle_globals(path, "policy_kwargs", kwargs[":serialized:"]) if m != "builtins"]
+        if not isinstance(kwargs[":serialized:"], str):
+            raise ArtifactError(f"{path}: data['policy_kwargs'] is not a serialized entry")
+        refs = [
+            (m, n)
+            for m, n in _pickle_globals(path, "policy_kwargs", kwargs[":serialized:"])
+            if not (m == "builtins" and n in PLAIN_BUILTINS)  # builtins.exec, eval, getattr ... are code
+        ]
         activations = [n for m, n in refs if m == "torch.nn.modules.activation"]
         if any(a != "ReLU" for a in activations):
             raise ArtifactError(
@@ -309,15 +387,14 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     if algorithm == "td3":
         layers = _indexed_layers(path, state, "actor.mu.")
     else:
-        if "actor.mu.weight" not in state:
-            raise ArtifactError(f"{path}: SAC policy.pth has no actor.mu.weight")
+        if "actor.mu.weight" not in state or "actor.mu.bias" not in state:
+            raise ArtifactError(f"{path}: SAC policy.pth has no actor.mu.weight and actor.mu.bias")
         layers = [*_indexed_layers(path, state, "actor.latent_pi."), (state["actor.mu.weight"], state["actor.mu.bias"])]
     low, high = _parse_bounds(act_space.get("low")), _parse_bounds(act_space.get("high"))
-    shape = act_space.get("_shape") or [layers[-1][0].shape[0]]
     actor = mlp_actor(
-        path, layers, low if low is not None else -np.ones(shape), high if high is not None else np.ones(shape)
+        path, layers, low if low is not None else -np.ones(act_dim), high if high is not None else np.ones(act_dim)
     )
-    declared = _Declared(int(obs_space["_shape"][0]), int(shape[0]), low, high)
+    declared = _Declared(obs_dim, act_dim, low, high)
     info = {"algorithm": algorithm, "library": "stable-baselines3", "library_version": version}
     scales = _input_scales(path, critic_opt, declared.obs_dim, declared.act_dim)
     return actor, declared, info | {"last_obs": _last_observations(path, data), "input_scales": scales}
@@ -343,6 +420,10 @@ def read_cleanrl(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
     hidden = sorted(int(m.group(1)) for k in actor_state if (m := re.fullmatch(r"fc(\d+)\.weight", k)))
     if hidden != list(range(1, len(hidden) + 1)):
         raise ArtifactError(f"{path}: CleanRL actor layers fc{hidden}; expected fc1, fc2, ... in order")
+    needed = [f"fc{i}.bias" for i in hidden] + [f"{head}.bias"]
+    lacking = [k for k in needed if k not in actor_state]
+    if lacking or not all(isinstance(actor_state[k], torch.Tensor) for k in ("action_scale", "action_bias")):
+        raise ArtifactError(f"{path}: CleanRL actor lacks {lacking[:3] or 'tensors action_scale, action_bias'}")
     layers = [(actor_state[f"fc{i}.weight"], actor_state[f"fc{i}.bias"]) for i in hidden]
     layers.append((actor_state[f"{head}.weight"], actor_state[f"{head}.bias"]))
     scale = actor_state["action_scale"].double().flatten().numpy()
@@ -358,12 +439,11 @@ def read_cleanrl(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
 
 def read_torchscript(path: Path, spec: EnvSpec) -> tuple[ScriptedActor, _Declared, dict[str, Any]]:
     data = path.read_bytes()
+    check_torchscript(data, path)  # tensors that fit their records: torch.jit.load trusts the pickles for that
     try:
         actor = ScriptedActor.from_bytes(data, spec.action_low, spec.action_high)
-    except (RuntimeError, ValueError, OSError) as exc:
-        raise ArtifactError(
-            f"{path}: not a TorchScript file torch.jit.load can read ({str(exc).strip().splitlines()[0][:160]})"
-        ) from None
+    except Exception as exc:  # torch.jit.load raises many kinds on damaged bytes
+        raise ArtifactError(f"{path}: not a TorchScript file torch.jit.load can read ({_first_line(exc)})") from None
     return (
         actor.eval(),
         _Declared(None, None, None, None),

@@ -1,0 +1,163 @@
+"""A TorchScript archive checked before `torch.jit.load` reads it: every tensor its pickles
+declare fits in the record that holds its data.
+
+`torch.jit.load` (torch 2.13) trusts the archive's pickles (`data.pkl`, `constants.pkl`) for
+the size of each storage: a record emptied or cut short while the pickle still declares its
+elements makes it read past the record's end and crash the interpreter (SIGSEGV: found by
+benchmarks/fuzz_imports.py, three of 412 TorchScript cases of 2,000). This reads those pickles
+without running anything (a pure-Python unpickler whose names are all inert recorders; the
+TorchScript loader itself imports no Python code from them) and refuses, with one line naming
+the file, any storage whose record is missing or smaller than its elements, and any tensor whose
+offset, sizes and strides reach past its storage. The code in the archive (`code/`) is a program
+and stays one: what it computes is checked by the import on a probe batch, not here.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import pickle
+import zipfile
+from pathlib import Path
+from typing import Any
+
+from pipeline.core.artifacts import ArtifactError
+
+MAX_OPCODES = 1_000_000  # a small policy's data.pkl runs a few hundred
+ITEMSIZE = {
+    "BoolStorage": 1,
+    "ByteStorage": 1,
+    "CharStorage": 1,
+    "ShortStorage": 2,
+    "IntStorage": 4,
+    "LongStorage": 8,
+    "HalfStorage": 2,
+    "BFloat16Storage": 2,
+    "FloatStorage": 4,
+    "DoubleStorage": 8,
+    "ComplexFloatStorage": 8,
+    "ComplexDoubleStorage": 16,
+}
+REBUILDERS = ("torch._utils._rebuild_tensor_v2", "torch._utils._rebuild_tensor")
+
+
+class _Unfit(Exception):
+    """What the check refuses (the message says what, for the one line)."""
+
+
+class _Recorder:
+    """Whatever a name of the pickle stands for: called, built or set, it keeps nothing and runs nothing."""
+
+    qualname = ""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+    def __call__(self, *args: Any, **kwargs: Any) -> "_Recorder":
+        return _Recorder()
+
+    def __setstate__(self, state: Any) -> None:
+        pass
+
+    def __setitem__(self, key: Any, value: Any) -> None:
+        pass
+
+    def append(self, item: Any) -> None:
+        pass
+
+    def extend(self, items: Any) -> None:
+        pass
+
+
+class _Storage:
+    def __init__(self, key: str, numel: int):
+        self.key, self.numel = key, numel
+
+
+def _counted(op: Any) -> Any:
+    def run(self: "_Reader") -> None:
+        self.opcodes += 1
+        if self.opcodes > MAX_OPCODES:
+            raise _Unfit(f"runs more than {MAX_OPCODES} pickle opcodes")
+        op(self)
+
+    return run
+
+
+def _reduce(self: "_Reader") -> None:
+    """REDUCE: nothing is called; the arguments of a tensor rebuilder are checked against its storage."""
+    args = self.stack.pop()
+    func = self.stack[-1]
+    if getattr(func, "qualname", "") in REBUILDERS and type(args) is tuple and len(args) >= 4:
+        _check_view(*args[:4])
+    self.stack[-1] = _Recorder()
+
+
+class _Reader(pickle._Unpickler):  # pure Python: a dict memo, its opcode table replaceable, nothing imported
+    dispatch = {code: _counted(op) for code, op in pickle._Unpickler.dispatch.items()}
+    dispatch[pickle.REDUCE[0]] = _counted(_reduce)
+
+    def __init__(self, data: bytes, sizes: dict[str, int], folder: str):
+        super().__init__(io.BytesIO(data))
+        self.sizes, self.folder, self.opcodes = sizes, folder, 0
+
+    def find_class(self, module: str, name: str) -> Any:
+        return type("Name", (_Recorder,), {"qualname": f"{module}.{name}"})
+
+    def persistent_load(self, pid: Any) -> _Storage:
+        # ('storage', storage type, key, location, numel), as torch.jit.save writes it
+        if type(pid) is not tuple or len(pid) != 5 or pid[0] != "storage":
+            raise _Unfit("holds a persistent id other than a storage")
+        kind, key, numel = pid[1], pid[2], pid[4]
+        name = getattr(kind, "qualname", "").rpartition(".")[2]
+        if name not in ITEMSIZE or type(key) is not str or type(numel) is not int or numel < 0:
+            raise _Unfit(f"declares a storage of type {name[:40] or type(kind).__name__} (expected a numeric storage)")
+        record = f"{self.folder}/{key}"
+        need = numel * ITEMSIZE[name]
+        if self.sizes.get(record, -1) < need:
+            have = "no record" if record not in self.sizes else f"{self.sizes[record]} bytes"
+            raise _Unfit(f"declares {need} bytes for storage {key[:40]!r} ({numel} x {name}); its record has {have}")
+        return _Storage(key, numel)
+
+
+def _check_view(storage: Any, offset: Any, size: Any, stride: Any) -> None:
+    """A tensor `size`/`stride` from `offset` stays inside its storage's elements."""
+    if not isinstance(storage, _Storage):
+        raise _Unfit("rebuilds a tensor from something other than a storage")
+    dims = (size, stride)
+    if type(offset) is not int or not all(type(d) is tuple and all(type(x) is int for x in d) for d in dims):
+        raise _Unfit(f"rebuilds a tensor of storage {storage.key!r} with an offset, sizes or strides not ints")
+    if len(size) != len(stride) or offset < 0 or any(x < 0 for x in size + stride):
+        raise _Unfit(f"rebuilds a tensor of storage {storage.key!r} with negative or mismatched sizes and strides")
+    if math.prod(size) and offset + sum((n - 1) * s for n, s in zip(size, stride)) >= storage.numel:
+        raise _Unfit(f"rebuilds a tensor of {len(size)} dims reaching past the {storage.numel} elements of its storage")
+
+
+def check_torchscript(data: bytes, path: Path | str) -> None:
+    """Refuse (ArtifactError, one line naming `path`) a TorchScript archive `data` whose pickles
+    declare tensors that its records cannot hold; return None for one torch.jit.load may read."""
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(data))
+        sizes = {info.filename: info.file_size for info in zf.infolist()}
+    except Exception as exc:  # a damaged central directory raises BadZipFile, ValueError, ...
+        raise ArtifactError(f"{path}: not a TorchScript archive (not a readable zip: {_first_line(exc)})") from None
+    pickles = [name for name in sizes if name.count("/") == 1 and name.endswith(("/data.pkl", "/constants.pkl"))]
+    if not any(name.endswith("/data.pkl") for name in pickles):
+        raise ArtifactError(f"{path}: not a TorchScript archive (no data.pkl)")
+    for name in pickles:
+        root, member = name.split("/")
+        folder = f"{root}/{'data' if member == 'data.pkl' else 'constants'}"
+        try:
+            _Reader(zf.read(name), sizes, folder).load()
+        except _Unfit as exc:
+            raise ArtifactError(f"{path}: TorchScript {member} {exc}; refused before torch.jit.load reads it") from None
+        except Exception as exc:  # damaged bytes: say so in one line (torch.jit.load would only fail later)
+            raise ArtifactError(f"{path}: TorchScript {member} is not a readable pickle ({_first_line(exc)})") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    try:
+        text = str(exc).strip()
+    except Exception:  # the str of an exception carrying a hostile value may itself fail
+        text = ""
+    return text.splitlines()[0][:160] if text else type(exc).__name__
