@@ -21,6 +21,7 @@ from pipeline.core.signals import EXIT_CODE as STOPPED_EXIT_CODE
 from pipeline.core.signals import Stopped
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.variants import Variant, parse_variants, with_overrides
 
 F = TypeVar("F", bound=Callable[..., Any])
 M = TypeVar("M", bound=BaseModel)
@@ -129,12 +130,30 @@ def reports_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-def read_params(path: Path, name: str, model: type[M]) -> tuple[dict[str, Any], EnvParams, M]:
+def read_params(
+    path: Path, name: str, model: type[M], variant: str | None = None
+) -> tuple[dict[str, Any], EnvParams, M]:
     """Load params.yaml and validate the `env` section, the top-level lists (RunParams: they must
-    agree with each other) and stage section `name`."""
+    agree with each other) and stage section `name`. With `variant` (a name in params'
+    `variants`), the returned params are the file's with that variant's overrides merged in
+    (pipeline.params.variants.with_overrides): every section read from them is the variant's."""
     raw = load_params(path)
     section(raw, "", RunParams, path)
+    if variant is not None:
+        raw = with_overrides(raw, named_variant(raw, variant, path))
+        path = Path(f"{path} (with the overrides of variants.{variant})")
     return raw, section(raw, "env", EnvParams, path), section(raw, name, model, path)
+
+
+def named_variant(raw: dict[str, Any], name: str, path: Path) -> Variant:
+    """Variant `name` of the loaded params' `variants`; a one-line ParamsError if there is none."""
+    try:
+        found = parse_variants(raw.get("variants")).get(name)
+    except ValueError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
+    if found is None:
+        raise ParamsError(f"{path}: variants has no entry {name!r} (names: {sorted(raw.get('variants') or {})})")
+    return found
 
 
 def require_every_objective(objectives: list[int], n_objectives: int, env_id: str, params: Path, who: str) -> None:

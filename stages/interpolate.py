@@ -15,7 +15,7 @@ from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
 from pipeline.core.specialist import StartingPolicy, check_slot, kind_from_meta, policies_path
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import ParamsError, RunParams, load_params, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.interpolate import InterpolateParams
 from pipeline.params.methods import SPECIALIST_KINDS, method_name
@@ -23,6 +23,7 @@ from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
     fmt_vec,
+    named_variant,
     progress,
     read_params,
     reports_errors,
@@ -59,6 +60,11 @@ def interpolate(
         ..., help="directory with, per objective K, obj{K}/policies.pt (a policy set) or obj{K}/policy.pt"
     ),
     out: Path = typer.Option(..., help="output directory: population.pt"),
+    method: Optional[str] = typer.Option(
+        None,
+        help="run as this named variant of method interpolate_KIND (params `variants`: its overrides of sections "
+        "interpolate and extract apply, and the front is this method's); default: interpolate_KIND itself",
+    ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
@@ -82,10 +88,15 @@ def interpolate(
     evaluate, score and report read it like any method's. With --provenance, what produced the
     run (pipeline.core.provenance) goes to that file, outside OUT.
     """
-    raw, env_p, cfg = read_params(params, "interpolate", InterpolateParams)
-    ext = section(raw, "extract", ExtractParams, params)
     if kind not in SPECIALIST_KINDS:
         raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
+    base = method_name("interpolate", kind)
+    if method is not None:
+        named = named_variant(load_params(params), method, params)
+        if named.of != base:
+            raise ParamsError(f"--method {method}: variants.{method}.of is {named.of!r}, but this run is {base!r}")
+    raw, env_p, cfg = read_params(params, "interpolate", InterpolateParams, method)
+    ext = section(raw, "extract", ExtractParams, params)
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(episodes)]
@@ -120,6 +131,6 @@ def interpolate(
         "seed": seed,
         "kind": kind,
     }
-    run_meta = meta | {"seed": seed, "method": method_name("interpolate", kind), "params": config}
+    run_meta = meta | {"seed": seed, "method": method or base, "params": config}
     save_population(out / "population.pt", members, run_meta)
     write_provenance(provenance, "interpolate", "cpu")

@@ -17,8 +17,9 @@ from pipeline.core.population import member_actor
 from pipeline.core.provenance import write_provenance
 from pipeline.evaluation.render import Film, choose_gl, clip_fps, clip_key, film_episode, make_render_env, write_clip
 from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.methods import colour, label
+from pipeline.params.methods import colour, label, use_variants
 from pipeline.params.render import RenderParams
+from pipeline.params.variants import parse_variants
 from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors
 
@@ -84,6 +85,7 @@ def render(
     """
     raw, env_p, cfg = read_params(params, "render", RenderParams)
     run_p = section(raw, "", RunParams, params)
+    use_variants(parse_variants(run_p.variants))  # the variants' labels and colours
     exported = set(run_p.export_methods)  # export.methods, as the generated list (always in the file)
     stray = [m for m in cfg.methods if m not in run_p.methods]
     if stray:

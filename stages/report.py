@@ -9,9 +9,10 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
-from pipeline.params import RunParams, section
-from pipeline.params.methods import label
+from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.methods import label, use_variants
 from pipeline.params.report import ReportParams
+from pipeline.params.variants import parse_variants
 from pipeline.reporting.figures import front_caption, front_figure, history_figure
 from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.report import report_markdown
@@ -59,6 +60,11 @@ def report(
     raw, env_p, cfg = read_params(params, "report", ReportParams)
     run_p = section(raw, "", RunParams, params)
     seeds, methods = run_p.seeds, run_p.methods
+    use_variants(parse_variants(run_p.variants))  # the variants' labels, colours and pairs
+    for i, pair in enumerate(cfg.pairs or []):
+        stray = [m for m in pair if m not in methods]
+        if stray:
+            raise ParamsError(f"{params}: report.pairs[{i}] = {pair}: {stray[0]!r} is not in methods {methods}")
     # Only the seeds and methods params.yaml names: folders of ones dropped from the lists may linger.
     runs = [r for r in load_runs(scored, evaluated, provenance) if r.seed in seeds and r.method in methods]
     if not runs:
@@ -97,6 +103,7 @@ def report(
         cfg.noise_sems,
         cfg.weak_specialist_fraction,
         cfg.weak_specialist_min_return,
+        cfg.pairs,
     )
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():

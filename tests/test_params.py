@@ -266,6 +266,9 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "export_methods": [],
         "warmup_from": [],
         "interpolate_from": [],
+        "specialist_variants": [],
+        "extract_variant_runs": [],
+        "interpolate_variant_runs": [],
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(

@@ -67,6 +67,11 @@ class RunParams(Strict):
         "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld, interpolate_<kind> "
         "(pipeline/params/methods.py)",
     )
+    variants: dict[str, dict] | None = Field(
+        None,
+        description="named variants: name -> {of: <method or kind>, label, specialists, <section>: {key: value}} "
+        "(pipeline/params/variants.py); methods lists the method variants that run",
+    )
     # derived (generated block): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
         None,
@@ -109,6 +114,15 @@ class RunParams(Strict):
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
     export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
+    specialist_variants: list[str] = Field(
+        [], description="derived: the specialists variants the method variants start from (train_specialist_variant)"
+    )
+    extract_variant_runs: list[dict] = Field(
+        [], description="derived: method variants of MAPEX and warm-up only (stage extract_variant)"
+    )
+    interpolate_variant_runs: list[dict] = Field(
+        [], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"
+    )
 
     @field_validator(
         "seeds",
@@ -142,7 +156,12 @@ class RunParams(Strict):
         # the import entries come from section import_specialists (pipeline.params.section passes them)
         context = info.context or {}
         want = derived_lists(
-            self.methods, self.seeds, context.get("imports", []), context.get("export", []), self.objectives
+            self.methods,
+            self.seeds,
+            context.get("imports", []),
+            context.get("export", []),
+            self.objectives,
+            self.variants,
         )
         for key, value in want.items():
             given = getattr(self, key)

@@ -18,7 +18,7 @@ from pipeline.params.common import GENERATED_BEGIN, GENERATED_END, RunParams
 from pipeline.params.methods import derived_lists
 
 # the generated lists: RunParams' fields other than those written by hand, in its order
-DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in ("seeds", "objectives", "methods"))
+DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in ("seeds", "objectives", "methods", "variants"))
 
 
 def generated_block(
@@ -27,8 +27,9 @@ def generated_block(
     imports: list[dict] | None = None,
     export: list[str] | None = None,
     objectives: list[int] | tuple[int, ...] = (0, 1),
+    variants: dict | None = None,
 ) -> str:
-    lists = derived_lists(methods, seeds, imports, export, objectives)
+    lists = derived_lists(methods, seeds, imports, export, objectives, variants)
     lines = [f"{key}: {json.dumps(lists[key])}" for key in DERIVED_KEYS]
     return "\n".join([GENERATED_BEGIN, *lines, GENERATED_END]) + "\n"
 
@@ -51,7 +52,9 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
 
     context = context_lists(raw)
     try:
-        block = generated_block(list(methods), list(seeds), context["imports"], context["export"], list(objectives))
+        block = generated_block(
+            list(methods), list(seeds), context["imports"], context["export"], list(objectives), raw.get("variants")
+        )
     except ValueError as exc:
         raise ValueError(f"{where}: {exc}") from None
     lines = text.splitlines(keepends=True)
@@ -109,7 +112,9 @@ def with_tracked_keys(text: str) -> str:
     raw = yaml.safe_load(text) or {}
     if "render" not in raw:  # stage render tracks the whole section: DVC needs it in the file
         text = text + ("" if text.endswith("\n") or not text else "\n") + RENDER_NOTE + "render:\n  methods: []\n"
-    methods = [str(m) for m in raw.get("methods") or []]
+    variants = raw.get("variants") if isinstance(raw.get("variants"), dict) else {}
+    # a variant's name stands for its base method (its stage tracks the same keys)
+    methods = [str((variants.get(m) or {}).get("of", m)) if m in variants else str(m) for m in raw.get("methods") or []]
     interpolates = any(m.startswith("interpolate_") for m in methods)
     if interpolates and "interpolate" not in raw:  # stage interpolate tracks the whole section
         text = (

@@ -64,7 +64,8 @@ def with_lists(params: dict) -> dict:
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
     objectives = params.get("objectives", [0, 1])
-    out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export, objectives)}
+    lists = derived_lists(params["methods"], params["seeds"], imports, export, objectives, params.get("variants"))
+    out = {**params, **lists}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
     tracked = (WARMUP_ONLY_KEYS if out["warmup_from"] else ()) + (
         INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] else ()
