@@ -10,9 +10,8 @@ from __future__ import annotations
 import json
 
 import pytest
-import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
-from support.tiny_params import TINY_CHAIN, merge, with_lists
+from support.tiny_params import TINY_CHAIN, merge, save_params, with_lists
 from test_dvc_methods import stale_stages
 
 pytestmark = pytest.mark.integration
@@ -63,13 +62,13 @@ def test_variants_run_side_by_side_and_rerun_alone(tmp_path_factory):
 
     # one variant's override: that variant's stage alone
     edited = merge(params, {"variants": {"mapex_td3_gentle": {"extract": {"epochs": 3}}}})
-    (root / "params.yaml").write_text(yaml.safe_dump(edited))
+    save_params(root / "params.yaml", edited)
     assert stale_stages(root) == {"extract_variant"}
     # a specialists variant's override: its specialists alone (what starts from them follows their outputs)
     edited = merge(params, {"variants": {"td3_shared": {"td3": {"learning_starts": 210}}}})
-    (root / "params.yaml").write_text(yaml.safe_dump(edited))
+    save_params(root / "params.yaml", edited)
     assert stale_stages(root) == {"train_specialist_variant"}
     # a base section key reruns the method and its variant (the variant inherits it)
     edited = merge(params, {"extract": {"lr": 0.001}})
-    (root / "params.yaml").write_text(yaml.safe_dump(edited))
+    save_params(root / "params.yaml", edited)
     assert stale_stages(root) == {"extract", "extract_variant"}  # not warmup_only: it does not read lr

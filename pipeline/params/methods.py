@@ -318,4 +318,7 @@ def derived_lists(
             for v in named
             if v.stage == "interpolate_variant"
         ],
+        # the report's and the explorer's names of the variants run (their stages track this)
+        "variant_labels": {v.name: v.label for v in named}
+        | {v.specialists: parsed[v.specialists].label for v in named if v.specialists != v.kind},
     }

@@ -17,9 +17,14 @@ Each test copies a preset (merge, or a dict literal) before changing anything.
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 from typing import Any
 
+import yaml
+
+from pipeline.params.common import DERIVED_KEYS
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+from pipeline.params.generated import write_params_files
 from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
 from pipeline.params.methods import derived_lists
 
@@ -178,3 +183,13 @@ TINY_ALL = {
     "evaluate": {"episodes": 1},
 }
 TINY_ALL = with_lists(TINY_ALL)
+
+
+def save_params(path: Path, params: dict[str, Any], **dump: Any) -> Path:
+    """Write `params` at `path` as the tests' params file. With derived run lists in it (a dict of
+    `with_lists`), as `mapex sync-params` leaves a repository: the user's keys there, the lists
+    (derived again) in the generated file beside (params.gen.yaml); otherwise as it is."""
+    if any(k in params for k in DERIVED_KEYS):
+        return write_params_files(path, params, **dump)
+    path.write_text(yaml.safe_dump(params, **dump))
+    return path
