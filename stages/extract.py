@@ -17,7 +17,7 @@ from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots, slot_sources
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
-from pipeline.params import ParamsError, RunParams, load_params, section
+from pipeline.params import ParamsError
 from pipeline.params.extract import ExtractParams
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, TRAINED_KINDS, method_name
 from stages.common import (
@@ -108,12 +108,10 @@ def extract(
     naming the seed, iteration, step and loss, and exit code 3; nothing is written and the
     checkpoint of the last whole iteration stays (docs/manual.md, "When training diverges").
     """
+    raw, env_p, cfg, run_p = read_params(params, "extract", ExtractParams, method)
     base = method_name(variant, kind)
-    if method is not None:
-        named = named_variant(load_params(params), method, params)
-        if named.of != base:
-            raise ParamsError(f"--method {method}: variants.{method}.of is {named.of!r}, but this run is {base!r}")
-    raw, env_p, cfg = read_params(params, "extract", ExtractParams, method)
+    if method is not None and (of := named_variant(raw, method, params).of) != base:
+        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
     cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * cfg.children_per_iteration)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
@@ -122,9 +120,7 @@ def extract(
             f"env.id = {env_p.id!r} has {spec.n_objectives} objective; MAPEX extracts a Pareto front of "
             "2 or more objectives (N >= 3: docs/n_objectives.md)"
         )
-    require_every_objective(
-        section(raw, "", RunParams, params).objectives, spec.n_objectives, env_p.id, params, "extraction"
-    )
+    require_every_objective(run_p.objectives, spec.n_objectives, env_p.id, params, "extraction")
     critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
     # warm-up only (epochs = 0) reads no critics, so it runs from specialists without any
     # (imported ones). Its recorded config keeps "joint" from the kinds trained here, as it always

@@ -15,7 +15,7 @@ from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
 from pipeline.core.specialist import StartingPolicy, check_slot, kind_from_meta, policies_path
-from pipeline.params import ParamsError, RunParams, load_params, section
+from pipeline.params import ParamsError, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.interpolate import InterpolateParams
 from pipeline.params.methods import SPECIALIST_KINDS, method_name
@@ -90,12 +90,10 @@ def interpolate(
     """
     if kind not in SPECIALIST_KINDS:
         raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
+    raw, env_p, cfg, run_p = read_params(params, "interpolate", InterpolateParams, method)
     base = method_name("interpolate", kind)
-    if method is not None:
-        named = named_variant(load_params(params), method, params)
-        if named.of != base:
-            raise ParamsError(f"--method {method}: variants.{method}.of is {named.of!r}, but this run is {base!r}")
-    raw, env_p, cfg = read_params(params, "interpolate", InterpolateParams, method)
+    if method is not None and (of := named_variant(raw, method, params).of) != base:
+        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
     ext = section(raw, "extract", ExtractParams, params)
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes
@@ -104,7 +102,7 @@ def interpolate(
         spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
         if spec.n_objectives < 2:
             raise EnvError(f"env.id = {env_p.id!r} has 1 objective; interpolation mixes 2 or more specialists")
-        objectives = section(raw, "", RunParams, params).objectives
+        objectives = run_p.objectives
         require_every_objective(objectives, spec.n_objectives, env_p.id, params, "interpolation")
         meta = spec_meta(spec)
         starts = load_starts(specialists, spec.n_objectives, seed, meta, kind)

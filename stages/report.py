@@ -9,7 +9,7 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import ParamsError
 from pipeline.params.methods import label, use_variants
 from pipeline.params.report import ReportParams
 from pipeline.params.variants import parse_variants
@@ -57,8 +57,7 @@ def report(
     (thumbs/). The folder is built beside OUT and renamed
     into place when complete.
     """
-    raw, env_p, cfg = read_params(params, "report", ReportParams)
-    run_p = section(raw, "", RunParams, params)
+    raw, env_p, cfg, run_p = read_params(params, "report", ReportParams)
     seeds, methods = run_p.seeds, run_p.methods
     use_variants(parse_variants(run_p.variants))  # the variants' labels, colours and pairs
     for i, pair in enumerate(cfg.pairs or []):

@@ -57,7 +57,8 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
 
 
 TRACKED_NOTE = (
-    "  # named for DVC by `mapex sync-params` (stages warmup_only, interpolate track these keys); edit freely\n"
+    "  # named for DVC by `mapex sync-params` (stages warmup_only, interpolate, train_pderl, mopderl track these "
+    "keys); edit freely\n"
 )
 
 
@@ -80,6 +81,7 @@ def with_tracked_keys(text: str) -> str:
     interpolation methods is returned as it is (but for the render section)."""
     from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
     from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
+    from pipeline.params.td3 import AGENT_KEYS, TD3Params
 
     raw = yaml.safe_load(text) or {}
     if "render" not in raw:  # stage render tracks the whole section: DVC needs it in the file
@@ -97,22 +99,33 @@ def with_tracked_keys(text: str) -> str:
         )
     tracked = WARMUP_ONLY_KEYS if any(m.startswith("warmup_only_") for m in methods) else ()
     tracked += tuple(k for k in INTERPOLATE_EXTRACT_KEYS if interpolates and k not in tracked)
+    try:
+        agents = bool(run_lists(raw)["pderl_seeds"])  # stages train_pderl and mopderl list td3's AGENT_KEYS
+    except ValueError:
+        agents = False  # bad methods: the caller's validation names them
+    if agents:
+        text = _filled(text, raw, "td3", AGENT_KEYS, TD3Params.model_fields)
+    return _filled(text, raw, "extract", tracked, ExtractParams.model_fields)
+
+
+def _filled(text: str, raw: dict, name: str, tracked: tuple[str, ...], fields: dict) -> str:
+    """`text` with the keys `tracked` of section `name` that it lacks appended to that section
+    (created if absent) at their defaults (`fields`), under TRACKED_NOTE."""
     if not tracked:
         return text
-    section = raw.get("extract")
+    section = raw.get(name)
     if section is not None and not isinstance(section, dict):
         return text  # not a mapping: the stage's validation names the problem
     missing = [k for k in tracked if k not in (section or {})]
     if not missing:
         return text
-    fields = ExtractParams.model_fields
     added = [TRACKED_NOTE] + [f"  {k}: {json.dumps(fields[k].default)}\n" for k in missing]
     lines = text.splitlines(keepends=True)
     if lines and not lines[-1].endswith("\n"):
         lines[-1] += "\n"
-    start = next((i for i, line in enumerate(lines) if re.match(r"^extract\s*:", line)), None)
+    start = next((i for i, line in enumerate(lines) if re.match(rf"^{name}\s*:", line)), None)
     if start is None:
-        return "".join(lines) + "\nextract:\n" + "".join(added)
+        return "".join(lines) + f"\n{name}:\n" + "".join(added)
     if lines[start].split(":", 1)[1].split("#", 1)[0].strip():  # `extract: {...}` in flow style
         return text
     end = start + 1

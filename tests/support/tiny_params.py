@@ -27,6 +27,7 @@ from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 from pipeline.params.generated import write_params_files
 from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
 from pipeline.params.methods import derived_lists
+from pipeline.params.td3 import AGENT_KEYS, TD3Params
 
 # HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
 # = 3 truncated episodes + 1 still running. Updates start at step 260 (90 updates, 45 actor
@@ -73,13 +74,16 @@ def with_lists(params: dict) -> dict:
     out = {**params, **lists}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
     tracked = (WARMUP_ONLY_KEYS if out["warmup_from"] else ()) + (
-        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] else ()
+        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] or out["interpolate_variant_runs"] else ()
     )
     if tracked:
         fields = ExtractParams.model_fields
         out["extract"] = {k: fields[k].default for k in tracked} | (params.get("extract") or {})
-    if out["interpolate_from"]:
+    if out["interpolate_from"] or out["interpolate_variant_runs"]:
         out.setdefault("interpolate", {"policies": None, "eval_episodes": None})
+    if out["pderl_seeds"]:  # stages train_pderl and mopderl list the td3 keys their agents read
+        fields = TD3Params.model_fields
+        out["td3"] = {k: fields[k].default for k in AGENT_KEYS} | (params.get("td3") or {})
     return out
 
 
