@@ -270,6 +270,9 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "specialist_variants": [],
         "extract_variant_runs": [],
         "interpolate_variant_runs": [],
+        "run_seeds": [0, 1],
+        "run_objectives": [0, 1],
+        "run_methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"],
         "variant_labels": {},
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
@@ -309,7 +312,8 @@ def test_warmup_only_imported_adds_imported_to_warmup_from_outside_the_product()
         derived_lists(["mapex_td3", "warmup_only_td3", "mapex_pderl", "warmup_only_imported"], [0], imports)
     # the validated section accepts the imported kind in warmup_from, and refuses a stale list
     ok = {"seeds": [0], "methods": ["mapex_posthoc_imported", "warmup_only_imported"], **lists} | {
-        "imported_seeds": [0]
+        "imported_seeds": [0],
+        "run_seeds": [0],
     }
     ctx = {"imports": imports}
     assert RunParams.model_validate(ok, context=ctx).warmup_from == ["imported"]

@@ -128,6 +128,9 @@ class RunParams(Strict):
     interpolate_variant_runs: list[dict] = Field(
         [], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"
     )
+    run_seeds: list[int] = Field([], description="derived: seeds, as dvc.yaml's matrices read them")
+    run_objectives: list[int] = Field([], description="derived: objectives, as dvc.yaml's matrices read them")
+    run_methods: list[str] = Field([], description="derived: methods, as dvc.yaml's matrices read them")
     variant_labels: dict[str, str] = Field(
         {}, description="derived: the report's names of the variants run (stages report and render track them)"
     )

@@ -318,6 +318,10 @@ def derived_lists(
             for v in named
             if v.stage == "interpolate_variant"
         ],
+        # every matrix of dvc.yaml reads this file only (a stale file still gives a consistent graph)
+        "run_seeds": list(seeds),
+        "run_objectives": list(objectives),
+        "run_methods": listed,
         # the report's and the explorer's names of the variants run (their stages track this)
         "variant_labels": {v.name: v.label for v in named}
         | {v.specialists: parsed[v.specialists].label for v in named if v.specialists != v.kind},
