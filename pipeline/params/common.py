@@ -77,7 +77,7 @@ class RunParams(Strict):
         description="named variants: name -> {of: <method or kind>, label, specialists, <section>: {key: value}} "
         "(pipeline/params/variants.py); methods lists the method variants that run",
     )
-    # derived (generated block): see pipeline.params.methods.derived_lists
+    # derived (params.gen.yaml): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
         None,
         description="derived: seeds of stage train_specialist (TD3 specialists); dvc.yaml needs it written, "
