@@ -107,3 +107,43 @@ def test_two_forms_of_one_method_are_paired_under_the_labels_given():
     assert verdicts(runs, pairs=[]) == []
     use_variants({})
     assert VARIANT_METHODS == {} and label("mapex_td3_gentle") == "mapex_td3_gentle"
+
+
+def test_a_stage_run_as_a_variant_checks_the_name_and_its_base(tmp_path, cli, write_params):
+    """`--method NAME` must be a variant of the method the stage runs, named in params' variants:
+    otherwise one line and exit 2, before anything is read."""
+    methods = ["mapex_td3", "warmup_only_td3", "mapex_td3_gentle"]
+    params = write_params(
+        tmp_path, {"methods": methods, "variants": {"mapex_td3_gentle": VARIANTS["mapex_td3_gentle"]}}
+    )
+    args = ["extract", "--specialists", tmp_path / "none", "--out", tmp_path / "out", "--params", params]
+    r = cli(*args, "--method", "nope")
+    assert r.exit_code == 2 and "variants has no entry 'nope'" in r.output, r.output
+    r = cli(*args, "--variant", "warmup_only", "--method", "mapex_td3_gentle")
+    assert r.exit_code == 2, r.output
+    assert (
+        "--method mapex_td3_gentle: variants.mapex_td3_gentle.of is 'mapex_td3', but this run is 'warmup_only_td3'"
+        in r.output
+    )
+    # a bad override is named by its variant
+    bad = write_params(
+        tmp_path / "bad",
+        {"methods": methods, "variants": {"mapex_td3_gentle": {"of": "mapex_td3", "extract": {"epochs": -2}}}},
+    )
+    r = cli(
+        "extract",
+        "--specialists",
+        tmp_path / "none",
+        "--out",
+        tmp_path / "out",
+        "--params",
+        bad,
+        "--method",
+        "mapex_td3_gentle",
+    )
+    assert (
+        r.exit_code == 2
+        and "with the overrides of variants.mapex_td3_gentle" in r.output
+        and "extract.epochs = -2" in r.output
+    )
+    assert not (tmp_path / "out").exists()

@@ -65,8 +65,9 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
 from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
+from pipeline.params.import_specialists import IMPORT_FORMATS, NORMALIZABLE_FORMATS
 
-FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
+FORMATS = IMPORT_FORMATS  # listed once, with the params model (pipeline/params/import_specialists.py)
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
 
 
@@ -432,7 +433,7 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
 
 # -- observation statistics ---------------------------------------------------------------------
 
-NORMALIZABLE = ("sb3", "cleanrl")  # the formats read into an `Actor`, which statistics can precede
+NORMALIZABLE = NORMALIZABLE_FORMATS  # the formats read into an `Actor`, which statistics can precede
 
 
 def normalized(path: Path, actor: Actor, stats: ObsStatistics, spec: EnvSpec) -> Actor:
