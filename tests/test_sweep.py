@@ -62,7 +62,7 @@ def source(tmp_path_factory) -> Path:
     (root / "presets").mkdir()
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
     save_params(root / "params.yaml", TINY, sort_keys=False)
-    # valid params (objectives has a default), but dvc.yaml's matrices need the key itself
+    # valid params (objectives has a default), but dvc.yaml's stages list the key itself (DVC refuses it missing)
     (root / "no_objectives.yaml").write_text(
         yaml.safe_dump({k: v for k, v in TINY.items() if k != "objectives"}, sort_keys=False)
     )

@@ -139,6 +139,15 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
             params = {
                 os.path.relpath(d.fs_path, root): d.read_params() for d in stage.deps if isinstance(d, ParamsDependency)
             }
+            # DVC refuses to run a stage whose listed params the file leaves out: say so before anything runs
+            for d in stage.deps:
+                if isinstance(d, ParamsDependency):
+                    missing = [p for p in d.params or [] if p not in params[os.path.relpath(d.fs_path, root)]]
+                    if missing:
+                        raise LookupError(
+                            f"stage {stage.name} lists params {missing}, which {os.path.relpath(d.fs_path, root)} "
+                            "leaves out (DVC refuses to run it)"
+                        )
             key = json.dumps(
                 {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
                 sort_keys=True,

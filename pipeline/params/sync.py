@@ -47,7 +47,7 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
         m = key_line.match(line)
         if m:
             value = m.group(2).split("#", 1)[0].strip()
-            if not value.startswith("["):
+            if not value.startswith(("[", "{")):
                 raise ValueError(
                     f"{where}: {m.group(1)} is written over several lines; delete it (it is derived from methods)"
                 )
