@@ -14,7 +14,10 @@ from support.dvc_repo import BIN, make_repo, ran, run
 from support.tiny_params import TINY_CHAIN, merge, save_params, with_lists
 from test_dvc_methods import stale_stages
 
-pytestmark = pytest.mark.integration
+# Two sets of specialists and four fronts through DVC (about 3.5 min on the loaded 2-core machine):
+# `make test-slow`, so that `make test` stays within 8 minutes (tests/test_variants.py covers the
+# rest without DVC).
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 VARIANTS = {
     "mapex_td3_gentle": {"of": "mapex_td3", "label": "gentle MAPEX-TD3", "extract": {"epochs": 2, "beta": 5.0}},
