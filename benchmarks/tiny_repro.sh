@@ -29,7 +29,10 @@ if "params.gen.yaml" in open(os.path.join(os.path.dirname(sys.argv[1]), "dvc.yam
     # REF keeps the derived run lists in a generated file: write both as `mapex sync-params` would
     from pipeline.params.generated import write_params_files
     write_params_files(sys.argv[1], params, sort_keys=False)
-else:
+else:  # REF keeps them inline in params.yaml, and knows only the lists of its time
+    for key in ("specialist_variants", "extract_variant_runs", "interpolate_variant_runs", "run_seeds",
+                "run_objectives", "run_methods", "variant_labels"):
+        params.pop(key, None)
     open(sys.argv[1], "w").write(yaml.safe_dump(params, sort_keys=False))
 PY
 cd "$work"
