@@ -1,5 +1,5 @@
 # Two entry points for a fresh machine (see README):
-#   make repro   install into .venv, sync params.yaml's run lists, then run the whole pipeline (dvc repro)
+#   make repro   install into .venv, write params.gen.yaml's run lists, then run the whole pipeline (dvc repro)
 #   make test    install into .venv, then run the test suite
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #

@@ -25,7 +25,15 @@ from support.tiny_params import TINY_ALL
 params = dict(TINY_ALL)
 if not os.path.exists(sys.argv[2]):  # REF predates the td3 section: its keys were train_specialist's
     params["train_specialist"] = {**params.pop("td3", {}), **params.get("train_specialist", {})}
-open(sys.argv[1], "w").write(yaml.safe_dump(params, sort_keys=False))
+if "params.gen.yaml" in open(os.path.join(os.path.dirname(sys.argv[1]), "dvc.yaml")).read():
+    # REF keeps the derived run lists in a generated file: write both as `mapex sync-params` would
+    from pipeline.params.generated import write_params_files
+    write_params_files(sys.argv[1], params, sort_keys=False)
+else:  # REF keeps them inline in params.yaml, and knows only the lists of its time
+    for key in ("specialist_variants", "extract_variant_runs", "interpolate_variant_runs", "run_seeds",
+                "run_objectives", "run_methods", "variant_labels"):
+        params.pop(key, None)
+    open(sys.argv[1], "w").write(yaml.safe_dump(params, sort_keys=False))
 PY
 cd "$work"
 printf '/data/\n__pycache__/\nMUJOCO_LOG.TXT\n' > .gitignore

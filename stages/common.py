@@ -6,7 +6,7 @@ import functools
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, TypeVar
+from typing import Any, Callable, Generic, Iterator, NamedTuple, TypeVar
 
 import torch
 import typer
@@ -21,6 +21,7 @@ from pipeline.core.signals import EXIT_CODE as STOPPED_EXIT_CODE
 from pipeline.core.signals import Stopped
 from pipeline.core.workers import WorkerError, oversubscribed, run_side_by_side
 from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.variants import Variant, parse_variants, with_overrides
 
 F = TypeVar("F", bound=Callable[..., Any])
 M = TypeVar("M", bound=BaseModel)
@@ -129,12 +130,38 @@ def reports_errors(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
-def read_params(path: Path, name: str, model: type[M]) -> tuple[dict[str, Any], EnvParams, M]:
+class StageParams(NamedTuple, Generic[M]):
+    """What `read_params` hands a stage: the loaded params (a variant's overrides merged in), and
+    the validated `env` section, stage section and top-level lists."""
+
+    raw: dict[str, Any]
+    env: EnvParams
+    cfg: M
+    run: RunParams
+
+
+def read_params(path: Path, name: str, model: type[M], variant: str | None = None) -> StageParams[M]:
     """Load params.yaml and validate the `env` section, the top-level lists (RunParams: they must
-    agree with each other) and stage section `name`."""
+    agree with each other) and stage section `name`, each once. With `variant` (a name in params'
+    `variants`), the params are the file's with that variant's overrides merged in
+    (pipeline.params.variants.with_overrides): every section read from them is the variant's."""
     raw = load_params(path)
-    section(raw, "", RunParams, path)
-    return raw, section(raw, "env", EnvParams, path), section(raw, name, model, path)
+    run = section(raw, "", RunParams, path)
+    if variant is not None:
+        raw = with_overrides(raw, named_variant(raw, variant, path))
+        path = Path(f"{path} (with the overrides of variants.{variant})")
+    return StageParams(raw, section(raw, "env", EnvParams, path), section(raw, name, model, path), run)
+
+
+def named_variant(raw: dict[str, Any], name: str, path: Path) -> Variant:
+    """Variant `name` of the loaded params' `variants`; a one-line ParamsError if there is none."""
+    try:
+        found = parse_variants(raw.get("variants")).get(name)
+    except ValueError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
+    if found is None:
+        raise ParamsError(f"{path}: variants has no entry {name!r} (names: {sorted(raw.get('variants') or {})})")
+    return found
 
 
 def require_every_objective(objectives: list[int], n_objectives: int, env_id: str, params: Path, who: str) -> None:

@@ -57,7 +57,7 @@ def evaluate(
     a `dvc plots` scatter of obj0 vs obj1) and evaluation.json (what was run); with --provenance,
     what produced the run (pipeline.core.provenance) to that file, outside OUT.
     """
-    _, env_p, cfg = read_params(params, "evaluate", EvaluateParams)
+    _, env_p, cfg, _ = read_params(params, "evaluate", EvaluateParams)
     members, meta = load_population(population, META_KEYS)
     _check_population(population, members, meta, env_p.id, seed)
     try:

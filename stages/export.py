@@ -96,7 +96,7 @@ def export(
     left half-written. With --provenance, what produced the run (pipeline.core.provenance) goes
     to that file, outside OUT.
     """
-    _, _, cfg = read_params(params, "export", ExportParams)  # export.methods must be in methods (RunParams)
+    _, _, cfg, _ = read_params(params, "export", ExportParams)  # export.methods must be in methods (RunParams)
     want_onnx = onnx or cfg.onnx
     if want_onnx not in ("auto", "yes", "no"):
         raise ParamsError(f"--onnx {want_onnx!r}: expected auto, yes or no")

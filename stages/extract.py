@@ -17,12 +17,13 @@ from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots, slot_sources
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import ParamsError
 from pipeline.params.extract import ExtractParams, without_default_extensions
 from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, TRAINED_KINDS, method_name
 from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
+    named_variant,
     progress_send,
     read_params,
     reports_errors,
@@ -67,6 +68,11 @@ def extract(
     posthoc: Path = typer.Option(
         None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"
     ),
+    method: Optional[str] = typer.Option(
+        None,
+        help="run as this named variant of method VARIANT_KIND (params `variants`: its overrides of section "
+        "extract apply, and the front is this method's); default: method VARIANT_KIND itself",
+    ),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
     resume_dir: Path = typer.Option(
         None,
@@ -110,7 +116,10 @@ def extract(
     naming the seed, iteration, step and loss, and exit code 3; nothing is written and the
     checkpoint of the last whole iteration stays (docs/manual.md, "When training diverges").
     """
-    raw, env_p, cfg = read_params(params, "extract", ExtractParams)
+    raw, env_p, cfg, run_p = read_params(params, "extract", ExtractParams, method)
+    base = method_name(variant, kind)
+    if method is not None and (of := named_variant(raw, method, params).of) != base:
+        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
     cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * cfg.children_per_iteration)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
@@ -119,9 +128,7 @@ def extract(
             f"env.id = {env_p.id!r} has {spec.n_objectives} objective; MAPEX extracts a Pareto front of "
             "2 or more objectives (N >= 3: docs/n_objectives.md)"
         )
-    require_every_objective(
-        section(raw, "", RunParams, params).objectives, spec.n_objectives, env_p.id, params, "extraction"
-    )
+    require_every_objective(run_p.objectives, spec.n_objectives, env_p.id, params, "extraction")
     critics_mode = "posthoc" if variant == "mapex_posthoc" else "joint"
     # warm-up only (epochs = 0) reads no critics, so it runs from specialists without any
     # (imported ones). Its recorded config keeps "joint" from the kinds trained here, as it always
@@ -157,7 +164,7 @@ def extract(
         "kind": kind,
         "critics": critics_mode if reads_critics or kind in TRAINED_KINDS else "none",
     }
-    method = method_name(variant, kind)
+    method = method or base
     ckpt = Checkpoint(
         (resume_dir or resume_root("data/resume")) / "extract" / method / f"seed{seed}" / "state.pt",
         run_fingerprint("extract", config, device, [f for s in slots for f in s.files], precision),

@@ -59,7 +59,7 @@ def fit_critics(
     steps and at the end) stops with one line naming the seed, objective and step, and exit
     code 3, and writes nothing (docs/manual.md, "When training diverges").
     """
-    _, _, cfg = read_params(params, "fit_critics", FitCriticsParams)
+    _, _, cfg, _ = read_params(params, "fit_critics", FitCriticsParams)
     try:
         device = select_device(cfg.device)
     except ValueError as exc:

@@ -160,7 +160,7 @@ def import_specialist(
     model was trained on normalised observations and imported without them.
     With --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
     """
-    _, env_p, cfg = read_params(params, "import_specialists", ImportSpecialistsParams)
+    _, env_p, cfg, _ = read_params(params, "import_specialists", ImportSpecialistsParams)
     env = make_env(env_p.id, env_p.max_episode_steps)
     spec = env_spec(env, env_p.id, env_p.max_episode_steps)
     env.close()

@@ -15,7 +15,7 @@ from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
 from pipeline.core.specialist import StartingPolicy, check_slot, kind_from_meta, policies_path
-from pipeline.params import ParamsError, RunParams, section
+from pipeline.params import ParamsError, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.interpolate import InterpolateParams
 from pipeline.params.methods import SPECIALIST_KINDS, method_name
@@ -23,6 +23,7 @@ from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
     fmt_vec,
+    named_variant,
     progress,
     read_params,
     reports_errors,
@@ -59,6 +60,11 @@ def interpolate(
         ..., help="directory with, per objective K, obj{K}/policies.pt (a policy set) or obj{K}/policy.pt"
     ),
     out: Path = typer.Option(..., help="output directory: population.pt"),
+    method: Optional[str] = typer.Option(
+        None,
+        help="run as this named variant of method interpolate_KIND (params `variants`: its overrides of sections "
+        "interpolate and extract apply, and the front is this method's); default: interpolate_KIND itself",
+    ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
@@ -82,10 +88,13 @@ def interpolate(
     evaluate, score and report read it like any method's. With --provenance, what produced the
     run (pipeline.core.provenance) goes to that file, outside OUT.
     """
-    raw, env_p, cfg = read_params(params, "interpolate", InterpolateParams)
-    ext = section(raw, "extract", ExtractParams, params)
     if kind not in SPECIALIST_KINDS:
         raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
+    raw, env_p, cfg, run_p = read_params(params, "interpolate", InterpolateParams, method)
+    base = method_name("interpolate", kind)
+    if method is not None and (of := named_variant(raw, method, params).of) != base:
+        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
+    ext = section(raw, "extract", ExtractParams, params)
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes
     envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(episodes)]
@@ -93,7 +102,7 @@ def interpolate(
         spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
         if spec.n_objectives < 2:
             raise EnvError(f"env.id = {env_p.id!r} has 1 objective; interpolation mixes 2 or more specialists")
-        objectives = section(raw, "", RunParams, params).objectives
+        objectives = run_p.objectives
         require_every_objective(objectives, spec.n_objectives, env_p.id, params, "interpolation")
         meta = spec_meta(spec)
         starts = load_starts(specialists, spec.n_objectives, seed, meta, kind)
@@ -121,6 +130,6 @@ def interpolate(
         "seed": seed,
         "kind": kind,
     }
-    run_meta = meta | {"seed": seed, "method": method_name("interpolate", kind), "params": config}
+    run_meta = meta | {"seed": seed, "method": method or base, "params": config}
     save_population(out / "population.pt", members, run_meta)
     write_provenance(provenance, "interpolate", "cpu", cost={"iterations": costs})

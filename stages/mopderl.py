@@ -17,7 +17,7 @@ from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
 from pipeline.core.specialist import load_slots
-from pipeline.params import RunParams, section
+from pipeline.params import section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.td3 import TD3Params
 from stages.common import (
@@ -104,8 +104,7 @@ def mopderl(
     exit code 3; nothing is written and the last good checkpoint stays (docs/manual.md,
     "When training diverges").
     """
-    raw, env_p, cfg = read_params(params, "mopderl", MopderlParams)
-    run_p = section(raw, "", RunParams, params)
+    raw, env_p, cfg, run_p = read_params(params, "mopderl", MopderlParams)
     td3 = section(raw, "td3", TD3Params, params)
     cfg = cfg.resolved(env_p.id)
     env = make_env(env_p.id, env_p.max_episode_steps)

@@ -68,7 +68,7 @@ def morld(
     stage with one line naming the seed, exchange and what went bad, and exit code 3; nothing
     is written and the last good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    _, env_p, cfg = read_params(params, "morld", MorldParams)
+    _, env_p, cfg, _ = read_params(params, "morld", MorldParams)
     try:
         require_morl_baselines()
     except BaselinesMissing as exc:

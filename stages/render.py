@@ -15,10 +15,16 @@ from pipeline.core.artifacts import ArtifactError, write_text_atomic
 from pipeline.core.envs import objective_names
 from pipeline.core.provenance import write_provenance
 from pipeline.core.workers import split_evenly
-from pipeline.evaluation.render import Film, choose_gl, clip_key, film_clips
-from pipeline.params import ParamsError, RunParams, section
-from pipeline.params.methods import colour, label
+from pipeline.evaluation.render import (
+    Film,
+    choose_gl,
+    clip_key,
+    film_clips,
+)
+from pipeline.params import ParamsError
+from pipeline.params.methods import colour, label, use_variants
 from pipeline.params.render import RenderParams
+from pipeline.params.variants import parse_variants
 from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
@@ -83,8 +89,8 @@ def render(
     record after its clip. OUT/explorer.html (self-contained: open it from file://),
     OUT/fronts.csv (the DVC plot) and OUT/index.json are rewritten last.
     """
-    raw, env_p, cfg = read_params(params, "render", RenderParams)
-    run_p = section(raw, "", RunParams, params)
+    raw, env_p, cfg, run_p = read_params(params, "render", RenderParams)
+    use_variants(parse_variants(run_p.variants))  # the variants' labels and colours
     exported = set(run_p.export_methods)  # export.methods, as the generated list (always in the file)
     stray = [m for m in cfg.methods if m not in run_p.methods]
     if stray:

@@ -9,9 +9,10 @@ import typer
 
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
-from pipeline.params import RunParams, section
-from pipeline.params.methods import label
+from pipeline.params import ParamsError
+from pipeline.params.methods import label, use_variants
 from pipeline.params.report import ReportParams
+from pipeline.params.variants import parse_variants
 from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
 from pipeline.reporting.figures import cost_figure, front_caption, front_figure, history_figure
 from pipeline.reporting.gallery import gallery_markdown
@@ -60,9 +61,13 @@ def report(
     (thumbs/). The folder is built beside OUT and renamed
     into place when complete.
     """
-    raw, env_p, cfg = read_params(params, "report", ReportParams)
-    run_p = section(raw, "", RunParams, params)
+    raw, env_p, cfg, run_p = read_params(params, "report", ReportParams)
     seeds, methods = run_p.seeds, run_p.methods
+    use_variants(parse_variants(run_p.variants))  # the variants' labels, colours and pairs
+    for i, pair in enumerate(cfg.pairs or []):
+        stray = [m for m in pair if m not in methods]
+        if stray:
+            raise ParamsError(f"{params}: report.pairs[{i}] = {pair}: {stray[0]!r} is not in methods {methods}")
     # Only the seeds and methods params.yaml names: folders of ones dropped from the lists may linger.
     runs = [r for r in load_runs(scored, evaluated, provenance) if r.seed in seeds and r.method in methods]
     if not runs:
@@ -111,6 +116,7 @@ def report(
         cfg.weak_specialist_fraction,
         cfg.weak_specialist_min_return,
         read_specialist_costs(provenance, runs),
+        cfg.pairs,
     )
 
     if out.is_dir() and any(out.iterdir()) and not (out / "report.md").is_file():

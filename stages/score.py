@@ -70,7 +70,7 @@ def score(
     Writes to OUT: front.csv, metrics.json (DVC metrics) and hypervolume.csv (a `dvc plots`
     curve); with --provenance, what produced the run (pipeline.core.provenance) to that file.
     """
-    _, env_p, cfg = read_params(params, "score", ScoreParams)
+    _, env_p, cfg, _ = read_params(params, "score", ScoreParams)
     members, meta = load_population(population, META_KEYS)
     if not members:
         raise ArtifactError(f"{population}: population has no members")

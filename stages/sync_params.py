@@ -1,4 +1,4 @@
-"""Command sync-params: write the run lists derived from `methods` and `seeds` into params.yaml."""
+"""Command sync-params: write the run lists derived from `methods` and `seeds` into params.gen.yaml."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import typer
 
 from pipeline.core.artifacts import write_text_atomic
 from pipeline.params import ParamsError, RunParams, load_params, section
-from pipeline.params.sync import synced_text
+from pipeline.params.sync import generated_path, generated_text, run_lists, synced_text
 from stages.common import PARAMS_OPTION, reports_errors
 
 
@@ -21,14 +21,16 @@ def sync_params(
     ),
     params: Path = PARAMS_OPTION,
 ) -> None:
-    """Write the lists dvc.yaml runs its producing stages over, derived from `methods` and `seeds`.
+    """Write the lists dvc.yaml runs its producing stages over into PARAMS' generated file.
 
-    You list what to run once, in `methods` (e.g. [mapex_td3, warmup_only_td3, mopderl]); DVC
-    cannot filter a matrix, so train_pderl, extract, fit_critics, mopderl and morld each need a
-    list of their own (pderl_seeds, extract_from, extract_variants, posthoc_from,
-    mopderl_seeds, morld_seeds). This command rewrites them in the generated block of PARAMS
-    and leaves every other line as it is. With --from, PARAMS becomes a copy of that file first.
-    Every stage checks the lists and names this command when they are out of date.
+    You list what to run once, in `methods` (e.g. [mapex_td3, warmup_only_td3, mopderl]) with
+    any named `variants`; DVC cannot filter a matrix, so the producing stages each need a list of
+    their own (td3_seeds, extract_from, posthoc_from, extract_variant_runs, ...). This command
+    writes them to the generated file beside PARAMS (params.yaml -> params.gen.yaml, loaded by
+    dvc.yaml's `vars:`), removes an older generated block from PARAMS and fills in the extract
+    keys a listed stage tracks; every other line of PARAMS stays as it is. With --from, PARAMS
+    becomes a copy of that file first. Every stage checks the generated file and names this
+    command when it is out of date.
     """
     source = preset or params
     if not source.is_file():
@@ -38,5 +40,8 @@ def sync_params(
     except ValueError as exc:
         raise ParamsError(str(exc)) from None
     write_text_atomic(params, text)
+    gen = generated_path(params)
+    gen.unlink(missing_ok=True)  # load_params must not check the old one against the new params
+    write_text_atomic(gen, generated_text(run_lists(load_params(params)), params.name))
     section(load_params(params), "", RunParams, params)  # the result validates
-    typer.echo(f"{params}: run lists synced from methods", err=True)
+    typer.echo(f"{gen}: run lists written from {params}'s methods", err=True)

@@ -19,7 +19,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.params import EnvParams, ParamsError, RunParams, section
+from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.specialists.pderl import PderlResult, PderlRun
@@ -74,9 +74,9 @@ def train_pderl(
     generation and what went bad, and exit code 3; that objective writes nothing and its last
     good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    raw, env_p, cfg = read_params(params, "train_pderl", TrainPderlParams)
+    raw, env_p, cfg, run_p = read_params(params, "train_pderl", TrainPderlParams)
     td3 = section(raw, "td3", TD3Params, params)
-    objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
+    objectives = list(objective) if objective else run_p.objectives
     if td3.learning_starts >= cfg.total_frames:
         raise ParamsError(
             f"{params}: td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "

@@ -19,12 +19,20 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.params import EnvParams, ParamsError, RunParams, section
+from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 from pipeline.specialists.keep_best import KeepBest, keep_best_hook
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
-from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
+from stages.common import (
+    PARAMS_OPTION,
+    PROVENANCE_OPTION,
+    named_variant,
+    progress,
+    read_params,
+    reports_errors,
+    run_parts,
+)
 
 CHECKPOINT_PREFIX = "specialist_state_"  # + obj0-obj1.pt: the objectives trained together
 # --kind -> what the slots' policy.pt records as their source: nothing for TD3 specialists (their
@@ -44,6 +52,11 @@ def train_specialist(
         "td3",
         help="the kind of specialists the slots are: 'td3', or 'imported' (objectives import_specialists.policies "
         "leaves out, trained here; needs --objective)",
+    ),
+    variant: Optional[str] = typer.Option(
+        None,
+        help="train this specialists variant of kind td3 (params `variants`: its overrides of sections td3 and "
+        "train_specialist apply)",
     ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
@@ -87,7 +100,9 @@ def train_specialist(
     seed, objective, step and what went bad, and exit code 3; the diverged specialists write
     nothing and their last good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    raw, env_p, cfg = read_params(params, "train_specialist", TrainSpecialistParams)
+    raw, env_p, cfg, run_p = read_params(params, "train_specialist", TrainSpecialistParams, variant)
+    if variant is not None and ((of := named_variant(raw, variant, params).of) != "td3" or kind != "td3"):
+        raise ParamsError(f"--variant {variant}: variants.{variant}.of is {of!r}; expected td3 (and --kind td3)")
     td3 = section(raw, "td3", TD3Params, params)
     try:
         check_against_td3(cfg, td3)
@@ -97,7 +112,7 @@ def train_specialist(
         raise ParamsError(f"--kind {kind!r}: expected one of {', '.join(SLOT_SOURCES)}")
     if kind == "imported" and not objective:
         raise ParamsError("--kind imported: name the objectives to train (--objective), those without an import entry")
-    objectives = list(objective) if objective else section(raw, "", RunParams, params).objectives
+    objectives = list(objective) if objective else run_p.objectives
     probe = make_env(env_p.id, env_p.max_episode_steps)
     spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
     probe.close()

@@ -21,9 +21,8 @@ from typing import Any, Callable
 
 import pytest
 import torch
-import yaml
 from hypothesis import settings
-from support.tiny_params import TINY, merge
+from support.tiny_params import TINY, merge, save_params
 
 # No per-example deadline: this machine is shared, and a loaded moment would fail an example
 # that is merely slow, not wrong.
@@ -44,7 +43,7 @@ def _write_params(directory: Path, overrides: dict[str, Any] | None = None, name
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / name
-    path.write_text(yaml.safe_dump(merge(TINY, overrides), sort_keys=False))
+    save_params(path, merge(TINY, overrides), sort_keys=False)  # derived lists go to params.gen.yaml
     return path
 
 

@@ -185,7 +185,8 @@ def test_answer_seeds_override_rewrites_the_params_files_and_the_plan(tmp_path):
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     for form in ("paper", "gentle", "shared"):
         written = yaml.safe_load((work / f"{form}.yaml").read_text())
-        assert written["seeds"] == [3, 5] and written["td3_seeds"] == [3, 5], form
+        generated = yaml.safe_load((work / f"{form}.gen.yaml").read_text())  # beside it, by sync-params
+        assert written["seeds"] == [3, 5] and generated["td3_seeds"] == [3, 5], form
     names = [line.split("\t")[0] for line in (work / "plan.tsv").read_text().splitlines()]
     assert [n for n in names if n.startswith("spec_td3_")] == ["spec_td3_3", "spec_td3_5"]
     assert [n for n in names if n.startswith("spec_shared_")] == ["spec_shared_3", "spec_shared_5"]

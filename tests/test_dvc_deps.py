@@ -222,3 +222,35 @@ def test_sync_puts_each_stages_deps_last_and_keeps_what_follows_the_stages(tmp_p
     assert path.read_text().count(CODE_MARKER) == 2
     before = path.read_text()
     assert sync_dvc_yaml(path) == [] and path.read_text() == before  # idempotent
+
+
+def _listed(stage: str, section: str) -> list[str]:
+    """The keys of params section `section` stage `stage` lists one by one (`section` itself: '*')."""
+    out = []
+    for p in STAGES[stage]["params"]:
+        if p == section:
+            out.append("*")
+        elif isinstance(p, str) and p.startswith(section + "."):
+            out.append(p.split(".", 1)[1])
+    return out
+
+
+def test_stages_list_exactly_the_section_keys_they_read():
+    """DVC reruns a stage when a param it lists changes: the stages that read part of a section
+    list those keys, from the tables their code reads (so `td3.shared_init`, read by the TD3
+    specialists only, reruns nothing of PDERL or MOPDERL, and `extract.beta` no warm-up-only front)."""
+    from pipeline.params.extract import WARMUP_ONLY_KEYS
+    from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
+    from pipeline.params.td3 import AGENT_KEYS
+
+    for stage in ("train_pderl", "mopderl"):
+        assert _listed(stage, "td3") == list(AGENT_KEYS), stage
+        assert "shared_init" not in AGENT_KEYS
+    for stage in ("train_specialist", "train_specialist_imported", "train_specialist_variant"):
+        assert _listed(stage, "td3") == ["*"], stage  # shared_init is theirs
+    assert _listed("warmup_only", "extract") == list(WARMUP_ONLY_KEYS)
+    for stage in ("interpolate", "interpolate_variant"):
+        assert _listed(stage, "extract") == list(INTERPOLATE_EXTRACT_KEYS), stage
+    # a variant's stage tracks its own overrides, by its name (pipeline/params/variants.py)
+    assert "variants.${item.run.name}" in STAGES["extract_variant"]["params"]
+    assert "variants.${item.spec}" in STAGES["train_specialist_variant"]["params"]

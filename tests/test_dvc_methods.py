@@ -12,9 +12,8 @@ import re
 import subprocess
 
 import pytest
-import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
-from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, with_lists
+from support.tiny_params import MOPDERL_TINY, MORLD_TINY, PDERL_TINY, save_params, with_lists
 from support.tiny_params import TINY_CHAIN as TINY
 
 # Every method's stages through one DVC chain: `make test-fast` leaves this file out.
@@ -103,7 +102,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         "train_specialist": {**params["train_specialist"], "total_steps": 320, "keep_best_every": 100},
         "extract": {**params["extract"], "beta": 0.5},
     }
-    (root / "params.yaml").write_text(yaml.safe_dump(edited))
+    save_params(root / "params.yaml", edited)
     stale = stale_stages(root)
     assert {"train_specialist", "extract"} <= stale, stale
     assert not stale & {"train_pderl", "mopderl", "warmup_only", "morld", "interpolate"}, stale

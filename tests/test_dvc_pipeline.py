@@ -22,6 +22,7 @@ import pytest
 import yaml
 from support.dvc_repo import BIN, make_repo, ran, run
 from support.tiny_params import TINY_CHAIN as TINY
+from support.tiny_params import save_params
 
 # The whole DVC pipeline, reproduced and edited: `make test-fast` leaves this file out.
 pytestmark = pytest.mark.integration
@@ -35,7 +36,7 @@ def repo(tmp_path_factory) -> Path:
 def set_key(root: Path, section: str, key: str, value) -> None:
     params = yaml.safe_load((root / "params.yaml").read_text())
     params.setdefault(section, {})[key] = value
-    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    save_params(root / "params.yaml", params)
 
 
 def set_beta(root: Path, beta: float) -> None:

@@ -107,3 +107,23 @@ def test_no_gl_backend_is_chosen_at_import(tmp_path):
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().splitlines()[-1] == "None"
+
+
+def test_mujocos_settotalmass_deprecation_is_dropped_and_other_warnings_are_not(capfd):
+    """MuJoCo 4's 'settotalmass is deprecated' warning (from Gymnasium's model files, printed from C
+    each time a model compiles) does not reach the user; a MuJoCo warning of any other kind does."""
+    import mujoco
+
+    capfd.readouterr()
+    make_env("mo-halfcheetah-v5", 10).close()
+    make_env("mo-hopper-2obj-v5", 10).close()
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><compiler settotalmass="3"/><worldbody><body><geom size=".1"/><joint type="free"/></body>'
+        "</worldbody></mujoco>"
+    )
+    data = mujoco.MjData(model)
+    data.qpos[:] = float("nan")
+    mujoco.mj_step(model, data)  # an unstable simulation: MuJoCo warns
+    err = capfd.readouterr().err
+    assert "settotalmass" not in err
+    assert "WARNING: Nan, Inf or huge value in QPOS" in err

@@ -602,7 +602,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
 
     import yaml
     from support.tiny_params import TINY_CHAIN as TINY
-    from support.tiny_params import with_lists
+    from support.tiny_params import save_params, with_lists
 
     root = Path(__file__).resolve().parents[1]
     bin_dir = Path(sys.executable).parent
@@ -630,7 +630,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
             "export": {"methods": ["mapex_posthoc_imported"]},
         }
     )
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_params(repo / "params.yaml", params, sort_keys=False)
     (repo / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(repo)}
 
@@ -674,7 +674,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     params["import_specialists"]["policies"] = params["import_specialists"]["policies"][:1]
     params = with_lists(params)
     assert params["import_train"] == [1] and params["td3_seeds"] == []
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_params(repo / "params.yaml", params, sort_keys=False)
     again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
     assert {
         "train_specialist_imported@0-1",
@@ -717,10 +717,10 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     # what reruns: a td3 change reaches the slot trained here, not the import; a new speed model, the import
     changed = yaml.safe_load((repo / "params.yaml").read_text())
     changed["td3"]["batch_size"] = 16
-    (repo / "params.yaml").write_text(yaml.safe_dump(changed, sort_keys=False))
+    save_params(repo / "params.yaml", changed, sort_keys=False)
     status = run(str(bin_dir / "dvc"), "status")
     assert "train_specialist_imported@0-1" in status and "import_specialist@0-policy0" not in status
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_params(repo / "params.yaml", params, sort_keys=False)
     shutil.copy(sb3_models["sac"], repo / "models" / "speed.zip")
     status = run(str(bin_dir / "dvc"), "status")
     assert "import_specialist@0-policy0" in status and "train_specialist_imported@0-1" not in status

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from support.tiny_params import TINY, merge, with_lists
+from support.tiny_params import TINY, merge, save_params, with_lists
 
 from pipeline.baselines.interpolate import (
     EVAL_STREAM,
@@ -30,7 +30,7 @@ from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.extraction import run as extraction_run
 from pipeline.params import RunParams, section
 from pipeline.params.methods import METHODS, derived_lists, label
-from pipeline.params.sync import synced_text
+from pipeline.params.sync import run_lists, synced_text
 from pipeline.params.td3 import TD3Params
 from pipeline.reporting.runs import Run
 from pipeline.reporting.verdicts import VERDICT_PAIRS, verdicts
@@ -179,7 +179,7 @@ def test_stage_refuses_specialists_of_different_nets_in_one_line(cli, tmp_path):
     policies = [{"objective": k, "file": f"models/obj{k}.zip", "format": "sb3"} for k in (0, 1)]
     run = {"methods": ["interpolate_imported"], "import_specialists": {"policies": policies}}
     params = tmp_path / "params.yaml"
-    params.write_text(yaml.safe_dump(with_lists(merge(TINY, run))))
+    save_params(params, with_lists(merge(TINY, run)))
     r = cli(
         "interpolate",
         "--kind",
@@ -235,7 +235,7 @@ def test_interpolate_from_is_derived_and_sync_params_names_its_params():
         section({"seeds": [0], "methods": ["mapex_td3"], "interpolate_from": ["td3"]}, "", RunParams)
     synced = synced_text("seeds: [0]\nmethods: [mapex_td3, interpolate_td3]\nextract:\n  beta: 0.5\n")
     raw = yaml.safe_load(synced)
-    assert raw["interpolate_from"] == ["td3"]
+    assert run_lists(raw)["interpolate_from"] == ["td3"]
     assert raw["interpolate"] == {"policies": None, "eval_episodes": None}
     assert {"iterations", "children_per_iteration", "eval_episodes"} <= set(raw["extract"])
     assert raw["extract"]["beta"] == 0.5 and "warmup_lr" not in raw["extract"]  # only the keys it reads

@@ -10,9 +10,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline.params import MOVED_KEYS, EnvParams, ParamsError, RunParams, load_params, section
+from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 from pipeline.params.methods import derived_lists
-from pipeline.params.sync import synced_text
+from pipeline.params.sync import generated_path, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 
@@ -266,6 +267,13 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "export_methods": [],
         "warmup_from": [],
         "interpolate_from": [],
+        "specialist_variants": [],
+        "extract_variant_runs": [],
+        "interpolate_variant_runs": [],
+        "run_seeds": [0, 1],
+        "run_objectives": [0, 1],
+        "run_methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"],
+        "variant_labels": {},
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(
@@ -304,7 +312,8 @@ def test_warmup_only_imported_adds_imported_to_warmup_from_outside_the_product()
         derived_lists(["mapex_td3", "warmup_only_td3", "mapex_pderl", "warmup_only_imported"], [0], imports)
     # the validated section accepts the imported kind in warmup_from, and refuses a stale list
     ok = {"seeds": [0], "methods": ["mapex_posthoc_imported", "warmup_only_imported"], **lists} | {
-        "imported_seeds": [0]
+        "imported_seeds": [0],
+        "run_seeds": [0],
     }
     ctx = {"imports": imports}
     assert RunParams.model_validate(ok, context=ctx).warmup_from == ["imported"]
@@ -347,32 +356,63 @@ def test_imports_may_leave_objectives_to_be_trained_here():
         },
         sort_keys=False,
     )
-    assert yaml.safe_load(synced_text(text))["import_train"] == [1]
+    assert run_lists(yaml.safe_load(synced_text(text)))["import_train"] == [1]
     with pytest.raises(ValueError, match=r"^params.yaml: import_specialists.policies: objective 0 is not one of"):
         synced_text(text.replace("- 0\n- 1\n", "- 1\n- 2\n", 1))
 
 
-def test_sync_params_writes_the_derived_block_and_keeps_the_rest():
+def test_sync_params_keeps_the_users_file_and_drops_an_old_generated_block():
     text = (
         "# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
         "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n"
     )
     synced = synced_text(text)
     raw = yaml.safe_load(synced)
-    assert section(raw, "", RunParams).mopderl_seeds == [0, 1]
-    assert raw["extract_from"] == ["pderl"] and raw["pderl_seeds"] == [0, 1] and raw["warmup_from"] == ["pderl"]
+    assert not set(raw) & set(DERIVED_KEYS)  # nothing derived in the file the user edits
+    lists = run_lists(raw)
+    assert lists["extract_from"] == ["pderl"] and lists["pderl_seeds"] == [0, 1] and lists["mopderl_seeds"] == [0, 1]
     # the extract keys stage warmup_only tracks are filled in at their defaults; beta stays
     assert raw["extract"] == {"beta": 0.5} | {k: ExtractParams.model_fields[k].default for k in WARMUP_ONLY_KEYS}
     assert synced.startswith("# my comment\nseeds: [0, 1]   # two seeds\nmethods:") and "stale" not in synced
     assert synced_text(synced) == synced  # syncing twice changes nothing
-    # a changed method list rewrites the block in place
-    again = yaml.safe_load(synced_text(synced.replace("warmup_only_pderl, mopderl", "warmup_only_pderl")))
-    assert again["mopderl_seeds"] == [] and again["extract"] == raw["extract"]
+    # an older file's generated block goes, whatever it held
+    old = (
+        f"seeds: [0]\nmethods: [mapex_td3]\n{GENERATED_BEGIN}\ntd3_seeds: [5]\n{GENERATED_END}\nextract:\n  beta: 0.5\n"
+    )
+    assert synced_text(old) == synced_text("seeds: [0]\nmethods: [mapex_td3]\nextract:\n  beta: 0.5\n")
+    assert "td3_seeds" not in synced_text(old) and "generated" not in synced_text(old)
     # without a warm-up-only method nothing is filled in
     plain = yaml.safe_load(synced_text("seeds: [0]\nmethods: [mapex_td3]\nextract:\n  beta: 0.5\n"))
-    assert plain["extract"] == {"beta": 0.5} and plain["warmup_from"] == [] and plain["extract_variants"] == ["mapex"]
+    assert plain["extract"] == {"beta": 0.5} and run_lists(plain)["extract_variants"] == ["mapex"]
     with pytest.raises(ValueError, match="f.yaml: unknown methods"):
         synced_text("methods: [nope]\n", "f.yaml")
+
+
+def test_the_generated_file_is_written_beside_and_a_stale_one_is_one_line(tmp_path, cli):
+    """`mapex sync-params` writes params.gen.yaml beside params.yaml; load_params merges its lists
+    in, and a generated file that no longer matches the params file (edited after the last sync,
+    as `dvc exp run -S methods=...` leaves it) is one line naming the list and the command."""
+    params = tmp_path / "params.yaml"
+    params.write_text("seeds: [0, 1]\nmethods: [mapex_td3, warmup_only_td3]\n")
+    result = cli("sync-params", "--params", str(params))
+    assert result.exit_code == 0, result.stderr
+    gen = tmp_path / "params.gen.yaml"
+    assert generated_path(params) == gen and yaml.safe_load(gen.read_text())["td3_seeds"] == [0, 1]
+    assert load_params(params)["warmup_from"] == ["td3"]
+    params.write_text("seeds: [0, 1, 2]\nmethods: [mapex_td3, warmup_only_td3]\n")
+    with pytest.raises(ParamsError) as err:
+        load_params(params)
+    assert str(err.value) == (
+        f"{gen}: stale: td3_seeds = [0, 1], but params.yaml's methods, variants and seeds make it [0, 1, 2]: "
+        "run `mapex sync-params`"
+    )
+    # a derived list written into the user's file beside the generated one is refused, naming where it lives
+    params.write_text("seeds: [0]\nmethods: [mapex_td3, warmup_only_td3]\ntd3_seeds: [0]\n")
+    with pytest.raises(ParamsError, match=r"td3_seeds is derived from methods and seeds and lives in the generated"):
+        load_params(params)
+    # without a generated file (a file built by hand for one stage run) inline lists are checked as before
+    gen.unlink()
+    assert load_params(params)["td3_seeds"] == [0]
 
 
 def test_every_preset_syncs_to_a_valid_params_file():

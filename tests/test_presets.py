@@ -15,7 +15,7 @@ from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
 from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
 from pipeline.params.registry import section_models
-from pipeline.params.sync import synced_text
+from pipeline.params.sync import generated_text, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
@@ -149,16 +149,22 @@ def test_every_section_a_running_stage_reads_is_in_the_file(path, tmp_path):
     a stage with at least one item under this file's run lists must be in it."""
     text = synced_text(path.read_text(), str(path))
     raw = yaml.safe_load(text)
+    generated = run_lists(raw)  # params.gen.yaml, as `mapex sync-params` writes it
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     missing = {}
     for name, stage in stages.items():
         lists = [v[2:-1] for v in (stage.get("matrix") or {}).values() if isinstance(v, str) and v.startswith("${")]
-        if any(not raw.get(key) for key in lists):
+        if any(not (raw | generated).get(key) for key in lists):
             continue  # an empty run list: the stage has no item here
         for dep in stage.get("params", []):
-            key = dep if isinstance(dep, str) else next(iter(dep))
-            if key.split(".")[0] not in raw:
-                missing.setdefault(name, []).append(key)
+            if isinstance(dep, dict):  # {params.gen.yaml: [keys]}: keys of the generated file
+                (file, keys), *_ = dep.items()
+                assert file == "params.gen.yaml", dep
+                missing_keys = [k for k in keys if k not in generated]
+            else:
+                missing_keys = [dep] if dep.split(".")[0] not in raw else []
+            if missing_keys:
+                missing.setdefault(name, []).extend(missing_keys)
     assert not missing, f"{path}: stages whose params are missing: {missing}"
 
 
@@ -186,7 +192,9 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
     if not dvc.is_file():
         pytest.fail(f"dvc is not installed next to {sys.executable}")
     shutil.copy(ROOT / "dvc.yaml", tmp_path / "dvc.yaml")
-    (tmp_path / "params.yaml").write_text(synced_text(path.read_text(), str(path)))  # as mapex sync-params --from
+    # as `mapex sync-params --from` writes them: the params file and its generated file
+    (tmp_path / "params.yaml").write_text(synced_text(path.read_text(), str(path)))
+    (tmp_path / "params.gen.yaml").write_text(generated_text(run_lists(load_params(tmp_path / "params.yaml"))))
     subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
     subprocess.run([str(dvc), "init", "-q"], cwd=tmp_path, check=True)
     r = subprocess.run([str(dvc), "stage", "list", "--name-only"], cwd=tmp_path, capture_output=True, text=True)

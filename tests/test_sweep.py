@@ -22,6 +22,7 @@ import pytest
 import typer
 import yaml
 from support.tiny_params import TINY_CHAIN as TINY
+from support.tiny_params import save_params
 from typer.testing import CliRunner
 
 from pipeline.distributed.driver import _resources, stage_processes
@@ -60,8 +61,8 @@ def source(tmp_path_factory) -> Path:
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     (root / "presets").mkdir()
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
-    (root / "params.yaml").write_text(yaml.safe_dump(TINY, sort_keys=False))
-    # valid params (objectives has a default), but dvc.yaml's matrices need the key itself
+    save_params(root / "params.yaml", TINY, sort_keys=False)
+    # valid params (objectives has a default), but dvc.yaml's stages list the key itself (DVC refuses it missing)
     (root / "no_objectives.yaml").write_text(
         yaml.safe_dump({k: v for k, v in TINY.items() if k != "objectives"}, sort_keys=False)
     )
@@ -209,7 +210,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     # critics' fidelity or the warm-up-only ablation's chain (it does not read beta).
     params = yaml.safe_load((ws / "params.yaml").read_text())
     params["extract"]["beta"] = 0.5
-    (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_params(ws / "params.yaml", params, sort_keys=False)
     changed = {i.name: i for i in stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
     warmup = {"warmup_only@0-td3", "evaluate@0-warmup_only_td3", "score@0-warmup_only_td3"}
@@ -218,7 +219,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     # with post-hoc critics on, MAPEX-PostHoc depends on their fits and the joint-critic
     # extraction still does not, so a post-hoc refit never reruns it
     params.update(posthoc_from=["td3"], methods=[*params["methods"], "mapex_posthoc_td3"])
-    (ws / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    save_params(ws / "params.yaml", params, sort_keys=False)
     assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == [
         "extract@0-td3-mapex",
         "train_specialist@0",

@@ -22,6 +22,9 @@ STAGE_MODULES = {
     "critic_fidelity_posthoc": "critic_fidelity",
     "import_specialist_buffered": "import_specialist",
     "train_specialist_imported": "train_specialist",
+    "train_specialist_variant": "train_specialist",
+    "extract_variant": "extract",
+    "interpolate_variant": "interpolate",
 }
 
 

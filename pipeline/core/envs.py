@@ -10,6 +10,7 @@ backend where it draws them.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -45,9 +46,34 @@ def spec_meta(spec: EnvSpec) -> dict:
     }
 
 
+# MuJoCo 4.0.1 warns that the `settotalmass` compiler attribute of Gymnasium's model files
+# (HalfCheetah, Hopper, ...) is deprecated, from C, on stderr, each time a model is compiled: four
+# times per process in every stage's output, about a file the user cannot change. This one
+# message is dropped; every other MuJoCo warning is printed as MuJoCo prints it.
+DEPRECATED_TOTALMASS = "compiler attribute 'settotalmass' is deprecated"
+
+
+def _mujoco_warning(message: str) -> None:
+    if not message.startswith(DEPRECATED_TOTALMASS):
+        sys.stderr.write(f"WARNING: {message}\n\n")
+        sys.stderr.flush()
+
+
+def quiet_settotalmass() -> None:
+    """Install `_mujoco_warning` as MuJoCo's warning handler (where none other is installed)."""
+    try:
+        import mujoco
+    except ImportError:  # an env without MuJoCo: nothing prints the message
+        return
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_mujoco_warning)
+
+
 def make_env(env_id: str, max_episode_steps: int) -> gym.Env:
     """Build `env_id` with the episode cap `max_episode_steps`; raise EnvError if it doesn't fit."""
     import mo_gymnasium  # noqa: F401  (registers the mo-* ids)
+
+    quiet_settotalmass()
 
     try:
         env = mo_gymnasium.make(env_id, max_episode_steps=max_episode_steps)

@@ -184,24 +184,17 @@ def validate_params(params: dict[str, Any], where: str) -> None:
 
 
 def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
-    """`params` with the run lists derived from its methods and seeds (as `mapex sync-params`
-    writes them), so a cell lists what it runs once, like a preset."""
-    from pipeline.params import context_lists
-    from pipeline.params.common import RunParams
-    from pipeline.params.methods import derived_lists
+    """`params` checked to derive run lists dvc.yaml can run (a GridError naming `where`
+    otherwise); the cell's workspace gets them as its generated file (workspace.checkout_cell),
+    so a cell lists what it runs once, like a preset. Derived keys a base or preset still
+    carries are dropped (they live in the generated file now)."""
+    from pipeline.params.generated import split_generated
 
-    defaults = RunParams.model_fields
-    seeds = list(params.get("seeds", defaults["seeds"].default))
     try:
-        context = context_lists(params)
-        methods = list(params.get("methods", defaults["methods"].default))
-        objectives = list(params.get("objectives", defaults["objectives"].default))
-        lists = derived_lists(methods, seeds, context["imports"], context["export"], objectives)
+        user, _ = split_generated(params)
     except ValueError as exc:
         raise GridError(f"{where}: {exc}") from None
-    if not lists["pderl_seeds"] and params.get("pderl_seeds"):
-        lists["pderl_seeds"] = seeds  # PDERL specialists no method reads, trained on request
-    return {**params, **lists}
+    return user
 
 
 def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cell]:

@@ -16,8 +16,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from pipeline.distributed.errors import SweepError
 from pipeline.distributed.grid import Cell
+from pipeline.params.generated import generated_text, run_lists
 
 CELL_KEY = "mapex.sweepcell"  # git config key marking a directory as a sweep cell workspace
 
@@ -30,9 +33,12 @@ def _git(cwd: Path | str, *args: str, env: dict[str, str] | None = None, input: 
 
 
 def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
-    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml, no dvc.lock."""
+    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml and its
+    generated file (params.gen.yaml, the run lists dvc.yaml loads), no dvc.lock."""
     _git(clone, "checkout", "--quiet", "--force", "--detach", commit)
     (clone / "params.yaml").write_text(params_text)
+    lists = run_lists(yaml.safe_load(params_text) or {})
+    (clone / "params.gen.yaml").write_text(generated_text(lists))
     (clone / "dvc.lock").unlink(missing_ok=True)
 
 
@@ -133,6 +139,15 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
             params = {
                 os.path.relpath(d.fs_path, root): d.read_params() for d in stage.deps if isinstance(d, ParamsDependency)
             }
+            # DVC refuses to run a stage whose listed params the file leaves out: say so before anything runs
+            for d in stage.deps:
+                if isinstance(d, ParamsDependency):
+                    missing = [p for p in d.params or [] if p not in params[os.path.relpath(d.fs_path, root)]]
+                    if missing:
+                        raise LookupError(
+                            f"stage {stage.name} lists params {missing}, which {os.path.relpath(d.fs_path, root)} "
+                            "leaves out (DVC refuses to run it)"
+                        )
             key = json.dumps(
                 {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
                 sort_keys=True,

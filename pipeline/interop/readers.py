@@ -65,8 +65,9 @@ from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
 from pipeline.core.tscheck import check_torchscript
 from pipeline.interop.vecnorm import ObsStatistics, read_vecnormalize, restricted_loads
+from pipeline.params.import_specialists import IMPORT_FORMATS, NORMALIZABLE_FORMATS
 
-FORMATS = ("sb3", "cleanrl", "torchscript", "torch_export")
+FORMATS = IMPORT_FORMATS  # listed once, with the params model (pipeline/params/import_specialists.py)
 SB3_POLICIES = {"TD3Policy": "td3", "SACPolicy": "sac"}  # DDPG saves a TD3Policy
 # the builtins a pickle of plain settings may name (containers and numbers, no callables of code)
 PLAIN_BUILTINS = frozenset(
@@ -514,7 +515,7 @@ def _check_env(path: Path, actor, declared: _Declared, spec: EnvSpec) -> None:
 
 # -- observation statistics ---------------------------------------------------------------------
 
-NORMALIZABLE = ("sb3", "cleanrl")  # the formats read into an `Actor`, which statistics can precede
+NORMALIZABLE = NORMALIZABLE_FORMATS  # the formats read into an `Actor`, which statistics can precede
 
 
 def normalized(path: Path, actor: Actor, stats: ObsStatistics, spec: EnvSpec) -> Actor:

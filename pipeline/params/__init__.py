@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from pipeline.params.common import EnvParams, RunParams
+from pipeline.params.common import DERIVED_KEYS, EnvParams, RunParams
 
 __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "KNOWN_SECTIONS"]
 
@@ -74,8 +74,49 @@ class ParamsError(ValueError):
 
 
 def load_params(path: str | Path) -> dict[str, Any]:
-    """Read params.yaml into a dict, rejecting unknown top-level keys."""
+    """Read params.yaml into a dict, rejecting unknown top-level keys, with the derived run
+    lists of its generated file (params.gen.yaml beside it, pipeline/params/sync.py) merged in
+    where that file exists: a generated file that disagrees with the params file is one line
+    naming the list and `mapex sync-params`. A derived list written in the params file itself
+    beside a generated file is an error too (DVC would refuse the two definitions); a params
+    file without a generated file (one built by hand for a single stage run, outside DVC) may
+    carry its lists inline, and RunParams checks them as it checks the generated ones."""
     path = Path(path)
+    raw = _read_mapping(path)
+    from pipeline.params.generated import generated_path, run_lists
+
+    gen = generated_path(path)
+    if not gen.is_file():
+        return raw
+    written = [k for k in DERIVED_KEYS if k in raw]
+    if written:
+        raise ParamsError(
+            f"{path}: {written[0]} is derived from methods and seeds and lives in the generated file "
+            f"{gen.name}: delete it here, or run `mapex sync-params`, which does"
+        )
+    lists = _read_mapping(gen)
+    try:
+        want = run_lists(raw)
+    except ValueError:  # bad methods or variants: RunParams' validation names them
+        return raw | {k: v for k, v in lists.items() if k in DERIVED_KEYS}
+    for key in DERIVED_KEYS:
+        if key not in lists or _differ(lists[key], want[key]):
+            raise ParamsError(
+                f"{gen}: stale: {key} = {lists.get(key)!r}, but {path.name}'s methods, variants and seeds make it "
+                f"{want[key]!r}: run `mapex sync-params`"
+            )
+    return raw | {k: lists[k] for k in DERIVED_KEYS}
+
+
+def _differ(given: Any, want: Any) -> bool:
+    """Whether a generated list (or mapping) differs from what the params make it, order aside."""
+    if isinstance(want, dict) or not isinstance(given, list):
+        return given != want
+    return sorted(given, key=repr) != sorted(want, key=repr)
+
+
+def _read_mapping(path: Path) -> dict[str, Any]:
+    """A params file (or its generated file) read and checked to be a mapping of known keys."""
     if not path.is_file():
         raise ParamsError(f"{path}: params file not found")
     try:

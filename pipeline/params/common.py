@@ -43,17 +43,22 @@ class EnvParams(Strict):
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
 
+# The generated block older params files held (`mapex sync-params` removes it: the lists now live
+# in the generated file beside, pipeline/params/sync.py).
 GENERATED_BEGIN = "# --- generated from `methods` and `seeds` by `mapex sync-params`: do not edit ---"
 GENERATED_END = "# --- end of generated lists ---"
+# The keys a user writes among the top-level lists; RunParams' others are derived.
+USER_RUN_KEYS = ("seeds", "objectives", "methods", "variants")
 
 
 class RunParams(Strict):
     """The top-level lists: what to run (`seeds`, `objectives`, `methods`, written by hand) and
     the run lists dvc.yaml fans its producing stages out over, derived from `methods` and
-    `seeds` (pipeline.params.methods.derived_lists) and written into params.yaml's generated
-    block by `mapex sync-params`. DVC cannot filter a matrix, hence the derived lists; a file
-    whose lists disagree with `methods` (edited by hand, or not re-synced) is an error naming
-    the list and the command that fixes it.
+    `seeds` (pipeline.params.methods.derived_lists) and written into the generated file beside
+    params.yaml (params.gen.yaml) by `mapex sync-params`; `pipeline.params.load_params` merges
+    them in. DVC cannot filter a matrix, hence the derived lists; lists that disagree with
+    `methods` (a stale generated file) are an error naming the list and the command that fixes
+    it. Lists left out are not checked (a params dict without its generated file).
     """
 
     seeds: list[int] = Field(
@@ -67,7 +72,12 @@ class RunParams(Strict):
         "mapex_posthoc, warmup_only; kinds td3, pderl, imported), mopderl, morld, interpolate_<kind> "
         "(pipeline/params/methods.py)",
     )
-    # derived (generated block): see pipeline.params.methods.derived_lists
+    variants: dict[str, dict] | None = Field(
+        None,
+        description="named variants: name -> {of: <method or kind>, label, specialists, <section>: {key: value}} "
+        "(pipeline/params/variants.py); methods lists the method variants that run",
+    )
+    # derived (params.gen.yaml): see pipeline.params.methods.derived_lists
     td3_seeds: list[int] | None = Field(
         None,
         description="derived: seeds of stage train_specialist (TD3 specialists); dvc.yaml needs it written, "
@@ -109,6 +119,21 @@ class RunParams(Strict):
     mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
     morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
     export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
+    specialist_variants: list[str] = Field(
+        [], description="derived: the specialists variants the method variants start from (train_specialist_variant)"
+    )
+    extract_variant_runs: list[dict] = Field(
+        [], description="derived: method variants of MAPEX and warm-up only (stage extract_variant)"
+    )
+    interpolate_variant_runs: list[dict] = Field(
+        [], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"
+    )
+    run_seeds: list[int] = Field([], description="derived: seeds, as dvc.yaml's matrices read them")
+    run_objectives: list[int] = Field([], description="derived: objectives, as dvc.yaml's matrices read them")
+    run_methods: list[str] = Field([], description="derived: methods, as dvc.yaml's matrices read them")
+    variant_labels: dict[str, str] = Field(
+        {}, description="derived: the report's names of the variants run (stages report and render track them)"
+    )
 
     @field_validator(
         "seeds",
@@ -142,18 +167,26 @@ class RunParams(Strict):
         # the import entries come from section import_specialists (pipeline.params.section passes them)
         context = info.context or {}
         want = derived_lists(
-            self.methods, self.seeds, context.get("imports", []), context.get("export", []), self.objectives
+            self.methods,
+            self.seeds,
+            context.get("imports", []),
+            context.get("export", []),
+            self.objectives,
+            self.variants,
         )
         for key, value in want.items():
             given = getattr(self, key)
-            if given is None:  # td3_seeds left out (a params dict built by hand): nothing to check
+            if given is None or key not in self.model_fields_set:  # left out: nothing to check
                 continue
-            same = sorted(given, key=repr) == sorted(value, key=repr)
+            same = given == value if isinstance(value, dict) else sorted(given, key=repr) == sorted(value, key=repr)
             if key == "pderl_seeds" and not value and sorted(given) == sorted(self.seeds):
                 same = True  # PDERL specialists no method reads may still be trained
             if not same:
                 raise ValueError(
                     f"{key} = {given}, but methods {self.methods} and seeds {self.seeds} make it {value}: "
-                    "run `mapex sync-params` (it rewrites the generated lists of params.yaml)"
+                    "run `mapex sync-params` (it rewrites the generated file, params.gen.yaml)"
                 )
         return self
+
+
+DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in USER_RUN_KEYS)

@@ -15,17 +15,23 @@ train_specialist_imported), and their critics are fitted post hoc like the impor
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 from pydantic import Field, field_validator, model_validator
 
 from pipeline.params.common import Strict
 
+# The policy formats an import reads (pipeline/interop/readers.py reads these lists; the one place
+# they are written), and those read into an `Actor` that observation statistics can precede.
+ImportFormat = Literal["sb3", "cleanrl", "torchscript", "torch_export"]
+IMPORT_FORMATS: tuple[str, ...] = get_args(ImportFormat)
+NORMALIZABLE_FORMATS = ("sb3", "cleanrl")
+
 
 class ImportedPolicyEntry(Strict):
     objective: int = Field(..., ge=0, description="the objective this specialist was trained for (its slot obj{k})")
     file: str = Field(..., min_length=1, description="the policy file, relative to the repository root (a DVC dep)")
-    format: Literal["sb3", "cleanrl", "torchscript", "torch_export"] = Field(
+    format: ImportFormat = Field(
         ...,
         description="sb3: model.zip of TD3/DDPG/SAC; cleanrl: .cleanrl_model of TD3/DDPG/SAC; torchscript: "
         "torch.jit.save; torch_export: a .pt2 file of torch.export.save (batch axis dynamic)",
@@ -49,7 +55,7 @@ class ImportedPolicyEntry(Strict):
                 f"normalize = {self.normalize!r} is a word of the command line (--normalize), not a file: write "
                 "false for no statistics, or leave the key out to use the file rl-zoo3 saves beside an sb3 model"
             )
-        if isinstance(self.normalize, str) and self.format not in ("sb3", "cleanrl"):
+        if isinstance(self.normalize, str) and self.format not in NORMALIZABLE_FORMATS:
             raise ValueError(
                 f"normalize = {self.normalize!r} for a {self.format} policy: statistics are read for sb3 and cleanrl "
                 "models; a TorchScript or torch.export policy normalises inside its own module"

@@ -1,5 +1,5 @@
 """The methods this pipeline can run and compare: one table that params validation, the
-derived run lists of params.yaml (`mapex sync-params`) and the report all read.
+derived run lists of params.gen.yaml (`mapex sync-params`) and the report all read.
 
 A method is what `methods` in params.yaml lists and what data/fronts/<method>/ holds: an
 extraction variant run from one kind of specialists (`mapex_td3` is variant `mapex` from TD3
@@ -92,20 +92,56 @@ def method_name(variant: str, kind: str) -> str:
     return f"{variant}_{kind}"
 
 
+# The named variants of the params file the report is for (pipeline/params/variants.py), as
+# Method rows: kind is the specialists they start from (a kind, or a specialists variant's name,
+# whose report rows are its own). Set once per process by `use_variants` (stages report and
+# render); empty otherwise, when a variant's name is its label.
+VARIANT_METHODS: dict[str, Method] = {}
+VARIANT_BASES: dict[str, str] = {}  # method variant -> the method it varies
+# The variants' colours in the figures, in the order they are declared (none of METHODS').
+VARIANT_COLOURS = ("tab:pink", "black", "darkorange", "mediumseagreen", "slateblue", "crimson", "teal", "olive")
+
+
+def use_variants(variants: dict) -> None:
+    """Make the report name, colour and order the method variants of `variants` (name -> a
+    pipeline.params.variants.Variant) and their specialists (specialists_<name> rows)."""
+    VARIANT_METHODS.clear()
+    VARIANT_BASES.clear()
+    SPECIALIST_VARIANT_LABELS.clear()
+    method_variants = [v for v in variants.values() if not v.is_specialists]
+    for i, v in enumerate(method_variants):
+        base = METHODS[v.of]
+        VARIANT_METHODS[v.name] = Method(
+            v.name, base.variant, v.specialists, v.label, VARIANT_COLOURS[i % len(VARIANT_COLOURS)], v.stage
+        )
+        VARIANT_BASES[v.name] = v.of
+    for v in variants.values():
+        if v.is_specialists:
+            SPECIALIST_VARIANT_LABELS[f"specialists_{v.name}"] = f"{v.label} specialists only"
+
+
+SPECIALIST_VARIANT_LABELS: dict[str, str] = {}
+
+
+def _row(method: str) -> Method | None:
+    return METHODS.get(method) or VARIANT_METHODS.get(method)
+
+
 def label(method: str) -> str:
     """The method's name in the report (its own name if it is not in the table)."""
-    m = METHODS.get(method)
-    return m.label if m else SPECIALISTS_LABELS.get(method, method)
+    m = _row(method)
+    return m.label if m else SPECIALISTS_LABELS.get(method) or SPECIALIST_VARIANT_LABELS.get(method, method)
 
 
 def colour(method: str) -> str:
-    m = METHODS.get(method)
+    m = _row(method)
     return m.colour if m else "grey"
 
 
 def specialist_kind(method: str) -> str | None:
-    """The kind of specialists a method starts from ('pderl', 'td3'), None if none or unknown."""
-    m = METHODS.get(method)
+    """The specialists a method starts from ('pderl', 'td3', or a specialists variant's name),
+    None if none or unknown."""
+    m = _row(method)
     return m.kind if m else None
 
 
@@ -163,6 +199,7 @@ def derived_lists(
     imports: list[dict] | None = None,
     export: list[str] | None = None,
     objectives: list[int] | tuple[int, ...] = (0, 1),
+    variants: dict | None = None,
 ) -> dict[str, list]:
     """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
     `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
@@ -187,11 +224,30 @@ def derived_lists(
     The entries may cover only some of `objectives` (the top-level list; RunParams' default
     [0, 1]): import_train lists the others, whose slots of the imported kind stage
     train_specialist_imported trains here by TD3. An entry for an objective outside
-    `objectives` raises ValueError naming it."""
-    unknown = [m for m in methods if m not in METHODS]
+    `objectives` raises ValueError naming it.
+
+    `variants` (params' mapping of named variants, pipeline/params/variants.py) names the
+    method variants `methods` may list: each runs in its base stage's variant twin
+    (extract_variant_runs, interpolate_variant_runs: {name, kind, specialists, ...}) from the
+    specialists it names, whose specialists variants train in train_specialist_variant
+    (specialist_variants); a variant from a kind's own specialists needs that kind trained."""
+    from pipeline.params.variants import parse_variants
+
+    parsed = parse_variants(variants)
+    listed_specialists = [m for m in methods if m in parsed and parsed[m].is_specialists]
+    if listed_specialists:
+        name = listed_specialists[0]
+        raise ValueError(
+            f"methods lists {name!r}, a specialists variant: point a method variant at it "
+            f"(variants: {{my_method: {{of: <method>, specialists: {name}}}}}) and list that"
+        )
+    named = [parsed[m] for m in methods if m in parsed]
+    unknown = [m for m in methods if m not in METHODS and m not in parsed]
     if unknown:
-        raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)}")
+        raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)} or names in variants")
+    listed, methods = list(methods), [m for m in methods if m not in parsed]  # the plain methods, from here on
     chosen = [METHODS[m] for m in methods]
+    from_kind = {v.kind for v in named if v.specialists == v.kind}  # variants from a kind's own specialists
     extract = [m for m in chosen if m.stage in ("extract", "warmup_only") and m.kind in TRAINED_KINDS]
     kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in extract)]
     variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
@@ -204,9 +260,11 @@ def derived_lists(
     uses_imported = any(m.kind == "imported" for m in chosen)
     if not kinds:  # no joint-critic extraction: extract runs no item, and critic_fidelity (a matrix over
         # extract_from) scores the joint critics of the trained specialists the methods start from
-        kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in chosen)] or ([] if uses_imported else ["td3"])
+        kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in chosen) or k in from_kind] or (
+            [] if uses_imported else ["td3"]
+        )
     posthoc = [k for k in SPECIALIST_KINDS if method_name("mapex_posthoc", k) in methods]
-    needs_pderl = any(m.kind == "pderl" for m in chosen)
+    needs_pderl = any(m.kind == "pderl" for m in chosen) or "pderl" in from_kind
     entries = [dict(e) for e in imports or []]
     if uses_imported and not entries:
         raise ValueError(
@@ -222,11 +280,13 @@ def derived_lists(
     imported_objectives = {e["objective"] for e in entries}
     import_train = [k for k in objectives if k not in imported_objectives] if uses_imported else []
     imported_seeds = list(seeds) if uses_imported else []
-    stray = [m for m in export or [] if m not in methods]
+    stray = [m for m in export or [] if m not in listed]
     if stray:
-        raise ValueError(f"export.methods lists {stray}, which methods = {methods} does not run")
+        raise ValueError(f"export.methods lists {stray}, which methods = {listed} does not run")
     return {
-        "td3_seeds": list(seeds) if "td3" in kinds or any(m.kind == "td3" for m in chosen) else [],
+        "td3_seeds": list(seeds)
+        if "td3" in kinds or any(m.kind == "td3" for m in chosen) or "td3" in from_kind
+        else [],
         "pderl_seeds": list(seeds) if needs_pderl else [],
         "imported_seeds": imported_seeds,
         "import_collect": [_import_item(e, "objective", "file", "format") for e in entries if not e.get("buffer")]
@@ -247,4 +307,22 @@ def derived_lists(
         "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
         "morld_seeds": list(seeds) if "morld" in methods else [],
         "export_methods": list(export or []),
+        "specialist_variants": list(dict.fromkeys(v.specialists for v in named if v.specialists != v.kind)),
+        "extract_variant_runs": [
+            {"name": v.name, "variant": METHODS[v.of].variant, "kind": v.kind, "specialists": v.specialists}
+            for v in named
+            if v.stage == "extract_variant"
+        ],
+        "interpolate_variant_runs": [
+            {"name": v.name, "kind": v.kind, "specialists": v.specialists}
+            for v in named
+            if v.stage == "interpolate_variant"
+        ],
+        # every matrix of dvc.yaml reads this file only (a stale file still gives a consistent graph)
+        "run_seeds": list(seeds),
+        "run_objectives": list(objectives),
+        "run_methods": listed,
+        # the report's and the explorer's names of the variants run (their stages track this)
+        "variant_labels": {v.name: v.label for v in named}
+        | {v.specialists: parsed[v.specialists].label for v in named if v.specialists != v.kind},
     }

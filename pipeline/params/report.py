@@ -28,6 +28,12 @@ class ReportParams(Strict):
         le=10,
         description="with >= 2 seeds, how many SEMs the mean paired hypervolume difference must exceed to count",
     )
+    pairs: list[Annotated[list[str], Field(min_length=2, max_length=2)]] | None = Field(
+        None,
+        description="the pairs of methods the verdicts compare, [a, b] each ('a beat, lost to or tied with b'), "
+        "by their names in methods (variants too); null: the usual pairs (pipeline/reporting/verdicts.py "
+        "VERDICT_PAIRS) and each method variant against the method it varies",
+    )
     weak_specialist_fraction: float | None = Field(
         0.5,
         gt=0,

@@ -60,3 +60,11 @@ class TD3Params(Strict):
         if self.learning_starts < self.batch_size:
             raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
         return self
+
+
+# The keys the TD3 agents of PDERL (train_pderl) and MOPDERL (mopderl) read: every key but
+# shared_init, which only the TD3 specialists (train_specialist) read. Their dvc.yaml stages list
+# these one by one (tests/test_dvc_deps.py checks it), so switching shared_init reruns the TD3
+# specialists and nothing of PDERL or MOPDERL; `mapex sync-params` names them in params.yaml
+# (DVC refuses a listed key that is missing from the file).
+AGENT_KEYS = tuple(k for k in TD3Params.model_fields if k != "shared_init")

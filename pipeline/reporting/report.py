@@ -32,6 +32,7 @@ def report_markdown(
     weak_fraction: float | None = 0.5,
     weak_min_return: list[float | None] | None = None,
     specialist_costs: dict[tuple[str, int], float] | None = None,
+    pairs: list[list[str]] | None = None,
 ) -> str:
     """The whole report.md: weak-specialist warnings and verdicts (and what each side cost),
     tables, what each front cost (`specialist_costs`: (kind, seed) -> the specialists'
@@ -41,7 +42,7 @@ def report_markdown(
     ref = runs[0].metrics.get("reference_point")
     # where the score stage took it from: env.reference_point, or the env's entry in the table
     sources = sorted({str(r.metrics["reference_point_source"]) for r in runs if "reference_point_source" in r.metrics})
-    said = verdicts(runs, min_difference, noise_sems)
+    said = verdicts(runs, min_difference, noise_sems, pairs)
     weak = weak_specialists(runs, weak_fraction, weak_min_return)
     own = own_returns_table(runs, names, weak)
     lines = [
@@ -58,7 +59,9 @@ def report_markdown(
         *(f"- {weak_sentence(w, names)}" for w in weak),
         *(
             [f"- {v.sentence}" for v in said]
-            or ["- No pair of comparable methods was run (see pipeline/reporting/verdicts.py VERDICT_PAIRS)."]
+            or [
+                "- No pair of comparable methods was run (report.pairs; default: pipeline/reporting/verdicts.py VERDICT_PAIRS)."
+            ]
         ),
         "",
         *(

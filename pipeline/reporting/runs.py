@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.artifacts import ArtifactError, read_json
-from pipeline.params.methods import METHODS
+from pipeline.params.methods import METHODS, VARIANT_METHODS
 
 METHOD_ORDER = tuple(METHODS)  # the report's usual order: the paper's MAPEX first
 RUN_DIR = re.compile(r"^seed(\d+)$")
@@ -78,7 +78,8 @@ class Run:
 def methods_in(runs: list[Run]) -> list[str]:
     """Variants present, the known ones first in their usual order."""
     present = {r.method for r in runs}
-    return [v for v in METHOD_ORDER if v in present] + sorted(present - set(METHOD_ORDER))
+    order = (*METHOD_ORDER, *VARIANT_METHODS)  # the variants of the params file after the built-in methods
+    return [v for v in order if v in present] + sorted(present - set(order))
 
 
 def load_runs(scored: Path, evaluated: Path, provenance: Path | None = None) -> list[Run]:

@@ -56,13 +56,18 @@ def specialist_runs(runs: list[Run]) -> dict[tuple[str, int], Run]:
     for r in sorted(runs, key=lambda r: METHOD_ORDER.index(r.method) if r.method in METHOD_ORDER else 99):
         if (kind := specialist_kind(r.method)) is not None:
             chosen.setdefault((kind, r.seed), r)
-    return {key: chosen[key] for key in sorted(chosen, key=lambda ks: (SPECIALIST_ORDER.index(ks[0]), ks[1]))}
+    return {key: chosen[key] for key in sorted(chosen, key=lambda ks: (specialist_rank(ks[0]), ks[1]))}
+
+
+def specialist_rank(kind: str) -> tuple[int, str]:
+    """Where specialists of `kind` sit in the report: SPECIALIST_ORDER, then specialists variants by name."""
+    return (SPECIALIST_ORDER.index(kind), "") if kind in SPECIALIST_ORDER else (len(SPECIALIST_ORDER), kind)
 
 
 def specialist_groups(runs: list[Run]) -> list[str]:
     """'specialists_pderl', 'specialists_td3': one per kind of specialists the runs start from."""
     kinds = {specialist_kind(r.method) for r in runs} - {None}
-    return [f"specialists_{k}" for k in SPECIALIST_ORDER if k in kinds]
+    return [f"specialists_{k}" for k in sorted(kinds, key=specialist_rank)]
 
 
 TABLE_METRICS = (

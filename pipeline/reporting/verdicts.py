@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.params.methods import label
+from pipeline.params.methods import VARIANT_BASES, VARIANT_METHODS, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 
@@ -131,11 +131,25 @@ def hv_verdict(
     return Verdict(outcome, text, a, b, short)
 
 
-def verdicts(runs: list[Run], min_difference: float = 0.05, noise_sems: float = 2.0) -> list[Verdict]:
-    """One verdict per pair of VERDICT_PAIRS whose two methods were both run (paired by seed)."""
+def default_pairs() -> list[tuple[str, str, str]]:
+    """VERDICT_PAIRS, then each method variant of the report (pipeline.params.methods.use_variants)
+    against the method it varies: (a, b, what a is)."""
+    extra = [(name, VARIANT_BASES[name], label(name)) for name in VARIANT_METHODS]
+    return [*VERDICT_PAIRS, *extra]
+
+
+def verdicts(
+    runs: list[Run],
+    min_difference: float = 0.05,
+    noise_sems: float = 2.0,
+    pairs: list[list[str]] | list[tuple[str, str]] | None = None,
+) -> list[Verdict]:
+    """One verdict per pair whose two methods were both run (paired by seed): of `pairs` ([a, b]
+    by the methods' names, what a is: its label), or of `default_pairs()` when None."""
     present = {r.method for r in runs}
+    chosen = default_pairs() if pairs is None else [(a, b, None) for a, b in pairs]
     return [
         hv_verdict(runs, min_difference, noise_sems, a, b, what)
-        for a, b, what in VERDICT_PAIRS
+        for a, b, what in chosen
         if a in present and b in present
     ]

@@ -12,7 +12,8 @@ import sys
 from pathlib import Path
 
 import pytest
-import yaml
+
+from pipeline.params.generated import write_params_files
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -41,7 +42,7 @@ def make_repo(root: Path, params: dict) -> Path:
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     (root / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
     shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
-    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    write_params_files(root / "params.yaml", params)  # and params.gen.yaml, as `mapex sync-params` leaves them
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     for cmd in (
         ["git", "init", "-q"],

@@ -17,11 +17,17 @@ Each test copies a preset (merge, or a dict literal) before changing anything.
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 from typing import Any
 
+import yaml
+
+from pipeline.params.common import DERIVED_KEYS
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+from pipeline.params.generated import write_params_files
 from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
 from pipeline.params.methods import derived_lists
+from pipeline.params.td3 import AGENT_KEYS, TD3Params
 
 # HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
 # = 3 truncated episodes + 1 still running. Updates start at step 260 (90 updates, 45 actor
@@ -64,16 +70,20 @@ def with_lists(params: dict) -> dict:
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
     objectives = params.get("objectives", [0, 1])
-    out = {**params, **derived_lists(params["methods"], params["seeds"], imports, export, objectives)}
+    lists = derived_lists(params["methods"], params["seeds"], imports, export, objectives, params.get("variants"))
+    out = {**params, **lists}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
     tracked = (WARMUP_ONLY_KEYS if out["warmup_from"] else ()) + (
-        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] else ()
+        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] or out["interpolate_variant_runs"] else ()
     )
     if tracked:
         fields = ExtractParams.model_fields
         out["extract"] = {k: fields[k].default for k in tracked} | (params.get("extract") or {})
-    if out["interpolate_from"]:
+    if out["interpolate_from"] or out["interpolate_variant_runs"]:
         out.setdefault("interpolate", {"policies": None, "eval_episodes": None})
+    if out["pderl_seeds"]:  # stages train_pderl and mopderl list the td3 keys their agents read
+        fields = TD3Params.model_fields
+        out["td3"] = {k: fields[k].default for k in AGENT_KEYS} | (params.get("td3") or {})
     return out
 
 
@@ -177,3 +187,13 @@ TINY_ALL = {
     "evaluate": {"episodes": 1},
 }
 TINY_ALL = with_lists(TINY_ALL)
+
+
+def save_params(path: Path, params: dict[str, Any], **dump: Any) -> Path:
+    """Write `params` at `path` as the tests' params file. With derived run lists in it (a dict of
+    `with_lists`), as `mapex sync-params` leaves a repository: the user's keys there, the lists
+    (derived again) in the generated file beside (params.gen.yaml); otherwise as it is."""
+    if any(k in params for k in DERIVED_KEYS):
+        return write_params_files(path, params, **dump)
+    path.write_text(yaml.safe_dump(params, **dump))
+    return path

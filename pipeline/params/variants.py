@@ -1,0 +1,154 @@
+"""Named variants: a method or a kind of specialists run again under a name of its own, with
+some keys of the sections its stage reads set to other values.
+
+params.yaml declares them in one mapping, `variants`, and lists the method variants that run in
+`methods` beside the plain methods:
+
+    methods: [mapex_td3, mapex_td3_gentle, interpolate_td3, interpolate_td3_shared]
+    variants:
+      mapex_td3_gentle: {of: mapex_td3, extract: {epochs: 2, beta: 5.0}}
+      td3_shared: {of: td3, td3: {shared_init: true}}
+      interpolate_td3_shared: {of: interpolate_td3, specialists: td3_shared}
+
+A variant's keys: `of` (required: the method, or for specialists the kind, it varies), `label`
+(its name in the report; default: its own name), for a method variant `specialists` (a
+specialists variant of the method's kind to start from; default: the kind's own), and one
+mapping per section it overrides, merged key by key over that section of the file, so any key
+of the section can be varied (a new key of a section becomes a variant override with no work
+here). Only the sections the base's stage reads may be overridden (VARIANT_SECTIONS), so an
+override always changes what runs.
+
+A mapping, not entries of the `methods` list, because DVC tracks params by key path: the
+variant's stage lists `variants.<name>` (dvc.yaml: extract_variant, interpolate_variant,
+train_specialist_variant), so changing one variant's override reruns that variant's stages and
+nothing else, and `dvc exp run -S variants.<name>.extract.epochs=3` needs no regeneration.
+
+Where a variant's values come from: the stage reads the base sections of the file with the
+variant's overrides merged in (`with_overrides`), and validates the result with the section's
+own model (a bad override is named with its `variants.<name>` path). DVC tracks the base section
+and `variants.<name>`: together they fix the resolved values. A change to a base key that a
+variant overrides still reruns the variant (harmless: it computes the same numbers, and the
+stage's outputs then leave everything after it up to date).
+"""
+
+from __future__ import annotations
+
+import copy
+import re
+from typing import Any, NamedTuple
+
+from pipeline.params.methods import METHODS, SPECIALIST_KINDS, SPECIALISTS_LABELS
+
+# What each base stage's variants may override (the sections that stage reads), and the dvc.yaml
+# stage that runs them. Variants of other bases (MAPEX-PostHoc, MOPDERL, MORL/D, the imported kind)
+# are refused with one line: their stages have no variant twin yet.
+VARIANT_SECTIONS: dict[str, tuple[str, ...]] = {
+    "extract": ("extract",),
+    "warmup_only": ("extract",),
+    "interpolate": ("interpolate", "extract"),
+}
+VARIANT_STAGES = {"extract": "extract_variant", "warmup_only": "extract_variant", "interpolate": "interpolate_variant"}
+# Specialists variants, by kind: the sections their training stage reads, and that stage.
+SPECIALIST_VARIANT_SECTIONS: dict[str, tuple[str, ...]] = {"td3": ("td3", "train_specialist")}
+SPECIALIST_VARIANT_STAGES = {"td3": "train_specialist_variant"}
+# Kinds a method variant may start from: the plain specialists trained here (not imported ones).
+VARIANT_KINDS = ("td3", "pderl")
+NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+class Variant(NamedTuple):
+    name: str
+    of: str  # the base: a METHODS name, or a kind of specialists for a specialists variant
+    kind: str  # the kind of specialists (td3, pderl)
+    specialists: str  # what it starts from (data/specialists/<specialists>/): a kind or a specialists variant
+    label: str  # its name in the report
+    overrides: dict[str, dict]  # section -> keys set to other values
+    stage: str  # the dvc.yaml stage that runs it
+
+    @property
+    def is_specialists(self) -> bool:
+        return self.of in SPECIALIST_KINDS
+
+
+def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
+    """The variants of params' `variants` mapping (None or absent: none), specialists variants
+    first resolved so that method variants can point at them. ValueError, one line naming the
+    key path, value and what was expected, on a bad entry."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ValueError(f"{where} = {raw!r}: expected a mapping of name -> {{of: <method or kind>, ...}}")
+    out: dict[str, Variant] = {}
+    order = sorted(raw, key=lambda n: not (isinstance(raw[n], dict) and raw[n].get("of") in SPECIALIST_KINDS))
+    for name in order:
+        body, here = raw[name], f"{where}.{name}"
+        if not isinstance(name, str) or not NAME.match(name):
+            raise ValueError(f"{where}: name {name!r}: expected lower-case letters, digits and _ (a folder name)")
+        if name in METHODS or name in SPECIALIST_KINDS or name in SPECIALISTS_LABELS:
+            raise ValueError(f"{here}: the name is taken by a built-in method or kind; choose another")
+        if not isinstance(body, dict) or "of" not in body:
+            raise ValueError(f"{here} = {body!r}: expected a mapping with `of` (the method or kind it varies)")
+        of = body["of"]
+        if of in SPECIALIST_KINDS:
+            sections = SPECIALIST_VARIANT_SECTIONS.get(of)
+            if sections is None:
+                raise ValueError(
+                    f"{here}.of = {of!r}: specialists variants are of kind {list(SPECIALIST_VARIANT_SECTIONS)} only"
+                )
+            kind, specialists, stage = of, name, SPECIALIST_VARIANT_STAGES[of]
+            allowed = ("of", "label", *sections)
+        elif of in METHODS:
+            base = METHODS[of]
+            base_stage = base.stage
+            if base_stage not in VARIANT_SECTIONS or base.kind not in VARIANT_KINDS:
+                supported = [
+                    m.name for m in METHODS.values() if m.stage in VARIANT_SECTIONS and m.kind in VARIANT_KINDS
+                ]
+                raise ValueError(f"{here}.of = {of!r}: variants can be made of {supported} (and of kinds td3)")
+            sections = VARIANT_SECTIONS[base_stage]
+            kind, stage = base.kind, VARIANT_STAGES[base_stage]
+            specialists = body.get("specialists", kind)
+            if specialists != kind:
+                spec = out.get(specialists)
+                if spec is None or not spec.is_specialists or spec.kind != kind:
+                    raise ValueError(
+                        f"{here}.specialists = {specialists!r}: expected {kind!r} or the name of a specialists variant "
+                        f"of kind {kind} in {where} ({{of: {kind}, ...}})"
+                    )
+            allowed = ("of", "label", "specialists", *sections)
+        else:
+            raise ValueError(
+                f"{here}.of = {of!r}: expected a method of {list(METHODS)} or a kind of specialists "
+                f"{list(SPECIALIST_VARIANT_SECTIONS)}"
+            )
+        stray = [k for k in body if k not in allowed]
+        if stray:
+            raise ValueError(
+                f"{here}: key {stray[0]!r} is not one of {list(allowed)} (a variant of {of} may override "
+                f"sections {list(sections)}, those its stage reads)"
+            )
+        overrides = {s: body[s] for s in sections if s in body}
+        for s, value in overrides.items():
+            if not isinstance(value, dict):
+                raise ValueError(f"{here}.{s} = {value!r}: expected a mapping of that section's keys")
+        label = body.get("label", name)
+        if not isinstance(label, str) or not label:
+            raise ValueError(f"{here}.label = {label!r}: expected a non-empty string")
+        out[name] = Variant(name, of, kind, specialists, label, overrides, stage)
+    return {n: out[n] for n in raw}  # in the file's order
+
+
+def with_overrides(raw: dict[str, Any], variant: Variant) -> dict[str, Any]:
+    """A copy of the loaded params `raw` with `variant`'s overrides merged into their sections,
+    key by key (a nested mapping is merged too; a list or value replaces the file's)."""
+
+    def merge(base: Any, over: dict) -> dict:
+        out = copy.deepcopy(base) if isinstance(base, dict) else {}
+        for k, v in over.items():
+            out[k] = merge(out.get(k), v) if isinstance(v, dict) else copy.deepcopy(v)
+        return out
+
+    out = dict(raw)
+    for section, over in variant.overrides.items():
+        out[section] = merge(raw.get(section), over)
+    return out

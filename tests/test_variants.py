@@ -1,0 +1,149 @@
+"""Named variants (pipeline/params/variants.py): what a variant may say, the run lists it adds,
+how its overrides reach a stage's sections, and the report's pairs of two forms of one method."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.params import ParamsError, RunParams, section
+from pipeline.params.extract import ExtractParams
+from pipeline.params.methods import VARIANT_METHODS, derived_lists, label, specialist_kind, use_variants
+from pipeline.params.variants import parse_variants, with_overrides
+from pipeline.reporting.runs import Run, methods_in
+from pipeline.reporting.verdicts import verdicts
+
+VARIANTS = {
+    "mapex_td3_gentle": {"of": "mapex_td3", "label": "gentle", "extract": {"epochs": 2, "beta": 5.0}},
+    "td3_shared": {"of": "td3", "td3": {"shared_init": True}},
+    "interpolate_td3_shared": {"of": "interpolate_td3", "specialists": "td3_shared"},
+    "warmup_shared": {"of": "warmup_only_td3", "specialists": "td3_shared"},
+}
+
+
+@pytest.fixture(autouse=True)
+def _no_variants_left():
+    yield
+    use_variants({})  # the report's registry is per process: leave it empty for the other tests
+
+
+def test_variants_add_their_own_run_lists():
+    methods = ["mapex_td3", "warmup_only_td3", "mapex_td3_gentle", "interpolate_td3_shared", "warmup_shared"]
+    lists = derived_lists(methods, [0, 1], variants=VARIANTS)
+    assert lists["specialist_variants"] == ["td3_shared"]
+    assert lists["extract_variant_runs"] == [
+        {"name": "mapex_td3_gentle", "variant": "mapex", "kind": "td3", "specialists": "td3"},
+        {"name": "warmup_shared", "variant": "warmup_only", "kind": "td3", "specialists": "td3_shared"},
+    ]
+    assert lists["interpolate_variant_runs"] == [
+        {"name": "interpolate_td3_shared", "kind": "td3", "specialists": "td3_shared"}
+    ]
+    # the plain lists are those of the plain methods: no interpolate_td3 listed, none in interpolate_from
+    assert lists["interpolate_from"] == [] and lists["extract_variants"] == ["mapex"]
+    # a variant from a kind's own specialists trains that kind even with no plain method of it
+    alone = derived_lists(["gentle_pderl"], [3], variants={"gentle_pderl": {"of": "mapex_pderl"}})
+    assert alone["pderl_seeds"] == [3] and alone["extract_variant_runs"][0]["kind"] == "pderl"
+    # validated with the top-level lists: a stale derived list names the command that fixes it
+    ok = {"seeds": [0], "methods": methods, "variants": VARIANTS, **derived_lists(methods, [0], variants=VARIANTS)}
+    assert section(ok, "", RunParams).variants == VARIANTS
+    with pytest.raises(ParamsError, match=r"extract_variant_runs = \[\], but .*mapex sync-params"):
+        section({**ok, "extract_variant_runs": []}, "", RunParams)
+
+
+@pytest.mark.parametrize(
+    "variants, methods, message",
+    [
+        ({"g": {"of": "mapex_sac"}}, ["g"], r"variants\.g\.of = 'mapex_sac': expected a method of"),
+        ({"g": {"of": "mopderl"}}, ["g"], r"variants\.g\.of = 'mopderl': variants can be made of"),
+        ({"g": {"of": "mapex_td3", "td3": {"tau": 0.1}}}, ["g"], r"variants\.g: key 'td3' is not one of"),
+        ({"g": {"of": "mapex_td3", "specialists": "pderl"}}, ["g"], r"variants\.g\.specialists = 'pderl'"),
+        ({"g": {"of": "mapex_td3", "extract": 3}}, ["g"], r"variants\.g\.extract = 3: expected a mapping"),
+        ({"mapex_td3": {"of": "mapex_td3"}}, ["mapex_td3"], r"variants\.mapex_td3: the name is taken"),
+        ({"s": {"of": "pderl"}}, ["mapex_td3"], r"variants\.s\.of = 'pderl': specialists variants are of kind"),
+        ({"s": {"of": "td3"}}, ["s"], r"methods lists 's', a specialists variant"),
+        ({}, ["gentle"], r"unknown methods \['gentle'\]"),
+        ({"Bad name": {"of": "mapex_td3"}}, ["mapex_td3"], r"name 'Bad name': expected lower-case"),
+    ],
+)
+def test_a_bad_variant_is_one_line(variants, methods, message):
+    with pytest.raises(ValueError, match=message) as err:
+        derived_lists(methods, [0], variants=variants)
+    assert "\n" not in str(err.value)
+
+
+def test_overrides_are_merged_key_by_key_and_validated_by_the_section_model():
+    raw = {"extract": {"epochs": 20, "lr": 0.001, "hidden_sizes": [64, 64]}, "td3": {"tau": 0.01}}
+    gentle = parse_variants(VARIANTS)["mapex_td3_gentle"]
+    merged = with_overrides(raw, gentle)
+    assert merged["extract"] == {"epochs": 2, "lr": 0.001, "hidden_sizes": [64, 64], "beta": 5.0}
+    assert raw["extract"]["epochs"] == 20 and merged["td3"] is raw["td3"]  # the file's params are untouched
+    bad = parse_variants({"g": {"of": "mapex_td3", "extract": {"epochs": -1}}})["g"]
+    with pytest.raises(ParamsError, match=r"extract\.epochs = -1"):
+        section(with_overrides(raw, bad), "extract", ExtractParams)
+
+
+def _run(method: str, seed: int, hv: float) -> Run:
+    metrics = {"front": {"hypervolume": hv}, "iterations": 4}
+    empty = np.zeros(0)
+    return Run(method, seed, metrics, np.zeros((0, 2)), empty, empty, empty, {}, None)
+
+
+def test_two_forms_of_one_method_are_paired_under_the_labels_given():
+    use_variants(parse_variants(VARIANTS))
+    assert label("mapex_td3_gentle") == "gentle" and specialist_kind("interpolate_td3_shared") == "td3_shared"
+    assert label("specialists_td3_shared") == "td3_shared specialists only"
+    runs = [_run("mapex_td3", s, h) for s, h in enumerate([10.0, 11.0, 12.0])]
+    runs += [_run("mapex_td3_gentle", s, h) for s, h in enumerate([20.0, 22.0, 23.0])]
+    assert methods_in(runs) == ["mapex_td3", "mapex_td3_gentle"]
+    # by default a variant is compared with the method it varies
+    (said,) = verdicts(runs)
+    assert said.outcome == "beat" and said.sentence.startswith(
+        "At this scale (3 seeds, up to 4 iterations), gentle beat"
+    )
+    assert "MAPEX-TD3" in said.sentence
+    # report.pairs names any two runs, in either order
+    (said,) = verdicts(runs, pairs=[["mapex_td3", "mapex_td3_gentle"]])
+    assert said.outcome == "lost" and "MAPEX-TD3 lost to gentle" in said.sentence
+    assert verdicts(runs, pairs=[]) == []
+    use_variants({})
+    assert VARIANT_METHODS == {} and label("mapex_td3_gentle") == "mapex_td3_gentle"
+
+
+def test_a_stage_run_as_a_variant_checks_the_name_and_its_base(tmp_path, cli, write_params):
+    """`--method NAME` must be a variant of the method the stage runs, named in params' variants:
+    otherwise one line and exit 2, before anything is read."""
+    methods = ["mapex_td3", "warmup_only_td3", "mapex_td3_gentle"]
+    params = write_params(
+        tmp_path, {"methods": methods, "variants": {"mapex_td3_gentle": VARIANTS["mapex_td3_gentle"]}}
+    )
+    args = ["extract", "--specialists", tmp_path / "none", "--out", tmp_path / "out", "--params", params]
+    r = cli(*args, "--method", "nope")
+    assert r.exit_code == 2 and "variants has no entry 'nope'" in r.output, r.output
+    r = cli(*args, "--variant", "warmup_only", "--method", "mapex_td3_gentle")
+    assert r.exit_code == 2, r.output
+    assert (
+        "--method mapex_td3_gentle: variants.mapex_td3_gentle.of is 'mapex_td3', but this run is 'warmup_only_td3'"
+        in r.output
+    )
+    # a bad override is named by its variant
+    bad = write_params(
+        tmp_path / "bad",
+        {"methods": methods, "variants": {"mapex_td3_gentle": {"of": "mapex_td3", "extract": {"epochs": -2}}}},
+    )
+    r = cli(
+        "extract",
+        "--specialists",
+        tmp_path / "none",
+        "--out",
+        tmp_path / "out",
+        "--params",
+        bad,
+        "--method",
+        "mapex_td3_gentle",
+    )
+    assert (
+        r.exit_code == 2
+        and "with the overrides of variants.mapex_td3_gentle" in r.output
+        and "extract.epochs = -2" in r.output
+    )
+    assert not (tmp_path / "out").exists()
