@@ -352,3 +352,28 @@ def test_the_stage_page_shows_hostile_names_and_paths_as_text(cli, rendered, tmp
         assert page.evaluate("document.querySelectorAll('img, b').length") == 0
         assert not watched.dialogs and not watched.console_errors and not watched.page_errors, watched
         assert not watched.network(), watched.requests
+
+
+def test_a_process_that_imported_mujoco_before_choosing_gl_still_draws(gl):
+    """MuJoCo fixes its GL context class when first imported; a process that built an env (and so
+    imported mujoco) before MUJOCO_GL was chosen must still draw with the chosen backend (it used
+    to abort in mjr_makeContext, reaching for GLFW without a display)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os\n"
+        "from pipeline.core.envs import make_env\n"
+        f"make_env({ENV!r}, 5).close()\n"  # imports mujoco with MUJOCO_GL unset
+        "from pipeline.evaluation.render import Camera, Film, choose_gl, make_render_env\n"
+        "choose_gl()\n"
+        f"film = Film({ENV!r}, 5, None, 1, None, 32, 24, None, None, -15.0, 90.0, 0, 0, 0)\n"
+        "env = make_render_env(film); env.reset(seed=0)\n"
+        "cam = Camera(env, film); image = cam.frame(env.unwrapped.data); cam.close()\n"
+        "print('drew', image.shape, int(image.max()))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM")}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).parents[1]), env.get("PYTHONPATH", "")])
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "drew (24, 32, 3)" in done.stdout and not done.stdout.strip().endswith(" 0"), done.stdout

@@ -31,13 +31,34 @@ import numpy as np
 import torch
 
 from pipeline.core.artifacts import TMP_SUFFIX, write_bytes_atomic
-from pipeline.core.envs import EnvError
+from pipeline.core.envs import EnvError, quiet_settotalmass
 
 RENDER_VERSION = 2  # part of every clip's key: bump when the same inputs would film differently
 BACKENDS = ("egl", "osmesa")
 # PyOpenGL must load the same platform as MuJoCo's context (glfw needs no override).
 PYOPENGL_PLATFORM = {"egl": "egl", "osmesa": "osmesa"}
 _PROBE = "import mujoco; c = mujoco.GLContext(16, 16); c.make_current(); c.free(); print('ok')"
+
+
+def _bind_gl_backend() -> None:
+    """Make `mujoco.Renderer` create its context with the backend MUJOCO_GL names now.
+
+    MuJoCo picks its GL context class once, when `mujoco` is first imported, from MUJOCO_GL as it
+    was then. A process that imported mujoco before `choose_gl` set MUJOCO_GL (every env build
+    imports it) would otherwise draw with the default (GLFW, which needs a display) and abort in
+    `mjr_makeContext`. The context class `Renderer` reads is set to the one MUJOCO_GL names."""
+    backend = os.environ.get("MUJOCO_GL", "").lower().strip()
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    elif backend == "osmesa":
+        from mujoco.osmesa import GLContext
+    else:
+        return  # glfw or the platform's default: what mujoco chose at import
+    try:
+        from mujoco.rendering.classic import gl_context
+    except ImportError:  # an older layout: mujoco.gl_context is what Renderer reads
+        from mujoco import gl_context
+    gl_context.GLContext = GLContext
 
 
 class RenderError(EnvError):
@@ -113,6 +134,7 @@ def make_render_env(film: Film):
     import gymnasium as gym
     import mo_gymnasium
 
+    quiet_settotalmass()
     try:
         env = mo_gymnasium.make(film.env_id, max_episode_steps=film.max_episode_steps)
     except (gym.error.Error, TypeError, ValueError) as exc:
@@ -152,6 +174,7 @@ class Camera:
         quality.offsamples = film.samples
         g = self.model.vis.global_
         g.offwidth, g.offheight = max(g.offwidth, film.width), max(g.offheight, film.height)
+        _bind_gl_backend()
         self.renderer = mujoco.Renderer(self.model, film.height, film.width)
         self.shadows = film.shadow_size > 0
         if film.camera is None:
