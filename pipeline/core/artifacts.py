@@ -45,6 +45,16 @@ class DiskFull(ArtifactError):
 DISK_FULL_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
 
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (at most 160 characters), or its type's name: what a
+    one-line refusal quotes of an error raised while reading a file from elsewhere."""
+    try:
+        text = str(exc).strip()
+    except Exception:  # the str of an exception carrying a hostile value may itself fail
+        text = ""
+    return text.splitlines()[0][:160] if text else type(exc).__name__
+
+
 def disk_full_error(exc: BaseException) -> OSError | None:
     """The OSError of a full disk, quota or file-size limit behind `exc` (itself, or what it was
     raised from or while handling, as torch's RuntimeError wraps a file object's OSError), else None."""

@@ -21,7 +21,7 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.artifacts import ArtifactError
+from pipeline.core.artifacts import ArtifactError, first_line
 
 MAX_OPCODES = 1_000_000  # a small policy's data.pkl runs a few hundred
 ITEMSIZE = {
@@ -140,7 +140,7 @@ def check_torchscript(data: bytes, path: Path | str) -> None:
         zf = zipfile.ZipFile(io.BytesIO(data))
         sizes = {info.filename: info.file_size for info in zf.infolist()}
     except Exception as exc:  # a damaged central directory raises BadZipFile, ValueError, ...
-        raise ArtifactError(f"{path}: not a TorchScript archive (not a readable zip: {_first_line(exc)})") from None
+        raise ArtifactError(f"{path}: not a TorchScript archive (not a readable zip: {first_line(exc)})") from None
     pickles = [name for name in sizes if name.count("/") == 1 and name.endswith(("/data.pkl", "/constants.pkl"))]
     if not any(name.endswith("/data.pkl") for name in pickles):
         raise ArtifactError(f"{path}: not a TorchScript archive (no data.pkl)")
@@ -152,12 +152,4 @@ def check_torchscript(data: bytes, path: Path | str) -> None:
         except _Unfit as exc:
             raise ArtifactError(f"{path}: TorchScript {member} {exc}; refused before torch.jit.load reads it") from None
         except Exception as exc:  # damaged bytes: say so in one line (torch.jit.load would only fail later)
-            raise ArtifactError(f"{path}: TorchScript {member} is not a readable pickle ({_first_line(exc)})") from None
-
-
-def _first_line(exc: BaseException) -> str:
-    try:
-        text = str(exc).strip()
-    except Exception:  # the str of an exception carrying a hostile value may itself fail
-        text = ""
-    return text.splitlines()[0][:160] if text else type(exc).__name__
+            raise ArtifactError(f"{path}: TorchScript {member} is not a readable pickle ({first_line(exc)})") from None

@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.core.artifacts import ArtifactError
+from pipeline.core.artifacts import ArtifactError, first_line
 from pipeline.core.envs import EnvSpec
 from pipeline.core.nets import Actor, ExportedActor, NormalizedActor, ScriptedActor
 from pipeline.core.tscheck import check_torchscript
@@ -108,14 +108,6 @@ def file_sha256(path: Path) -> str:
 MAX_MEMBER = 256 << 20  # bytes of one member of an SB3 zip (a policy of 256-unit MLPs is about 1 MB)
 
 
-def _first_line(exc: BaseException) -> str:
-    try:
-        text = str(exc).strip()
-    except Exception:  # the str of an exception carrying a hostile value may itself fail
-        text = ""
-    return text.splitlines()[0][:160] if text else type(exc).__name__
-
-
 def _tensor_bytes(obj: Any) -> int:
     """The bytes the tensors in `obj` (nested dicts, lists, tuples of them) span, each counted
     as its shape says (an expanded view counts as what copying it would allocate)."""
@@ -142,11 +134,11 @@ def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
         obj = torch.load(io.BytesIO(data) if data is not None else path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise ArtifactError(
-            f"{path}: {what} holds Python objects that only unpickling their code could read ({_first_line(exc)}); "
+            f"{path}: {what} holds Python objects that only unpickling their code could read ({first_line(exc)}); "
             "refused: save the weights as a state dict (or the actor as TorchScript) and import that"
         ) from None
     except Exception as exc:  # damaged bytes make torch.load raise nearly any built-in error
-        raise ArtifactError(f"{path}: {what} is not a readable torch file ({_first_line(exc)})") from None
+        raise ArtifactError(f"{path}: {what} is not a readable torch file ({first_line(exc)})") from None
     size = len(data) if data is not None else path.stat().st_size
     spans = _tensor_bytes(obj)
     if spans > size:
@@ -302,7 +294,7 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
         zf = zipfile.ZipFile(path)
     except Exception as exc:  # a damaged central directory raises BadZipFile, ValueError, OverflowError, ...
         raise ArtifactError(
-            f"{path}: not a readable zip ({_first_line(exc)}); expected a Stable-Baselines3 model.zip"
+            f"{path}: not a readable zip ({first_line(exc)}); expected a Stable-Baselines3 model.zip"
         ) from None
     with zf:
         names = set(zf.namelist())
@@ -325,12 +317,12 @@ def read_sb3(path: Path) -> tuple[Actor, _Declared, dict[str, Any]]:
                 else None
             )
         except Exception as exc:  # zlib.error, BadZipFile (a bad CRC), NotImplementedError (a compression method), ...
-            raise ArtifactError(f"{path}: zip is damaged ({_first_line(exc)})") from None
+            raise ArtifactError(f"{path}: zip is damaged ({first_line(exc)})") from None
         try:
             data = json.loads(raw)
         except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
             raise ArtifactError(
-                f"{path}: its 'data' entry is not JSON ({_first_line(exc)}); expected a Stable-Baselines3 model.zip"
+                f"{path}: its 'data' entry is not JSON ({first_line(exc)}); expected a Stable-Baselines3 model.zip"
             ) from None
     if not isinstance(data, dict):
         raise ArtifactError(f"{path}: its 'data' entry is not a JSON object; expected a Stable-Baselines3 model.zip")
@@ -444,7 +436,7 @@ def read_torchscript(path: Path, spec: EnvSpec) -> tuple[ScriptedActor, _Declare
     try:
         actor = ScriptedActor.from_bytes(data, spec.action_low, spec.action_high)
     except Exception as exc:  # torch.jit.load raises many kinds on damaged bytes
-        raise ArtifactError(f"{path}: not a TorchScript file torch.jit.load can read ({_first_line(exc)})") from None
+        raise ArtifactError(f"{path}: not a TorchScript file torch.jit.load can read ({first_line(exc)})") from None
     return (
         actor.eval(),
         _Declared(None, None, None, None),
@@ -459,9 +451,8 @@ def read_torch_export(path: Path, spec: EnvSpec) -> tuple[ExportedActor, _Declar
     except ArtifactError as exc:  # pt2check refused the archive before torch.export.load saw it
         raise ArtifactError(f"{path}: {exc}") from None
     except Exception as exc:  # torch.export.load raises many kinds on a file that is not a program
-        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
         raise ArtifactError(
-            f"{path}: not a torch.export program torch.export.load can read ({first}); expected a .pt2 file "
+            f"{path}: not a torch.export program torch.export.load can read ({first_line(exc)}); expected a .pt2 file "
             "of torch.export.save"
         ) from None
     return (

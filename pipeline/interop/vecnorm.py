@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from pipeline.core.artifacts import ArtifactError
+from pipeline.core.artifacts import ArtifactError, first_line
 
 MAX_BYTES = 16 << 20  # a VecNormalize file of a flat Box is a few kB; refuse anything huge unread
 MAX_ARRAY_BYTES = 16 << 20  # absolute cap on the bytes of all arrays of one pickle (the file's size caps them too)
@@ -314,14 +314,6 @@ class _RestrictedUnpickler(pickle._Unpickler):  # the pure-Python unpickler: see
         return np.frombuffer(data, dtype)[0].copy()
 
 
-def _first_line(exc: BaseException) -> str:
-    try:
-        text = str(exc).strip()
-    except Exception:  # the str of an exception carrying a hostile value may itself fail
-        text = ""
-    return text.splitlines()[0][:160] if text else type(exc).__name__
-
-
 def restricted_loads(data: bytes, path: Path, what: str) -> Any:
     """Unpickle `data` (of file `path`, described as `what`) through the allow-list above;
     ArtifactError with one line naming the file and the first name or thing refused, or the damage."""
@@ -333,11 +325,11 @@ def restricted_loads(data: bytes, path: Path, what: str) -> Any:
             "unread (only numpy arrays and inert names of SB3, Gymnasium spaces and numpy.random are read)"
         ) from None
     except _Unsafe as exc:
-        raise ArtifactError(f"{path}: {what} {_first_line(exc)}; refused (statistics are arrays of numbers)") from None
+        raise ArtifactError(f"{path}: {what} {first_line(exc)}; refused (statistics are arrays of numbers)") from None
     except RecursionError:
         raise ArtifactError(f"{path}: {what} nests too deep to be a file of observation statistics") from None
     except Exception as exc:  # hostile bytes make the unpickler or numpy raise any built-in error: all mean "damaged"
-        raise ArtifactError(f"{path}: {what} is not a readable pickle ({_first_line(exc)})") from None
+        raise ArtifactError(f"{path}: {what} is not a readable pickle ({first_line(exc)})") from None
 
 
 class ObsStatistics(NamedTuple):
