@@ -1145,6 +1145,29 @@ def test_report_puts_a_cost_column_beside_every_verdict_and_draws_hypervolume_ag
     assert fig.axes[0].get_xscale() == "log"
 
 
+def test_cost_figure_averages_only_where_every_seed_has_a_record(monkeypatch):
+    """A seed whose curve starts later (a seeded hybrid's first row, say) does not make the mean
+    step down when it joins: the mean curve starts at the latest first record and is the mean of
+    all seeds from there on."""
+    from types import SimpleNamespace
+
+    import pipeline.reporting.cost as cost_mod
+    from pipeline.reporting.figures import cost_figure
+
+    curves = {
+        0: (np.array([1.0, 10.0, 100.0]), np.array([1.0, 2.0, 3.0])),
+        1: (np.array([50.0, 200.0]), np.array([10.0, 11.0])),
+    }
+    monkeypatch.setattr(cost_mod, "cost_curve", lambda r: curves[r.seed])
+    runs = [SimpleNamespace(method="mapex_td3", seed=s) for s in (0, 1)]
+    fig = cost_figure(runs, ENV_ID, 8.0)
+    (line,) = [ln for ln in fig.axes[0].get_lines() if "(mean of 2 seeds)" in ln.get_label()]
+    x, y = np.asarray(line.get_xdata()), np.asarray(line.get_ydata())
+    assert x.min() == 50.0
+    # at 50 and 100 the mean of seed 0's step value (2, then 3) and seed 1's (10): never below its start
+    assert list(zip(x, y)) == [(50.0, 6.0), (100.0, 6.5), (200.0, 7.0)]
+
+
 def test_cost_table_shows_an_early_stop_and_the_fallbacks_only_where_a_run_has_them():
     from pipeline.reporting.cost import cost_table
 

@@ -398,7 +398,8 @@ def _sem(a: np.ndarray) -> float:
 def cost_figure(runs: list[Run], env_id: str, width: float) -> Figure:
     """Re-evaluated hypervolume of the population against the cumulative core-seconds of the
     stage that made it (pipeline.reporting.cost), per method, as its front grows: a curve
-    (mean ± SEM over seeds, each seed's step curve on the union of their core-seconds) where the
+    (mean ± SEM over seeds, each seed's step curve on the union of their core-seconds, from the
+    first x at which every seed has a record, so the mean is always over all seeds) where the
     stage recorded per-iteration costs (extraction, interpolation), one point (mean ± SEM of
     both) at its total and final hypervolume where it recorded only its process's seconds. A
     method with no recorded cost is not drawn. Core-seconds on a log axis: methods differ by
@@ -411,8 +412,11 @@ def cost_figure(runs: list[Run], env_id: str, width: float) -> Figure:
         rs = [r for r in runs if r.method == v]
         curves = [c for r in rs if (c := cost_curve(r)) is not None]
         if curves:
+            # from the point where every seed has a record on: before it the mean would be over
+            # fewer seeds and could step down when a seed with a lower curve joins
+            start = max(float(np.min(x)) for x, _ in curves)
             grid = np.unique(np.concatenate([x for x, _ in curves]))
-            grid = grid[grid > 0]
+            grid = grid[(grid > 0) & (grid >= start)]
             _band(ax, grid, np.stack([step_values(x, y, grid) for x, y in curves]), colour(v), label(v), len(curves))
             continue
         points = [(c, r.metrics["front"]["hypervolume"]) for r in rs if (c := method_core_seconds(r)) is not None]
