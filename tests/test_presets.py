@@ -31,8 +31,12 @@ NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
 IMPORTED = [ROOT / "presets" / "imported.yaml", ROOT / "presets" / "mixed.yaml"]
 # Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
 ALL_PARAMS = [ROOT / "params.yaml"] + [
-    p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "reference_points.yaml"
+    p
+    for p in sorted((ROOT / "presets").rglob("*.yaml"))
+    if p.name != "reference_points.yaml" and "studies" not in p.relative_to(ROOT / "presets").parts
 ]
+# The studies behind docs/results.md: `mapex sweep` grid files over the presets, not params files
+STUDIES = sorted((ROOT / "presets" / "studies").glob("*.yaml"))
 
 
 @pytest.mark.parametrize("path", ALL_PARAMS, ids=lambda p: f"{p.parent.name}/{p.name}")
@@ -53,6 +57,22 @@ def test_params_file_validates(path, tmp_path):
     )
     # its own point, or (null) the env's entry in the table, one value per objective
     resolve_reference_point(env.reference_point, env.id, len(raw["objectives"]), path, ROOT / TABLE)
+
+
+@pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.name)
+def test_study_grid_plans(path):
+    """Every study grid validates and plans its cells as `mapex sweep` would (the presets it names
+    read from the committed tree, as the sweep's workers do): each cell's params validate with
+    the stages' models, its report pairs name methods it runs, and it runs at least two methods."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    cells = plan_cells(load_grid(path), path, ROOT, "HEAD")
+    assert cells
+    for cell in cells:
+        methods = cell.params["methods"]
+        assert len(methods) >= 2, cell.name
+        for pair in (cell.params.get("report") or {}).get("pairs") or []:
+            assert set(pair) <= set(methods), (cell.name, pair)
 
 
 def test_every_params_file_is_checked():
