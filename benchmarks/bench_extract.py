@@ -16,12 +16,15 @@ Timings only: nothing here is asserted (benchmarks are never timed tests).
 The step part (printed first; alone with --only-step): one paper-size child step, the
 project's own code (`make_children`, hence `critic_values`, `mixed_advantage`, `awr_weight`
 and `regression_step`, or the stacked path for K > 1) on a hybrid buffer of --step-rows rows,
-timed between consecutive steps (its on_step callback); a warm-up step (`warm_up`) likewise;
-then ms per step, achieved GFLOPS, the rate of the same GEMMs alone in the same run and the
-percentage (benchmarks/speed_floor.py says how FLOPs are counted), per --precision, and the
-projected seconds of a paper-size child from them.
+timed between consecutive steps (its on_step callback); a warm-up step of the same K children
+(`warm_up` for one, `stacked_warm_up` for K > 1) likewise; then ms per step, achieved GFLOPS,
+the rate of the same GEMMs alone in the same run and the percentage (benchmarks/speed_floor.py
+says how FLOPs are counted), per --precision and K in --step-k, and the projected seconds of a
+paper-size child from them: (warm-up steps x warm-up ms + AWR steps x AWR ms) / K plus the
+child's own pass over its hybrid rows. A markdown table of every (K, precision) ends the step part.
 
     python benchmarks/bench_extract.py --only-step --precision both     # the step lines, fp32 and bf16
+    python benchmarks/bench_extract.py --only-step --precision both --threads 1 --clock cpu --step-k 1 4 8 16
 """
 
 from __future__ import annotations
