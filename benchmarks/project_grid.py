@@ -25,7 +25,8 @@ Model (each assumption is printed with the tables):
 - `mapex sweep` on C cores: each env x seed runs its specialists (2 processes on 2 cores, one
   per objective, `train_specialist.processes: 2`) and then its extraction (1 core; sequential
   over its iterations, so more cores do not shorten it); tasks start in the order they become
-  ready whenever enough cores are free (all specialists first, as Ray's queue sees them).
+  ready whenever enough cores are free (all specialists first, as submitted; a 1-core task may
+  start while a 2-core one waits for cores, as Ray's scheduler allows).
   evaluate (2 processes), score and report are minutes and left out of the wall time.
 """
 
@@ -142,8 +143,10 @@ def morld_hours(env: str) -> float:
 
 
 def sweep_wall(cores: int, chains: list[tuple[float, float]]) -> float:
-    """Hours until every (specialists h on 2 cores, extraction h on 1 core) chain is done, tasks
-    started in the order they became ready whenever enough cores are free."""
+    """Hours until every (specialists h on 2 cores, extraction h on 1 core) chain is done: at
+    each moment the ready tasks are started in the order they became ready, each that fits in
+    the free cores (a 1-core task may start while an earlier 2-core one waits, as Ray's
+    scheduler lets it)."""
     if cores < 2:
         raise ValueError("the specialists' stage needs 2 cores")
     ready = [(0.0, i, 2, spec, ext) for i, (spec, ext) in enumerate(chains)]  # (ready at, order, cores, hours, next)
@@ -162,8 +165,6 @@ def sweep_wall(cores: int, chains: list[tuple[float, float]]) -> float:
                     free -= need
                     queue.pop(j)
                     started = True
-                    break
-                if t <= now:  # first in line does not fit: wait (no overtaking)
                     break
         end, i, need, nxt = heapq.heappop(running)
         now, free, done = end, free + need, max(done, end)
