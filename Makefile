@@ -24,7 +24,7 @@ BIN := $(VENV)/bin
 # each test file runs whole in one worker (--dist loadfile), so module fixtures are built once.
 TEST_WORKERS ?= 2
 
-.PHONY: install repro test test-fast test-kernels test-slow lint format bench clean-venv
+.PHONY: install repro test test-fast test-kernels test-slow lint format bench bench-speed clean-venv
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -98,6 +98,10 @@ bench: install
 	$(BIN)/python benchmarks/bench_specialist.py
 	$(BIN)/python benchmarks/bench_fit_critics.py
 	$(BIN)/python benchmarks/bench_extract.py
+
+# Issue 46's figures (children per iteration, evaluate in two processes): 3-5 min on an idle machine
+bench-speed: install
+	PYTHON=$(BIN)/python bash benchmarks/speed.sh
 
 clean-venv:
 	rm -rf $(VENV)

@@ -16,12 +16,15 @@ Timings only: nothing here is asserted (benchmarks are never timed tests).
 The step part (printed first; alone with --only-step): one paper-size child step, the
 project's own code (`make_children`, hence `critic_values`, `mixed_advantage`, `awr_weight`
 and `regression_step`, or the stacked path for K > 1) on a hybrid buffer of --step-rows rows,
-timed between consecutive steps (its on_step callback); a warm-up step (`warm_up`) likewise;
-then ms per step, achieved GFLOPS, the rate of the same GEMMs alone in the same run and the
-percentage (benchmarks/speed_floor.py says how FLOPs are counted), per --precision, and the
-projected seconds of a paper-size child from them.
+timed between consecutive steps (its on_step callback); a warm-up step of the same K children
+(`warm_up` for one, `stacked_warm_up` for K > 1) likewise; then ms per step, achieved GFLOPS,
+the rate of the same GEMMs alone in the same run and the percentage (benchmarks/speed_floor.py
+says how FLOPs are counted), per --precision and K in --step-k, and the projected seconds of a
+paper-size child from them: (warm-up steps x warm-up ms + AWR steps x AWR ms) / K plus the
+child's own pass over its hybrid rows. A markdown table of every (K, precision) ends the step part.
 
     python benchmarks/bench_extract.py --only-step --precision both     # the step lines, fp32 and bf16
+    python benchmarks/bench_extract.py --only-step --precision both --threads 1 --clock cpu --step-k 1 4 8 16
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +42,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from speed_floor import (  # noqa: E402
+    clock_name,
     floor_seconds,
     flops,
     headline_rate,
@@ -50,11 +55,11 @@ from speed_floor import (  # noqa: E402
 )
 
 from pipeline.core.envs import make_env  # noqa: E402
-from pipeline.core.nets import Actor, CriticEnsemble  # noqa: E402
+from pipeline.core.nets import Actor, CriticEnsemble, StackedActor  # noqa: E402
 from pipeline.core.precision import dtype_of, frozen  # noqa: E402
 from pipeline.core.seeding import derive_seeds  # noqa: E402
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policies  # noqa: E402
-from pipeline.extraction.children import make_children  # noqa: E402
+from pipeline.extraction.children import make_children, stack_schedules, stacked_warm_up, warmup_schedule  # noqa: E402
 from pipeline.extraction.mapex import (  # noqa: E402
     AdvantageConfig,
     ChildConfig,
@@ -148,9 +153,10 @@ def awr_step_gemms(k: int, batch: int = 256) -> list:
     )
 
 
-def warmup_step_gemms(batch: int = 256) -> list:
-    """The GEMMs of one warm-up step: the actor's forward and backward."""
-    return mlp_gemms(batch, [OBS, *HIDDEN, ACT], forward=True, wgrad=True, xgrad=True)
+def warmup_step_gemms(k: int = 1, batch: int = 256) -> list:
+    """The GEMMs of one warm-up step of K children trained together: each actor's forward and
+    backward (one batched product per layer for K > 1)."""
+    return mlp_gemms(batch, [OBS, *HIDDEN, ACT], members=k, forward=True, wgrad=True, xgrad=True)
 
 
 def step_ms(k: int, rows: int, steps: int, inputs, device: torch.device, precision: str) -> float:
@@ -171,20 +177,35 @@ def step_ms(k: int, rows: int, steps: int, inputs, device: torch.device, precisi
     return (span[-1] - span[0]) / (len(span) - 1) * 1e3
 
 
-def warmup_ms(steps: int, rows: int, inputs, device: torch.device, precision: str) -> float:
-    """Mean ms per warm-up step (`warm_up`) over `steps` steps (after 20 untimed ones)."""
+def warmup_ms(steps: int, rows: int, inputs, device: torch.device, precision: str, k: int = 1) -> float:
+    """Mean ms per warm-up step of K children over `steps` steps (after 20 untimed ones): K = 1
+    `warm_up` (what the stage runs for one child on a CPU), K > 1 `stacked_warm_up` on K copies
+    of the rows (what `make_children` runs), each child on its own minibatches."""
     buffers, _, actors = inputs
     obs = torch.from_numpy(buffers[0]["obs"][:rows]).to(device)
     target = mean_parent_action(actors, obs, precision=precision)
     torch.manual_seed(1)
-    actor = Actor(OBS, ACT, HIDDEN, [-1] * ACT, [1] * ACT).to(device)
-    rng = np.random.default_rng(0)
-    warm_up(actor, obs, target, 20, 3e-4, 256, rng, precision)
-    sync(device)
-    t0 = now()
-    warm_up(actor, obs, target, steps, 3e-4, 256, rng, precision)
-    sync(device)
-    return (now() - t0) / steps * 1e3
+    children = [Actor(OBS, ACT, HIDDEN, [-1] * ACT, [1] * ACT).to(device) for _ in range(k)]
+    if k == 1:
+        rng = np.random.default_rng(0)
+        warm_up(children[0], obs, target, 20, 3e-4, 256, rng, precision)
+        sync(device)
+        t0 = now()
+        warm_up(children[0], obs, target, steps, 3e-4, 256, rng, precision)
+        sync(device)
+        return (now() - t0) / steps * 1e3
+    stack = StackedActor(children)
+    obs_k, target_k = obs.expand(k, *obs.shape).contiguous(), target.expand(k, *target.shape).contiguous()
+    rngs = [np.random.default_rng(j) for j in range(k)]
+    lap = []
+    for n in (20, steps):
+        rows, mask = stack_schedules([warmup_schedule(len(obs), n, 256, rng, device=device) for rng in rngs])
+        sync(device)
+        t0 = now()
+        stacked_warm_up(stack, obs_k, target_k, rows, mask, 3e-4, precision)
+        sync(device)
+        lap.append(now() - t0)
+    return lap[1] / steps * 1e3
 
 
 def setup_seconds(rows: int, inputs, device: torch.device, precision: str) -> float:
@@ -204,42 +225,80 @@ def setup_seconds(rows: int, inputs, device: torch.device, precision: str) -> fl
     return now() - t0
 
 
-def step_report(args, inputs, device: torch.device) -> None:
-    """The step lines (module docstring) for each precision asked for."""
+@dataclass
+class StepRow:
+    """One (K, precision) line of the summary table: ms per step of all K children, and the
+    rate of the step against its own GEMMs and against the headline matmul."""
+
+    k: int
+    precision: str
+    awr_ms: float
+    awr_pct: float  # % of the rate of its own GEMMs alone
+    awr_headline_pct: float  # % of the headline matmul's rate (4 x 256^3)
+    warm_ms: float
+    warm_pct: float
+    child_s: float  # projected training seconds of one paper-size child
+
+
+def step_report(args, inputs, device: torch.device) -> list[StepRow]:
+    """The step lines (module docstring) for each precision asked for; returns the table rows."""
     paper_steps = math.ceil(args.rows / 256) * PAPER_EPOCHS
+    width = "-".join(map(str, HIDDEN))
+    table = []
     for precision in precisions(args.precision):
         dtype = dtype_of(precision)
-        print(
-            f"[{precision}] batched matmul 4 x 256 x 256 x 256: {headline_rate(dtype, device):.0f} GFLOPS",
-            flush=True,
-        )
-        warm = warmup_ms(args.step_count, args.step_rows, inputs, device, precision)
-        g = warmup_step_gemms()
-        print(
-            rate_line(
-                f"warm-up step (actor {'-'.join(map(str, HIDDEN))}, batch 256)",
-                precision,
-                warm,
-                flops(g),
-                floor_seconds(g, dtype, device),
-            )
-        )
-        awr = {}
-        for k in args.step_k:
-            awr[k] = step_ms(k, args.step_rows, args.step_count, inputs, device, precision)
-            g = awr_step_gemms(k)
-            width = "-".join(map(str, HIDDEN))
-            what = f"AWR step (child + 2 x 4 critics {width}, batch 256)" + (f", K = {k} stacked" if k > 1 else "")
-            print(rate_line(what, precision, awr[k], flops(g), floor_seconds(g, dtype, device)), flush=True)
+        headline = headline_rate(dtype, device)
+        print(f"[{precision}] batched matmul 4 x 256 x 256 x 256: {headline:.0f} GFLOPS", flush=True)
         setup = setup_seconds(args.rows, inputs, device, precision)
-        for k, ms in awr.items():
-            child = (args.warmup_steps * warm + paper_steps * ms / k) / 1e3 + setup
+        for k in args.step_k:
+            stacked = f", K = {k} stacked" if k > 1 else ""
+            warm = warmup_ms(args.step_count, args.step_rows, inputs, device, precision, k)
+            gw = warmup_step_gemms(k)
             print(
-                f"[{precision}] projected paper-size child{f' (K = {k})' if k > 1 else ''}: {args.warmup_steps} warm-up "
-                f"steps + {paper_steps} AWR steps{f' / {k}' if k > 1 else ''} + {setup:.1f} s of Q(s, a) and mean parent "
-                f"action over {args.rows} rows = {child:.1f} s of training (evaluation not included)",
+                rate_line(
+                    f"warm-up step (actor {width}, batch 256){stacked}",
+                    precision,
+                    warm,
+                    flops(gw),
+                    fw := floor_seconds(gw, dtype, device),
+                ),
                 flush=True,
             )
+            awr = step_ms(k, args.step_rows, args.step_count, inputs, device, precision)
+            g = awr_step_gemms(k)
+            fa = floor_seconds(g, dtype, device)
+            print(
+                rate_line(f"AWR step (child + 2 x 4 critics {width}, batch 256){stacked}", precision, awr, flops(g), fa)
+            )
+            child = (args.warmup_steps * warm + paper_steps * awr) / k / 1e3 + setup
+            print(
+                f"[{precision}] projected paper-size child (K = {k}): ({args.warmup_steps} warm-up steps + {paper_steps} "
+                f"AWR steps) / {k} + {setup:.1f} s of Q(s, a) and mean parent action over {args.rows} rows = "
+                f"{child:.1f} s of training (evaluation not included)",
+                flush=True,
+            )
+            rate = flops(g) / (awr / 1e3) / 1e9
+            table.append(
+                StepRow(
+                    k, precision, awr, 100 * fa * 1e3 / awr, 100 * rate / headline, warm, 100 * fw * 1e3 / warm, child
+                )
+            )
+    return table
+
+
+def markdown_table(rows: list[StepRow]) -> str:
+    """The summary of the step lines, as docs/benchmarks.md prints it."""
+    out = [
+        "| K | precision | AWR step, all K (ms) | % of its GEMMs' rate | % of the 4x256^3 matmul rate "
+        "| warm-up step, all K (ms) | % of its GEMMs' rate | paper-size child (s) |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        out.append(
+            f"| {r.k} | {r.precision} | {r.awr_ms:.2f} | {r.awr_pct:.0f}% | {r.awr_headline_pct:.0f}% "
+            f"| {r.warm_ms:.2f} | {r.warm_pct:.0f}% | {r.child_s:.1f} |"
+        )
+    return "\n".join(out)
 
 
 def per_child(k: int, args, inputs, device: torch.device, precision: str = "fp32") -> float:
@@ -307,7 +366,14 @@ def main() -> None:
         flush=True,
     )
     inputs = synthetic(max(args.rows, args.step_rows), device)
-    step_report(args, inputs, device)
+    table = step_report(args, inputs, device)
+    print(
+        f"\nSummary ({clock_name()} clock; per-child seconds: {args.warmup_steps} warm-up + "
+        f"{math.ceil(args.rows / 256) * PAPER_EPOCHS}"
+        f" AWR steps over {args.rows} rows, projected from {args.step_count} timed steps on {args.step_rows} rows):\n",
+        flush=True,
+    )
+    print(markdown_table(table), flush=True)
     if args.only_step:
         return
     for precision in precisions(args.precision):

@@ -51,11 +51,13 @@ class Relay:
     """Shows on a stage's progress bar and stderr what its parts report (`send`):
     ("steps", n), ("returns", text: the part's latest, in the bar's postfix) and ("say", line)."""
 
-    def __init__(self, bar: tqdm, prefix: str = "return ") -> None:
-        self.bar, self.prefix, self.returns = bar, prefix, {}
+    def __init__(self, bar: tqdm, prefix: str = "return ", on_result: Callable[[int, Any], None] | None = None) -> None:
+        self.bar, self.prefix, self.returns, self.on_result = bar, prefix, {}, on_result
 
     def message(self, kind: str, value: Any, part: int = 0) -> None:
-        if kind == "steps":
+        if kind == "result" and self.on_result is not None:  # a part's result: to the stage
+            self.on_result(part, value)
+        elif kind == "steps":
             self.bar.update(value)
         elif kind == "returns":
             self.returns[part] = value
@@ -65,15 +67,22 @@ class Relay:
 
 
 def run_parts(
-    fn: Callable[..., None], parts: list[tuple], bar: tqdm, where: Callable[[int], str], prefix: str = "return "
+    fn: Callable[..., None],
+    parts: list[tuple],
+    bar: tqdm,
+    where: Callable[[int], str],
+    prefix: str = "return ",
+    on_result: Callable[[int, Any], None] | None = None,
+    start: str = "spawn",
 ) -> None:
     """Run fn(*parts[i], threads, send=...) for every part: here when there is one, else each in
-    its own worker process at once (pipeline.core.workers), with this process's torch thread
-    count. Progress goes to `bar` (Relay). A worker's failure is reported as the stage would
+    its own worker process at once (pipeline.core.workers; `start`: how they start), with this
+    process's torch thread count. Progress goes to `bar` (Relay); what a part sends as
+    ("result", value) goes to on_result(part, value). A worker's failure is reported as the stage would
     its own: an input error as one line and exit code 2, a TrainingDiverged as its own line
     (it names the stage, seed and objective) and exit code 3, anything else with the worker's
     traceback and exit code 1; `where(i)` names part i in the input error's line."""
-    relay = Relay(bar, prefix)
+    relay = Relay(bar, prefix, on_result)
     threads = torch.get_num_threads()
     if len(parts) == 1:
         fn(*parts[0], threads, send=relay.message)
@@ -87,6 +96,7 @@ def run_parts(
             [(*args, threads) for args in parts],
             lambda i, message: relay.message(*message, part=i),
             (*INPUT_ERRORS, TrainingDiverged),
+            start=start,
         )
     except WorkerError as exc:
         if exc.kind is not None and issubclass(exc.kind, TrainingDiverged):

@@ -18,10 +18,12 @@ What produced the run (pipeline.core.provenance) goes to the --provenance file, 
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 import typer
 
 from pipeline.core.artifacts import ArtifactError, csv_text, write_text_atomic
@@ -33,7 +35,15 @@ from pipeline.core.seeding import select_device
 from pipeline.evaluation.episodes import EvalResult, eval_seeds, evaluate_policy
 from pipeline.params import ParamsError
 from pipeline.params.evaluate import EvaluateParams
-from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress, read_params, reports_errors
+from stages.common import (
+    PARAMS_OPTION,
+    PROVENANCE_OPTION,
+    fmt_vec,
+    progress,
+    read_params,
+    reports_errors,
+    run_parts,
+)
 
 META_KEYS = ("env_id", "obs_dim", "act_dim", "n_objectives", "action_low", "action_high", "seed", "method")
 
@@ -51,7 +61,8 @@ def evaluate(
     Every member: each starting policy (all of every specialist's policy set) and each child.
     Params: sections `env` (id, max_episode_steps) and `evaluate`. Each member runs
     `evaluate.episodes` deterministic episodes whose seeds differ from extraction's
-    (`evaluate.seed_stream`). Nothing is scored here: run `mapex score` on the outputs.
+    (`evaluate.seed_stream`). `evaluate.processes` > 1 deals the members to that many worker
+    processes side by side (the same results). Nothing is scored here: run `mapex score` on the outputs.
 
     Writes to OUT: evaluated.csv (one row per member: extraction-time and re-evaluated returns;
     a `dvc plots` scatter of obj0 vs obj1) and evaluation.json (what was run); with --provenance,
@@ -74,18 +85,39 @@ def evaluate(
             f"do not match env {env_p.id} {(spec.obs_dim, spec.act_dim, spec.n_objectives)}"
         )
 
-    results = []
+    processes = min(cfg.processes, len(members)) if device.type == "cpu" else 1
+    results: list[EvalResult | None] = [None] * len(members)
     with progress(len(members), f"evaluate {meta['method']} seed {seed}", unit="policy") as bar:
-        for i, member in enumerate(members):
-            res = evaluate_policy(
-                member_actor(member, meta).to(device),
-                envs,
-                eval_seeds(seed, cfg.seed_stream, i, cfg.episodes),
-                precision,
-            )
-            results.append(res)
-            bar.set_postfix_str(f"{member.origin} {i} return {fmt_vec(res.mean)}", refresh=False)
+
+        def done(part: int, result: tuple[int, EvalResult]) -> None:
+            i, res = result
+            results[i] = res
+            bar.set_postfix_str(f"{members[i].origin} {i} return {fmt_vec(res.mean)}", refresh=False)
             bar.update(1)
+
+        if processes == 1:
+            for i, member in enumerate(members):
+                res = evaluate_policy(
+                    member_actor(member, meta).to(device),
+                    envs,
+                    eval_seeds(seed, cfg.seed_stream, i, cfg.episodes),
+                    precision,
+                )
+                done(0, (i, res))
+        else:
+            for env in envs:  # each worker makes its own
+                env.close()
+            envs = []
+            # Members dealt round robin, so a part of long and short episodes (a hopper that falls)
+            # is as likely as the other. Forked on a CPU with one torch thread: the workers start
+            # with this process's imports (pipeline.core.workers says when a fork is safe).
+            start = "fork" if torch.get_num_threads() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
+            parts = [
+                ([(i, members[i]) for i in range(p, len(members), processes)], meta, env_p.id, env_p.max_episode_steps,
+                 seed, cfg.seed_stream, cfg.episodes, precision)
+                for p in range(processes)
+            ]  # fmt: skip
+            run_parts(_evaluate_part, parts, bar, lambda p: f"evaluate part {p}", on_result=done, start=start)
     for env in envs:
         env.close()
 
@@ -105,6 +137,34 @@ def evaluate(
     write_text_atomic(out / "evaluated.csv", evaluated_csv(members, results))
     write_text_atomic(out / "evaluation.json", json.dumps(record, indent=2) + "\n")
     write_provenance(provenance, "evaluate", device, precision)
+
+
+def _evaluate_part(
+    members: list[tuple[int, Member]],
+    meta: dict,
+    env_id: str,
+    max_episode_steps: int,
+    seed: int,
+    seed_stream: int,
+    episodes: int,
+    precision: str,
+    threads: int,
+    send,
+) -> None:
+    """A worker's share of the members (index, member): each evaluated exactly as the stage's own
+    loop does (the same envs' make, the same seeds, on the CPU), sent back as ("result", (index,
+    EvalResult))."""
+    torch.set_num_threads(threads)
+    envs = [make_env(env_id, max_episode_steps) for _ in range(episodes)]
+    try:
+        for i, member in members:
+            res = evaluate_policy(
+                member_actor(member, meta), envs, eval_seeds(seed, seed_stream, i, episodes), precision
+            )
+            send("result", (i, res))
+    finally:
+        for env in envs:
+            env.close()
 
 
 def _check_population(path: Path, members: list[Member], meta: dict, env_id: str, seed: int) -> None:

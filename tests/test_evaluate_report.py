@@ -264,6 +264,31 @@ def test_evaluate_is_deterministic_and_needs_no_reference_point(runs, tmp_path):
         assert (tmp_path / "again" / name).read_text() == (runs / "evaluate" / "mapex_td3" / "seed0" / name).read_text()
 
 
+@pytest.mark.parametrize("processes,start", [(2, "fork"), (3, "fork"), (2, "spawn")])
+def test_evaluate_in_worker_processes_writes_the_same_bytes(runs, tmp_path, monkeypatch, processes, start):
+    """evaluate.processes > 1 deals the members to worker processes (forked with one torch thread,
+    spawned where fork is not available): each member's episodes are the ones the stage's own loop
+    runs, so evaluated.csv and evaluation.json are byte for byte those of one process."""
+    import stages.evaluate as evaluate_stage
+
+    if start == "spawn":  # as on a platform without fork
+        monkeypatch.setattr(evaluate_stage.mp, "get_all_start_methods", lambda: ["spawn"])
+    used = []
+    real = evaluate_stage.run_parts
+    monkeypatch.setattr(
+        evaluate_stage, "run_parts", lambda *a, **k: used.append((len(a[1]), k["start"])) or real(*a, **k)
+    )
+    params = write_params(tmp_path, evaluate={"processes": processes})
+    population = runs / "extract" / "mapex_td3" / "seed0" / "population.pt"
+    code, out = invoke(
+        "evaluate", "--population", population, "--out", tmp_path / "out", "--seed", 0, "--params", params
+    )
+    assert code == 0, out
+    assert used == [(processes, start)]
+    for name in ("evaluated.csv", "evaluation.json"):
+        assert (tmp_path / "out" / name).read_bytes() == (runs / "evaluate" / "mapex_td3" / "seed0" / name).read_bytes()
+
+
 def _evaluate_fails(tmp_path: Path, population: Path, params: Path, seed: int = 0) -> str:
     out_dir = tmp_path / "out"
     code, out = invoke("evaluate", "--population", population, "--out", out_dir, "--seed", seed, "--params", params)

@@ -12,6 +12,7 @@ from support import reference_child
 
 from pipeline.core.envs import make_env
 from pipeline.core.nets import Actor, CriticEnsemble
+from pipeline.core.seeding import derive_seeds
 from pipeline.evaluation import episodes as ex_eval
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.extraction import children as children_mod
@@ -287,6 +288,52 @@ def test_schedules_host_rows_are_make_childs_draws_and_device_rows_are_permutati
     rng = np.random.default_rng(9)
     host = children_mod.warmup_schedule(500, 3, 64, np.random.default_rng(9))
     np.testing.assert_array_equal(host.numpy(), np.stack([rng.integers(0, 500, size=64) for _ in range(3)]))
+
+
+def test_stacked_schedule_is_each_childs_own_with_a_bool_mask():
+    """stack_schedules keeps every child's rows and real-row mask (as bool, a quarter of float's
+    memory), padding past each one's steps and batch; step_slice gives a step's int64 rows and
+    float mask."""
+    a, ma = children_mod.epoch_schedule(150, 2, 64, np.random.default_rng(5))  # 6 steps of 64 (22 real last)
+    b, mb = children_mod.epoch_schedule(70, 1, 32, np.random.default_rng(6))  # 3 steps of 32 (6 real last)
+    rows, mask = children_mod.stack_schedules([a, b], [ma, mb])
+    assert rows.dtype == torch.int32 and mask.dtype == torch.bool and rows.shape == mask.shape == (6, 2, 64)
+    for t in range(6):
+        idx, real = children_mod.step_slice(rows, mask, t)
+        assert idx.dtype == torch.int64 and real.dtype == torch.float32
+        assert torch.equal(idx[0], a[t]) and torch.equal(real[0], ma[t])
+        if t < 3:
+            assert torch.equal(idx[1, :32], b[t]) and torch.equal(real[1, :32], mb[t])
+        assert not real[1, 32:].any() and (t < 3 or not real[1].any())
+
+
+def test_gather_rows_is_torch_gather_bit_for_bit():
+    """The step reads rows by one index_select over the flattened (K * N) rows: the same values
+    as torch.gather along each child's own rows, in every dtype the stacked path gathers."""
+    torch.manual_seed(0)
+    idx = torch.randint(0, 40, (5, 9))
+    for x in (torch.randn(5, 40, 7), torch.randn(5, 40, 2).bfloat16(), torch.randint(0, 3, (5, 40, 1))):
+        expected = torch.gather(x, 1, idx.unsqueeze(-1).expand(-1, -1, x.shape[-1]))
+        got = children_mod.gather_rows(x, idx)
+        assert got.dtype == x.dtype and torch.equal(got, expected)
+    flat = torch.randn(5, 40)
+    assert torch.equal(children_mod.gather_rows(flat, idx), torch.gather(flat, 1, idx))
+
+
+@pytest.mark.parametrize("k", [8, 16])
+def test_wide_stacks_train_each_child_as_it_would_train_alone(k, one_thread):
+    """K = 8 and 16 children in one stack (gradient clipping on, uneven hybrid buffers): every
+    child equals the reference `make_child` with its seeds up to the float rounding of the
+    batched matmuls, so a wider stack changes no child's algorithm."""
+    buffers, critics, actors = fixture_inputs()
+    cfg = uneven_config("range")
+    seeds = [ex.ChildSeeds(*derive_seeds(3, c, n=3)) for c in range(k)]
+    together = children_mod.make_children(RETURNS, actors, buffers, critics, cfg, seeds, "cpu")
+    assert len(together) == k
+    for (child, rec), s in zip(together, seeds):
+        ref, ref_rec = ex.make_child(RETURNS, actors, buffers, critics, cfg, s, "cpu")
+        assert rec.parents == ref_rec.parents and rec.counts.tolist() == ref_rec.counts.tolist()
+        assert max_abs_diff(child, ref) < 1e-5
 
 
 def test_device_rows_and_gather_paths_run_on_cpu_reproducibly():

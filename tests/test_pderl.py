@@ -488,7 +488,9 @@ def test_side_by_side_processes_give_the_same_artifacts(tmp_path, stage, monkeyp
     parts = []
     real = stage_module.run_side_by_side
     monkeypatch.setattr(
-        stage_module, "run_side_by_side", lambda fn, args, *a: (parts.append([x[1] for x in args]), real(fn, args, *a))
+        stage_module,
+        "run_side_by_side",
+        lambda fn, args, *a, **k: (parts.append([x[1] for x in args]), real(fn, args, *a, **k)),
     )
     two = stage(tmp_path / "two", {"train_pderl": PDERL | {"processes": 2}}, objective=[0, 1])
     assert two.exit_code == 0, two.output

@@ -210,3 +210,46 @@ def test_oversubscription_is_named():
     assert oversubscribed(cores, 1) is None
     warning = oversubscribed(cores, 2)
     assert warning is not None and f"{cores} processes x 2 torch threads on {cores} cores" in warning
+
+
+# ---------------------------------------------------------------- start="fork"
+
+INHERITED = {"value": "set before the fork"}  # a forked worker sees this module's state as it was
+
+
+def inherited_part(key: str, *, send) -> None:
+    send(INHERITED[key], os.getpid())
+
+
+def sigterm_disposition_part(*, send) -> None:
+    send(signal.getsignal(signal.SIGTERM) == signal.SIG_DFL, stop_requested())
+
+
+def test_forked_parts_inherit_the_parent_and_relay_in_order(monkeypatch):
+    """start="fork": the workers are copies of this process (a value set after import is seen,
+    which a spawned worker would not see), and messages arrive as from spawned ones."""
+    monkeypatch.setitem(INHERITED, "value", "changed after import")
+    got: dict[int, list] = {0: [], 1: []}
+    run_side_by_side(inherited_part, [("value",), ("value",)], lambda i, m: got[i].append(m), start="fork")
+    assert [m[0] for m in got[0] + got[1]] == ["changed after import"] * 2
+    assert len({m[1] for m in got[0] + got[1]} | {os.getpid()}) == 3  # two other processes
+    got = {0: [], 1: []}
+    run_side_by_side(count_part, [("a", 50), ("b", 30)], lambda i, m: got[i].append(m), start="fork")
+    assert got[0] == [("a", i) for i in range(50)] and got[1] == [("b", i) for i in range(30)]
+
+
+def test_a_forked_worker_leaves_the_parents_deferred_sigterm():
+    """Forked inside run_side_by_side's sigterm_deferred block, a worker starts with SIGTERM's
+    default action and no block active, as a spawned one does (so a SIGTERM passed on stops a
+    worker that has no safe points of its own)."""
+    got: list = []
+    run_side_by_side(sigterm_disposition_part, [()], lambda i, m: got.append(m), start="fork")
+    assert got == [(True, False)]
+
+
+def test_a_failing_forked_part_is_reported_and_an_unknown_start_refused():
+    with pytest.raises(WorkerError, match="objective 7 is out of range") as info:
+        run_side_by_side(failing_part, [(0.0,)], start="fork")
+    assert info.value.part == 0
+    with pytest.raises(ValueError, match="start='forkserver': expected one of"):
+        run_side_by_side(count_part, [("a", 1)], start="forkserver")

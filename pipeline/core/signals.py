@@ -59,6 +59,16 @@ def sigterm_deferred() -> Iterator[None]:
             _received.clear()
 
 
+def reset_in_forked_child() -> None:
+    """In a process forked from inside a `sigterm_deferred()` block: SIGTERM back to its default
+    action and no block active, as in a freshly started process (a block the child opens then
+    installs the handler again)."""
+    global _depth
+    _depth = 0
+    _received.clear()
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
 def stop_requested() -> bool:
     """Whether a SIGTERM arrived inside the active `sigterm_deferred()` block."""
     return bool(_received)

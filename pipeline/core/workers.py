@@ -6,7 +6,8 @@ of one job each beat one process that does both (PyTorch's per-op overhead, not 
 bounds a small update, and a second thread does not halve that overhead, a second process
 does).
 
-`run_side_by_side(fn, parts, on_message)` starts one spawned process per part, calls
+`run_side_by_side(fn, parts, on_message)` starts one process per part (spawned; or forked,
+`start="fork"`, where the caller knows that safe), calls
 `fn(*part, send=send)` in it, relays what the part `send`s to `on_message` in this process,
 and returns when every part has finished. The first part that fails stops the others and
 raises `WorkerError` here. A worker whose parent has gone (the stage was killed) is killed by
@@ -31,7 +32,9 @@ import time
 import traceback
 from typing import Any, Callable, Sequence
 
-from pipeline.core.signals import Stopped, sigterm_deferred, stop_requested
+from pipeline.core.signals import Stopped, reset_in_forked_child, sigterm_deferred, stop_requested
+
+START_METHODS = ("spawn", "fork")
 
 
 def split_evenly(items: Sequence[Any], n: int) -> list[list[Any]]:
@@ -91,7 +94,11 @@ def _die_with_parent(parent: int) -> None:
         os._exit(1)
 
 
-def _entry(fn: Callable[..., Any], index: int, args: tuple, channel, parent: int, expected: tuple[type, ...]) -> None:
+def _entry(
+    fn: Callable[..., Any], index: int, args: tuple, channel, parent: int, expected: tuple[type, ...], forked: bool
+) -> None:
+    if forked:  # started inside the parent's sigterm_deferred block: leave it, as a spawned worker starts
+        reset_in_forked_child()
     _die_with_parent(parent)
 
     def send(*message: Any) -> None:
@@ -123,20 +130,31 @@ def run_side_by_side(
     on_message: Callable[[int, tuple], None] | None = None,
     expected: tuple[type, ...] = (),
     poll_s: float = 0.2,
+    start: str = "spawn",
 ) -> None:
     """Run fn(*parts[i], send=...) for every i, each in its own spawned process, at once.
 
-    fn must be importable (a module-level function) and its arguments picklable. What a part
+    fn must be importable (a module-level function) and its arguments picklable. start="fork"
+    forks the workers instead: no interpreter start-up and no imports (about 2 s of a core per
+    worker for torch and MuJoCo, which a few seconds of work cannot pay back), the arguments
+    inherited, not pickled; only for a caller whose process holds no CUDA state and no OpenMP
+    thread pool (one torch thread), which a fork would copy broken. What a part
     passes to `send(*message)` reaches `on_message(i, message)` here, in order per part.
     Raises WorkerError for the first part that fails (the others are killed first); for an
     exception of a type in `expected` (bad input, say) without the worker's traceback. A
     SIGTERM here is sent on to each running worker; Stopped (its lines those of the parts
     that stopped) once all have ended.
     """
-    ctx = mp.get_context("spawn")  # not fork: the parent may hold OpenMP or CUDA state
+    if start not in START_METHODS:
+        raise ValueError(f"start={start!r}: expected one of {list(START_METHODS)}")
+    # spawn by default, not fork: the parent may hold OpenMP or CUDA state
+    ctx = mp.get_context(start)
     channel = ctx.Queue()
+    forked = start == "fork"
     procs = [
-        ctx.Process(target=_entry, args=(fn, i, tuple(args), channel, os.getpid(), tuple(expected)), daemon=True)
+        ctx.Process(
+            target=_entry, args=(fn, i, tuple(args), channel, os.getpid(), tuple(expected), forked), daemon=True
+        )
         for i, args in enumerate(parts)
     ]
     done: set[int] = set()

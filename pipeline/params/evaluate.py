@@ -23,6 +23,15 @@ class EvaluateParams(Strict):
     device: Literal["auto", "cpu", "cuda"] = Field(
         "cpu", description="where the actors run; small MLPs stepped one env step at a time are fastest on cpu"
     )
+    processes: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="worker processes the members are dealt to (round robin), side by side, each with "
+        "MAPEX_TORCH_THREADS threads; on a CPU with one torch thread they are forked (no imports to pay). A member's "
+        "episodes are the same whatever the count, so this changes no artifact; on CUDA the members run in the "
+        "stage's own process",
+    )
     precision: PrecisionChoice = precision_field(
         "the actors' forward passes in the episodes (the project's own MLPs; imported TorchScript or torch.export "
         "policies run in fp32)",
