@@ -29,9 +29,13 @@ PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
 NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
 # Bring your own specialists: every objective imported, and one imported with the other trained here
 IMPORTED = [ROOT / "presets" / "imported.yaml", ROOT / "presets" / "mixed.yaml"]
+# The studies of docs/results.md: sweep grids over the presets (not params files)
+STUDIES = sorted((ROOT / "presets" / "studies").glob("*.yaml"))
 # Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
 ALL_PARAMS = [ROOT / "params.yaml"] + [
-    p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "reference_points.yaml"
+    p
+    for p in sorted((ROOT / "presets").rglob("*.yaml"))
+    if p.name != "reference_points.yaml" and p.parent.name != "studies"
 ]
 
 
@@ -111,7 +115,7 @@ def test_three_objective_presets():
     """A paper-scale and a quickstart-scale preset for each 3-objective env, all three objectives,
     the reference point of presets/reference_points.yaml, and extraction values set explicitly
     (the paper has none for these envs); the paper-scale ones carry the paper's budgets. The facets
-    preset (benchmarks/facets.sh) has the facet rule on, which the script turns off for "before"."""
+    preset has the facet rule on, and its variant mapex_td3_every_facet turns it off ("before")."""
     refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
     assert {p.stem for p in NOBJ} == {
         "mo-hopper-v5",
@@ -131,6 +135,9 @@ def test_three_objective_presets():
         assert td3.secondary_critics
         if path.stem.endswith("-facets"):
             assert raw["extract"]["facet_bridge_ratio"] is not None and ts.total_steps >= 600_000
+            # "before" runs on the same specialists without the rule, paired against "after"
+            assert raw["variants"]["mapex_td3_every_facet"]["extract"] == {"facet_bridge_ratio": None}
+            assert ["mapex_td3", "mapex_td3_every_facet"] in raw["report"]["pairs"]
         elif not path.stem.endswith("-quick"):
             assert ts == TrainSpecialistParams(total_steps=2_000_000)
             assert td3 == TD3Params()
@@ -206,3 +213,27 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
             f"{stage}@{s}-{m}" for s in raw["seeds"] for m in raw["methods"]
         }
     assert "report" in items
+
+
+@pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.stem)
+def test_study_grid_plans_its_cells(path):
+    """Each study grid names its command in its header and expands, at the repository's HEAD (what
+    `mapex sweep` runs), into cells whose params validate with the stages' models; every method a
+    cell lists is reported, and every pair the report compares is of methods the cell runs."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    header = path.read_text().split("\n", 1)[0]
+    assert header.startswith("# Study (docs/results.md"), f"{path}: the first line names the results section"
+    assert f"mapex sweep presets/studies/{path.name} --remote DIR" in path.read_text(), path
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+    cells = plan_cells(load_grid(path), path, ROOT, head.stdout.strip())
+    assert cells, path
+    for cell in cells:
+        methods = cell.params["methods"]
+        for pair in (cell.params.get("report") or {}).get("pairs") or []:
+            assert set(pair) <= set(methods), f"{path}: cell {cell.name} pairs {pair}, not all in {methods}"
+
+
+def test_the_studies_of_the_results_have_grids():
+    """docs/results.md's studies each have a grid (the harness that ran them is gone)."""
+    assert {p.stem for p in STUDIES} >= {"answer64", "answer256", "hopper64", "facets", "payoff", "mixed"}
