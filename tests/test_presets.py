@@ -13,7 +13,8 @@ import yaml
 
 from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
-from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
+from pipeline.params.env_facts import paper_extract, paper_extract_envs, reference_points
+from pipeline.params.extract import ExtractParams
 from pipeline.params.registry import section_models
 from pipeline.params.sync import generated_text, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
@@ -31,11 +32,9 @@ NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
 IMPORTED = [ROOT / "presets" / "imported.yaml", ROOT / "presets" / "mixed.yaml"]
 # The studies of docs/results.md: sweep grids over the presets (not params files)
 STUDIES = sorted((ROOT / "presets" / "studies").glob("*.yaml"))
-# Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
+# Every params file shipped: params.yaml and every preset (envs.yaml is the per-env facts, not one)
 ALL_PARAMS = [ROOT / "params.yaml"] + [
-    p
-    for p in sorted((ROOT / "presets").rglob("*.yaml"))
-    if p.name != "reference_points.yaml" and p.parent.name != "studies"
+    p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "envs.yaml" and p.parent.name != "studies"
 ]
 
 
@@ -69,12 +68,12 @@ def test_every_known_section_has_a_model():
 
 
 def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
-    assert {p.stem for p in PRESETS} == set(PAPER_ENV_SETTINGS)
+    assert {p.stem for p in PRESETS} == set(paper_extract_envs())
     for path in PRESETS:
         raw = load_params(path)
         env = section(raw, "env", EnvParams, path)
         ex = section(raw, "extract", ExtractParams, path).resolved(env.id)
-        assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS[env.id]
+        assert (ex.epochs, ex.beta, ex.omega_max) == paper_extract(env.id)
         assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
         assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
@@ -113,10 +112,10 @@ def test_presets_set_pderls_rl_sync_period_of_their_env():
 
 def test_three_objective_presets():
     """A paper-scale and a quickstart-scale preset for each 3-objective env, all three objectives,
-    the reference point of presets/reference_points.yaml, and extraction values set explicitly
+    the reference point of presets/envs.yaml, and extraction values set explicitly
     (the paper has none for these envs); the paper-scale ones carry the paper's budgets. The facets
     preset has the facet rule on, and its variant mapex_td3_every_facet turns it off ("before")."""
-    refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
+    refs = reference_points()
     assert {p.stem for p in NOBJ} == {
         "mo-hopper-v5",
         "mo-hopper-v5-quick",
@@ -184,7 +183,7 @@ def test_payoff_preset_is_the_issue_settings():
     assert ts.total_steps >= 300_000 and td3.hidden_sizes == [256, 256] and td3.secondary_critics
     assert len(raw["seeds"]) >= 2
     ex = section(raw, "extract", ExtractParams, PAYOFF).resolved("mo-halfcheetah-v5")
-    assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS["mo-halfcheetah-v5"]
+    assert (ex.epochs, ex.beta, ex.omega_max) == paper_extract("mo-halfcheetah-v5")
     assert ex.iterations * ex.children_per_iteration >= 12 and ex.children_per_iteration == 1
     assert (ex.child_buffer_size, ex.hidden_sizes) == (200_000, [256, 256])
 

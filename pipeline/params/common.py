@@ -38,7 +38,7 @@ class EnvParams(Strict):
     reference_point: list[float] | None = Field(
         None,
         description="hypervolume reference point, one value per objective, worse than any policy scores; "
-        "null: the env's entry in presets/reference_points.yaml (read by stage score)",
+        "null: the env's entry in presets/envs.yaml, reference_point (read by stage score)",
     )
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
