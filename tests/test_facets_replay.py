@@ -3,27 +3,33 @@ read from a method's fronts folder (data/fronts/<method>/seedS/population.pt).""
 
 from __future__ import annotations
 
-import os
-import subprocess
+import runpy
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "facets_replay.py"
 
 
-def replay(fronts: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, str(ROOT / "benchmarks" / "facets_replay.py"), str(fronts)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
+def replay(fronts: Path, capsys, monkeypatch) -> str:
+    """Run the script in this process (no interpreter start-up) on FRONTS; its standard output."""
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), str(fronts)])
+    runpy.run_path(str(SCRIPT), run_name="__main__")
+    return capsys.readouterr().out
 
 
-def test_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
+def refusal(fronts: Path, monkeypatch) -> str:
+    """The one line the script exits with on FRONTS."""
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), str(fronts)])
+    with pytest.raises(SystemExit) as exc:
+        runpy.run_path(str(SCRIPT), run_name="__main__")
+    return str(exc.value.code)
+
+
+def test_replay_tells_whether_the_rule_changed_a_draw(tmp_path, capsys, monkeypatch):
     """A thin curved front (issue 31's arc) changes the gaps at ratio 3; a triangle of three of its
     points does not."""
     t = np.linspace(0, np.pi / 2, 12)
@@ -36,9 +42,8 @@ def test_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
     fronts = tmp_path / "data" / "fronts" / "mapex_td3"
     (fronts / "seed0").mkdir(parents=True)
     torch.save({"meta": {"n_objectives": 3}, "members": members}, fronts / "seed0" / "population.pt")
-    r = replay(fronts)
-    assert r.returncode == 0, r.stderr
-    rows = [line.split("|")[1:-1] for line in r.stdout.splitlines() if line.startswith("| 0 ")]
+    out = replay(fronts, capsys, monkeypatch)
+    rows = [line.split("|")[1:-1] for line in out.splitlines() if line.startswith("| 0 ")]
     rows = [[c.strip() for c in row] for row in rows]
     # iteration 1 draws from one triangle (unchanged by the rule); iteration 2 from the whole
     # arc, whose 10 facets the rule replaces by 3 facets and 7 steps (tests/test_gaps.py)
@@ -47,14 +52,12 @@ def test_replay_tells_whether_the_rule_changed_a_draw(tmp_path):
     assert float(rows[1][7]) < 3.0
 
 
-def test_replay_refuses_two_objectives_naming_the_file(tmp_path):
+def test_replay_refuses_two_objectives_naming_the_file(tmp_path, monkeypatch):
     f = tmp_path / "seed0" / "population.pt"
     f.parent.mkdir(parents=True)
     torch.save({"meta": {"n_objectives": 2}, "members": [{"iteration": 1, "returns": [0.0, 0.0]}]}, f)
-    r = replay(tmp_path)
-    assert r.returncode != 0 and f"{f}: 2 objectives; the facet rule is for 3 or more" in r.stderr
+    assert refusal(tmp_path, monkeypatch) == f"{f}: 2 objectives; the facet rule is for 3 or more"
 
 
-def test_replay_names_a_folder_without_fronts(tmp_path):
-    r = replay(tmp_path)
-    assert r.returncode != 0 and f"{tmp_path}: no seedS/population.pt" in r.stderr
+def test_replay_names_a_folder_without_fronts(tmp_path, monkeypatch):
+    assert refusal(tmp_path, monkeypatch).startswith(f"{tmp_path}: no seedS/population.pt")
