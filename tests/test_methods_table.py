@@ -1,7 +1,7 @@
 """Every method of the table (pipeline/params/methods.py: METHODS) is wired into each of the six
 places docs/developing.md ("Adding a method") lists: (1) its algorithm's module, imported by its
 stage; (2) params models for the sections its stage reads, each in SECTION_MODELS; (3) its row,
-with a label and colour of its own, and a run list of derived_lists, a field of RunParams, that
+with a label and colour of its own, and a run list of derived_lists, declared in RUN_LISTS, that
 gives its stage an item; (4) a stage module that `mapex` finds as a subcommand; (5) a dvc.yaml
 stage writing its front; (6) its sections in params.yaml, a test and docs/manual.md naming it.
 A new row that misses one fails here, naming the method and the place; a test below checks that
@@ -16,7 +16,7 @@ import yaml
 
 from pipeline.core.codedeps import ROOT, stage_module
 from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
-from pipeline.params.methods import JOINT_VARIANTS, METHODS, TRAINED_KINDS, derived_lists, method_name
+from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, derived_lists, method_name
 from pipeline.params.registry import section_models
 from stages.cli import COMMANDS
 
@@ -67,8 +67,9 @@ def test_a_method_is_wired_into_every_place(name):
         assert s in SECTION_MODELS, f"{name}: section {s!r} (stage {m.stage}) has no line in SECTION_MODELS"
         module = SECTION_MODELS[s].split(":")[0]
         assert (ROOT / "pipeline" / "params" / f"{module}.py").is_file(), f"{name}: no pipeline/params/{module}.py"
-    # place 3: the run lists its stage fans out over are fields of RunParams (params.gen.yaml's lists)
+    # place 3: the run lists its stage fans out over are in RUN_LISTS, so fields of RunParams
     for key in matrix:
+        assert key in RUN_LISTS, f"{name}: run list {key!r} (stage {m.stage}) has no entry in RUN_LISTS"
         assert key in RunParams.model_fields, f"{name}: run list {key!r} (stage {m.stage}) is not a RunParams field"
     # place 1: the stage imports an algorithm module of pipeline/ beyond params and core
     closure = stage_closure(m.stage)
@@ -92,3 +93,8 @@ def test_developing_md_lists_six_places_to_add_a_method():
     section = doc[doc.index("## Adding a method") : doc.index("## Adding a variant")]
     steps = re.findall(r"^(\d+)\. ", section, flags=re.M)
     assert steps == [str(i) for i in range(1, len(steps) + 1)] and len(steps) <= 6, steps
+
+
+def test_every_run_list_of_derived_lists_is_declared_once():
+    """derived_lists computes exactly the lists RUN_LISTS declares (RunParams' derived fields)."""
+    assert list(derived_lists(["mapex_td3", "warmup_only_td3"], [0])) == list(RUN_LISTS)
