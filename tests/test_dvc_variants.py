@@ -90,3 +90,24 @@ def test_variants_run_side_by_side_and_rerun_alone(tmp_path_factory):
     edited = merge(params, {"extract": {"lr": 0.001}})
     save_params(root / "params.yaml", edited)
     assert stale_stages(root) == {"extract", "extract_variant"}  # not warmup_only: it does not read lr
+
+    # a per-env fact (presets/envs.yaml holds one mapping per fact): only the stages that read it
+    # (here, where a reproduced repository is at hand; TINY sets env.reference_point, so the score's
+    # numbers would not change, but DVC tracks the fact the stage may read)
+    save_params(root / "params.yaml", params)
+    facts = root / "presets" / "envs.yaml"
+    text = facts.read_text()
+    for old, new, stale in (
+        ("  mo-halfcheetah-v5: [-100.0, -4500.0]", "  mo-halfcheetah-v5: [-101.0, -4500.0]", {"score"}),
+        (
+            "  mo-halfcheetah-v5: [x velocity, energy efficiency]",
+            "  mo-halfcheetah-v5: [speed, energy]",
+            {"report", "render"},
+        ),
+        ("  mo-halfcheetah-v5: {epochs: 20,", "  mo-halfcheetah-v5: {epochs: 21,", {"extract", "extract_variant"}),
+    ):
+        assert old in text
+        facts.write_text(text.replace(old, new))
+        assert stale_stages(root) == stale, old
+    facts.write_text(text)
+    assert stale_stages(root) == set()
