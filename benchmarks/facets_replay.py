@@ -1,14 +1,16 @@
 """Did the facet rule change any draw? Replays the gaps a MAPEX run's roulette drew from, with and without
-`extract.facet_bridge_ratio`, at every iteration of benchmarks/facets.sh's runs (N >= 3 objectives).
+`extract.facet_bridge_ratio`, at every iteration of a run's fronts (N >= 3 objectives).
 
-    python benchmarks/facets_replay.py WORKDIR [--label after] [--ratio 3.0] > WORKDIR/replay.md
+    python benchmarks/facets_replay.py FRONTS [--ratio 3.0] > replay.md
 
-For each seed's WORKDIR/fronts/LABEL/seedS/population.pt and each iteration i, the population the
-parents of iteration i were drawn from is every member made before it (iteration < i), with the
-returns measured during extraction (what the roulette saw). Prints, per iteration, the number of gaps
-without the rule (every facet of the front mesh), with it at --ratio, whether the two sets differ, and
-the largest ratio on a 0.1 grid below --ratio at which the rule would first have changed the set
-("-" if none down to 1.0). Reads only; writes nothing.
+FRONTS is a method's fronts folder holding seedS/population.pt, e.g. data/fronts/mapex_td3 of a
+`dvc repro` of presets/nobj/mo-hopper-v5-facets.yaml, or sweeps/facets/hopper3/data/fronts/mapex_td3
+of `mapex sweep presets/studies/facets.yaml`. For each seed's population and each iteration i, the
+population the parents of iteration i were drawn from is every member made before it (iteration < i),
+with the returns measured during extraction (what the roulette saw). Prints, per iteration, the number
+of gaps without the rule (every facet of the front mesh), with it at --ratio, whether the two sets
+differ, and the largest ratio on a 0.1 grid below --ratio at which the rule would first have changed
+the set ("-" if none down to 1.0). Reads only; writes nothing.
 """
 
 from __future__ import annotations
@@ -34,14 +36,13 @@ def first_changing_ratio(returns: np.ndarray, below: float, every: list[tuple[in
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("workdir", type=Path)
-    ap.add_argument("--label", default="after", help="the run under WORKDIR/fronts to replay (default: after)")
+    ap.add_argument("fronts", type=Path, help="a method's fronts folder, holding seedS/population.pt")
     ap.add_argument("--ratio", type=float, default=3.0, help="the facet_bridge_ratio to compare with none")
     a = ap.parse_args()
-    runs = sorted((a.workdir / "fronts" / a.label).glob("seed*/population.pt"))
+    runs = sorted(a.fronts.glob("seed*/population.pt"))
     if not runs:
-        raise SystemExit(f"{a.workdir}/fronts/{a.label}: no seedS/population.pt (run benchmarks/facets.sh first)")
-    print(f"Gaps the roulette drew from, every facet vs facet_bridge_ratio {a.ratio} ({a.workdir.name}, {a.label})\n")
+        raise SystemExit(f"{a.fronts}: no seedS/population.pt (a method's fronts folder, e.g. data/fronts/mapex_td3)")
+    print(f"Gaps the roulette drew from, every facet vs facet_bridge_ratio {a.ratio} ({a.fronts})\n")
     print(
         "| seed | iteration | population | mesh points | gaps, every facet | gaps, rule | differ | rule first changes them at ratio |"
     )

@@ -92,7 +92,7 @@ def mapex(work: Path, label: str, *args: str) -> None:
     with open(work / "log.txt", "a") as log:
         log.write(f"\n$ mapex {' '.join(args)}\n")
         log.flush()
-        # in the repository (score reads presets/reference_points.yaml); every path given is absolute
+        # in the repository (score reads presets/envs.yaml); every path given is absolute
         proc = subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=ROOT, env=env, stdout=log, stderr=log)
     if proc.returncode:
         raise SystemExit(f"mapex {args[0]} failed (exit {proc.returncode}); see {work / 'log.txt'}")

@@ -15,8 +15,8 @@ here=$(cd "$(dirname "$0")/.." && pwd)
 ref=${1:-HEAD}
 work=${2:-$(mktemp -d /tmp/tiny-repro.XXXXXX)}
 rm -rf "$work" && mkdir -p "$work"
-# presets/reference_points.yaml: the score stage's table (a DVC dep), where REF has it
-table=$(git -C "$here" ls-tree --name-only "$ref" presets/reference_points.yaml)
+# the per-env facts the stages read (a DVC dep): presets/envs.yaml, or before it presets/reference_points.yaml
+table=$(git -C "$here" ls-tree --name-only "$ref" presets/envs.yaml presets/reference_points.yaml)
 git -C "$here" archive "$ref" pipeline stages dvc.yaml $table | tar -x -C "$work"
 python - "$work/params.yaml" "$work/pipeline/params/td3.py" <<PY
 import os, sys, yaml

@@ -5,32 +5,23 @@ from __future__ import annotations
 import importlib
 import os
 import sys
+from pathlib import Path
 
 import torch
 import typer
 
 # Subcommand -> the stages module that defines it (function of the same name, dashes as
-# underscores), in --help order. A stage run (`mapex score ...`, as dvc.yaml calls it) imports
+# underscores): every module of stages/ but these, found by name, so a new stage module is a new
+# subcommand with no line here. A stage run (`mapex score ...`, as dvc.yaml calls it) imports
 # only its own module: importing all of them (matplotlib, zarr, ...) cost about 0.3 s more per
 # stage process (`mapex score --help`: 2.0 s vs 1.7 s), about 10 s over the quickstart's 28 stages.
+NOT_COMMANDS = ("__init__", "cli", "common")
+# --help lists the pipeline's stages in the order they run, then the rest alphabetically.
+ORDER = ("train_specialist", "train_pderl", "import_specialist", "fit_critics", "critic_fidelity", "extract")
+_modules = sorted(p.stem for p in Path(__file__).parent.glob("*.py") if p.stem not in NOT_COMMANDS)
 COMMANDS = {
-    "train-specialist": "stages.train_specialist",
-    "train-pderl": "stages.train_pderl",
-    "import-specialist": "stages.import_specialist",
-    "fit-critics": "stages.fit_critics",
-    "critic-fidelity": "stages.critic_fidelity",
-    "extract": "stages.extract",
-    "evaluate": "stages.evaluate",
-    "score": "stages.score",
-    "report": "stages.report",
-    "export": "stages.export",
-    "render": "stages.render",
-    "mopderl": "stages.mopderl",
-    "morld": "stages.morld",
-    "interpolate": "stages.interpolate",
-    "sweep": "stages.sweep",
-    "grid-report": "stages.grid_report",
-    "sync-params": "stages.sync_params",
+    m.replace("_", "-"): f"stages.{m}"
+    for m in sorted(_modules, key=lambda m: (ORDER.index(m) if m in ORDER else len(ORDER), m))
 }
 
 app = typer.Typer(

@@ -48,7 +48,7 @@ def score(
     evaluated: Path = typer.Option(..., help="the evaluate stage's output directory (evaluated.csv, evaluation.json)"),
     out: Path = typer.Option(..., help="output directory (front.csv, metrics.json, hypervolume.csv)"),
     reference_points: Path = typer.Option(
-        TABLE, help="the table of reference points per env, read when env.reference_point is null"
+        TABLE, help="the per-env facts file whose `reference_point` is read when env.reference_point is null"
     ),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
@@ -57,7 +57,7 @@ def score(
 
     Params: env.reference_point and section `score` (distinct_tol, utility_weights). Where
     env.reference_point is null (the default), the point is the population's env's entry in
-    REFERENCE_POINTS (presets/reference_points.yaml); an env without one is a one-line error.
+    REFERENCE_POINTS (presets/envs.yaml, `reference_point`); an env without one is a one-line error.
     metrics.json records the point and where it came from (reference_point_source). Reads
     POPULATION (members' origin, iteration, extraction-time returns, env samples) and the
     evaluate stage's EVALUATED/evaluated.csv and evaluation.json, which must describe that

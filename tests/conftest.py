@@ -115,7 +115,6 @@ SLOWEST_FILES = (
     "test_train_specialist.py",
     "test_extract_stage.py",
     "test_extract_policy_sets.py",
-    "test_payoff_scripts.py",
     "test_extract_inputs.py",
     # the slowest of the fast tier (`make test-fast`, about 10 to 25 s each on one core)
     "test_presets.py",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 from support.dvc_repo import BIN, make_repo, ran, run
 from support.tiny_params import TINY_CHAIN, merge, save_params, with_lists
 from test_dvc_methods import stale_stages
@@ -50,6 +51,20 @@ def test_variants_run_side_by_side_and_rerun_alone(tmp_path_factory):
     gentle = json.loads((root / "data" / "score" / "mapex_td3_gentle" / "seed0" / "metrics.json").read_text())
     plain = json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())
     assert gentle["specialists"] == plain["specialists"]
+    # each front records the extract values it ran with: the variant's overrides, the file's for the method
+    # (moved from the payoff harness's test: the two forms differ in their AWR phase only)
+    recorded = {
+        m: torch.load(root / "data" / "fronts" / m / "seed0" / "population.pt", weights_only=False)["meta"]["params"]
+        for m in ("mapex_td3", "mapex_td3_gentle")
+    }
+    assert (recorded["mapex_td3_gentle"]["extract"]["epochs"], recorded["mapex_td3_gentle"]["extract"]["beta"]) == (
+        2,
+        5.0,
+    )
+    assert recorded["mapex_td3"]["extract"]["epochs"] == params["extract"]["epochs"]
+    assert {k: v for k, v in recorded["mapex_td3_gentle"]["extract"].items() if k not in ("epochs", "beta")} == {
+        k: v for k, v in recorded["mapex_td3"]["extract"].items() if k not in ("epochs", "beta")
+    }
     report = (root / "data" / "report" / "report.md").read_text()
     assert "| gentle MAPEX-TD3 |" in report and "| MAPEX-TD3 |" in report
     assert any(
@@ -75,3 +90,24 @@ def test_variants_run_side_by_side_and_rerun_alone(tmp_path_factory):
     edited = merge(params, {"extract": {"lr": 0.001}})
     save_params(root / "params.yaml", edited)
     assert stale_stages(root) == {"extract", "extract_variant"}  # not warmup_only: it does not read lr
+
+    # a per-env fact (presets/envs.yaml holds one mapping per fact): only the stages that read it
+    # (here, where a reproduced repository is at hand; TINY sets env.reference_point, so the score's
+    # numbers would not change, but DVC tracks the fact the stage may read)
+    save_params(root / "params.yaml", params)
+    facts = root / "presets" / "envs.yaml"
+    text = facts.read_text()
+    for old, new, stale in (
+        ("  mo-halfcheetah-v5: [-100.0, -4500.0]", "  mo-halfcheetah-v5: [-101.0, -4500.0]", {"score"}),
+        (
+            "  mo-halfcheetah-v5: [x velocity, energy efficiency]",
+            "  mo-halfcheetah-v5: [speed, energy]",
+            {"report", "render"},
+        ),
+        ("  mo-halfcheetah-v5: {epochs: 20,", "  mo-halfcheetah-v5: {epochs: 21,", {"extract", "extract_variant"}),
+    ):
+        assert old in text
+        facts.write_text(text.replace(old, new))
+        assert stale_stages(root) == stale, old
+    facts.write_text(text)
+    assert stale_stages(root) == set()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -127,3 +129,76 @@ def test_mujocos_settotalmass_deprecation_is_dropped_and_other_warnings_are_not(
     err = capfd.readouterr().err
     assert "settotalmass" not in err
     assert "WARNING: Nan, Inf or huge value in QPOS" in err
+
+
+# Per-env facts: one data file (presets/envs.yaml, pipeline/params/env_facts.py) that every reader reads
+
+
+def test_per_env_facts_live_in_one_file_and_nowhere_in_the_code():
+    """No module of pipeline/ or stages/ holds an env id as a value of its own (a table keyed by
+    env ids, say): the per-env facts are in presets/envs.yaml alone. The one env id allowed is the
+    default of env.id."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env_id = re.compile(r"mo-[a-z0-9-]+-v\d+")
+    found = []
+    for path in sorted([*(root / "pipeline").rglob("*.py"), *(root / "stages").rglob("*.py")]):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and isinstance(node.value, str) and env_id.fullmatch(node.value):
+                found.append(f"{path.relative_to(root)}: {node.value}")
+    assert found == ["pipeline/params/common.py: mo-halfcheetah-v5"], found  # EnvParams.id's default
+
+
+def test_per_env_facts_cover_their_envs_consistently():
+    from pipeline.params.env_facts import (
+        mopderl_values,
+        paper_extract,
+        paper_extract_envs,
+        read_facts,
+        reference_points,
+    )
+
+    refs, names = reference_points(), read_facts("objective_names")
+    assert set(refs) == set(names) and all(len(refs[e]) == len(names[e]) for e in refs)
+    # the paper's five envs have its MAPEX values and MOPDERL budgets (appendix tables)
+    paper = {"mo-halfcheetah-v5", "mo-hopper-2obj-v5", "mo-walker2d-v5", "mo-swimmer-v5", "mo-ant-2obj-v5"}
+    assert set(paper_extract_envs()) == paper and set(read_facts("mopderl")) == paper
+    assert paper_extract("mo-hopper-2obj-v5") == (10, 0.1, 20.0) and paper_extract("mo-hopper-v5") is None
+    assert mopderl_values("mo-swimmer-v5") == {"total_frames": 1_000_000, "eval_episodes": 1}
+    assert objective_names("mo-ant-v5", 3) == ["x velocity", "y velocity", "energy efficiency"]
+
+
+def test_params_models_fill_their_nulls_from_the_facts():
+    from pipeline.params.extract import ExtractParams
+    from pipeline.params.mopderl import MopderlParams
+
+    ex = ExtractParams().resolved("mo-walker2d-v5")
+    assert (ex.epochs, ex.beta, ex.omega_max) == (20, 0.5, 20.0)
+    assert ExtractParams(epochs=3).resolved("mo-walker2d-v5").epochs == 3  # a value set wins
+    with pytest.raises(ValueError, match=r"extract.epochs is null but env 'mo-hopper-v5' has no paper values"):
+        ExtractParams().resolved("mo-hopper-v5")
+    mo = MopderlParams().resolved("mo-hopper-2obj-v5")
+    assert (mo.total_frames, mo.eval_episodes) == (1_750_000, 3)
+    mo = MopderlParams(eval_episodes=2).resolved("mo-hopper-v5")  # no entry: the defaults, a value set wins
+    assert (mo.total_frames, mo.eval_episodes) == (2_000_000, 2)
+
+
+def test_a_bad_facts_file_is_one_line_naming_it(tmp_path):
+    from pipeline.params import ParamsError
+    from pipeline.params.env_facts import read_facts
+
+    table = tmp_path / "envs.yaml"
+    with pytest.raises(ParamsError, match=f"^{re.escape(str(table))}: file not found"):
+        read_facts("reference_point", table)
+    table.write_text("reference_point:\n  mo-x-v0: [1.0, oops]\n")
+    with pytest.raises(ParamsError, match=r"reference_point.mo-x-v0 = \[1.0, 'oops'\]: expected a list of numbers"):
+        read_facts("reference_point", table)
+    table.write_text("paper_extract:\n  mo-x-v0: {epochs: 3, beta: 1.0}\n")
+    with pytest.raises(
+        ParamsError, match=r"paper_extract.mo-x-v0 = .*expected a mapping of \['epochs', 'beta', 'omega_max'\]"
+    ):
+        read_facts("paper_extract", table)
+    with pytest.raises(ParamsError, match=r"expected a mapping `mopderl` of env ids"):
+        read_facts("mopderl", table)

@@ -764,10 +764,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_report_says_where_the_reference_point_came_from(runs, report_dir, tmp_path, monkeypatch):
     """Scored with env.reference_point set, the report says so; rescored with it null, the
-    point is the env's entry in presets/reference_points.yaml, and the report names that."""
+    point is the env's entry in presets/envs.yaml, and the report names that."""
     text = (report_dir / "report.md").read_text()
     assert "- hypervolume reference point: [-100.0, -4500.0] (from env.reference_point in params)\n" in text
-    monkeypatch.chdir(REPO)  # the score stage reads presets/reference_points.yaml from the repository root
+    monkeypatch.chdir(REPO)  # the score stage reads presets/envs.yaml from the repository root
     params = write_params(tmp_path, env={"reference_point": None})
     for v in VARIANTS:
         for s in SEEDS:
@@ -790,15 +790,17 @@ def test_report_says_where_the_reference_point_came_from(runs, report_dir, tmp_p
     code, out = invoke(*report_args(runs, tmp_path / "rep", scored=tmp_path / "sc"))
     assert code == 0, out
     line = (
-        "- hypervolume reference point: [-100.0, -4500.0] (from presets/reference_points.yaml, "
+        "- hypervolume reference point: [-100.0, -4500.0] (from presets/envs.yaml, "
         "entry mo-halfcheetah-v5 (env.reference_point is null))\n"
     )
     assert line in (tmp_path / "rep" / "report.md").read_text()
 
 
 def test_reference_point_presets_match_params_and_doc():
-    presets = yaml.safe_load((REPO / "presets" / "reference_points.yaml").read_text())
-    from pipeline.core.envs import OBJECTIVE_NAMES
+    from pipeline.params.env_facts import read_facts, reference_points
+
+    presets = reference_points()
+    OBJECTIVE_NAMES = read_facts("objective_names")
 
     assert set(presets) == set(OBJECTIVE_NAMES)
     doc = (REPO / "docs" / "reference_points.md").read_text()

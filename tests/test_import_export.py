@@ -611,7 +611,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
         shutil.copytree(root / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(root / "dvc.yaml", repo / "dvc.yaml")
     (repo / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
-    shutil.copy(root / "presets" / "reference_points.yaml", repo / "presets" / "reference_points.yaml")
+    shutil.copy(root / "presets" / "envs.yaml", repo / "presets" / "envs.yaml")
     (repo / "models").mkdir()
     shutil.copy(sb3_models["td3"], repo / "models" / "speed.zip")
     shutil.copy(sb3_models["sac"], repo / "models" / "energy.zip")

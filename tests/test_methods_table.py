@@ -1,8 +1,11 @@
-"""Every method of the table (pipeline/params/methods.py: METHODS) is wired into each place
-docs/developing.md ("Adding a method") lists: a dvc.yaml stage whose command is a registered
-stage module, a run list of derived_lists that gives that stage an item, params sections that
-are known and modelled, and a label and colour of its own. A new row that misses one fails here,
-naming the method and the place."""
+"""Every method of the table (pipeline/params/methods.py: METHODS) is wired into each of the six
+places docs/developing.md ("Adding a method") lists: (1) its algorithm's module, imported by its
+stage; (2) params models for the sections its stage reads, each in SECTION_MODELS; (3) its row,
+with a label and colour of its own, and a run list of derived_lists, declared in RUN_LISTS, that
+gives its stage an item; (4) a stage module that `mapex` finds as a subcommand; (5) a dvc.yaml
+stage writing its front; (6) its sections in params.yaml, a test and docs/manual.md naming it.
+A new row that misses one fails here, naming the method and the place; a test below checks that
+the doc lists six places."""
 
 from __future__ import annotations
 
@@ -12,12 +15,15 @@ import pytest
 import yaml
 
 from pipeline.core.codedeps import ROOT, stage_module
-from pipeline.params import KNOWN_SECTIONS
-from pipeline.params.methods import JOINT_VARIANTS, METHODS, TRAINED_KINDS, derived_lists, method_name
+from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
+from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, derived_lists, method_name
 from pipeline.params.registry import section_models
 from stages.cli import COMMANDS
 
 STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+PARAMS = yaml.safe_load((ROOT / "params.yaml").read_text())
+MANUAL = (ROOT / "docs" / "manual.md").read_text()
+TESTS = "".join(p.read_text() for p in sorted((ROOT / "tests").glob("test_*.py")))
 IMPORTS = [{"objective": k, "file": f"models/obj{k}.zip", "format": "sb3"} for k in (0, 1)]
 # lists every method's matrix reads whatever it is (not the method's own)
 SHARED_LISTS = {"run_seeds", "run_objectives", "run_methods"}
@@ -56,3 +62,39 @@ def test_a_method_is_wired_into_every_place(name):
     # and a name and colour of its own in the report
     assert [x.label for x in METHODS.values()].count(m.label) == 1, f"{name}: label {m.label!r} is not unique"
     assert [x.colour for x in METHODS.values()].count(m.colour) == 1, f"{name}: colour {m.colour!r} is not unique"
+    # place 2: each section's model is one line of SECTION_MODELS, a module of pipeline/params/
+    for s in sections - {"env", "seeds", "objectives", "methods", "variants"}:
+        assert s in SECTION_MODELS, f"{name}: section {s!r} (stage {m.stage}) has no line in SECTION_MODELS"
+        module = SECTION_MODELS[s].split(":")[0]
+        assert (ROOT / "pipeline" / "params" / f"{module}.py").is_file(), f"{name}: no pipeline/params/{module}.py"
+    # place 3: the run lists its stage fans out over are in RUN_LISTS, so fields of RunParams
+    for key in matrix:
+        assert key in RUN_LISTS, f"{name}: run list {key!r} (stage {m.stage}) has no entry in RUN_LISTS"
+        assert key in RunParams.model_fields, f"{name}: run list {key!r} (stage {m.stage}) is not a RunParams field"
+    # place 1: the stage imports an algorithm module of pipeline/ beyond params and core
+    closure = stage_closure(m.stage)
+    algorithm = [f for f in closure if f.startswith("pipeline/") and f.split("/")[1] not in ("params", "core")]
+    assert algorithm, f"{name}: stage {m.stage} imports no algorithm module of pipeline/"
+    # place 6: params.yaml holds the sections its stage reads; a test and the manual name it
+    missing = sorted(s for s in sections if s not in PARAMS)
+    assert not missing, f"{name}: params.yaml has no {missing} (stage {m.stage} reads them)"
+    assert f'"{name}"' in TESTS, f"{name}: no test names it"
+    assert re.search(rf"(?<![\w-]){name}(?![\w-])", MANUAL), f"{name}: docs/manual.md does not name it"
+
+
+def stage_closure(stage: str) -> list[str]:
+    """The code deps codedeps writes for a dvc.yaml stage (its import closure, as paths)."""
+    return [d for d in STAGES[stage].get("deps", []) if isinstance(d, str) and d.endswith(".py")]
+
+
+def test_developing_md_lists_six_places_to_add_a_method():
+    """The doc's list is what the test above checks: six numbered places, at most."""
+    doc = (ROOT / "docs" / "developing.md").read_text()
+    section = doc[doc.index("## Adding a method") : doc.index("## Adding a variant")]
+    steps = re.findall(r"^(\d+)\. ", section, flags=re.M)
+    assert steps == [str(i) for i in range(1, len(steps) + 1)] and len(steps) <= 6, steps
+
+
+def test_every_run_list_of_derived_lists_is_declared_once():
+    """derived_lists computes exactly the lists RUN_LISTS declares (RunParams' derived fields)."""
+    assert list(derived_lists(["mapex_td3", "warmup_only_td3"], [0])) == list(RUN_LISTS)

@@ -24,7 +24,7 @@ from support.tiny_params import TINY_CHAIN as TINY
 # The whole DVC pipeline on three objectives: `make test-fast` leaves this file out.
 pytestmark = pytest.mark.integration
 
-HOPPER_REF = [-100.0, -3390.0, -1510.0]  # presets/reference_points.yaml
+HOPPER_REF = [-100.0, -3390.0, -1510.0]  # presets/envs.yaml
 
 
 def tiny_hopper(methods: list[str]) -> dict:

@@ -13,7 +13,8 @@ import yaml
 
 from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
-from pipeline.params.extract import PAPER_ENV_SETTINGS, ExtractParams
+from pipeline.params.env_facts import paper_extract, paper_extract_envs, reference_points
+from pipeline.params.extract import ExtractParams
 from pipeline.params.registry import section_models
 from pipeline.params.sync import generated_text, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
@@ -29,14 +30,12 @@ PAYOFF = ROOT / "presets" / "payoff" / "mo-halfcheetah-v5.yaml"
 NOBJ = sorted((ROOT / "presets" / "nobj").glob("*.yaml"))
 # Bring your own specialists: every objective imported, and one imported with the other trained here
 IMPORTED = [ROOT / "presets" / "imported.yaml", ROOT / "presets" / "mixed.yaml"]
-# Every params file shipped: params.yaml and every preset (reference_points.yaml is a table, not one)
-ALL_PARAMS = [ROOT / "params.yaml"] + [
-    p
-    for p in sorted((ROOT / "presets").rglob("*.yaml"))
-    if p.name != "reference_points.yaml" and "studies" not in p.relative_to(ROOT / "presets").parts
-]
-# The studies behind docs/results.md: `mapex sweep` grid files over the presets, not params files
+# The studies of docs/results.md: sweep grids over the presets (not params files)
 STUDIES = sorted((ROOT / "presets" / "studies").glob("*.yaml"))
+# Every params file shipped: params.yaml and every preset (envs.yaml is the per-env facts, not one)
+ALL_PARAMS = [ROOT / "params.yaml"] + [
+    p for p in sorted((ROOT / "presets").rglob("*.yaml")) if p.name != "envs.yaml" and p.parent.name != "studies"
+]
 
 
 @pytest.mark.parametrize("path", ALL_PARAMS, ids=lambda p: f"{p.parent.name}/{p.name}")
@@ -59,22 +58,6 @@ def test_params_file_validates(path, tmp_path):
     resolve_reference_point(env.reference_point, env.id, len(raw["objectives"]), path, ROOT / TABLE)
 
 
-@pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.name)
-def test_study_grid_plans(path):
-    """Every study grid validates and plans its cells as `mapex sweep` would (the presets it names
-    read from the committed tree, as the sweep's workers do): each cell's params validate with
-    the stages' models, its report pairs name methods it runs, and it runs at least two methods."""
-    from pipeline.distributed.grid import load_grid, plan_cells
-
-    cells = plan_cells(load_grid(path), path, ROOT, "HEAD")
-    assert cells
-    for cell in cells:
-        methods = cell.params["methods"]
-        assert len(methods) >= 2, cell.name
-        for pair in (cell.params.get("report") or {}).get("pairs") or []:
-            assert set(pair) <= set(methods), (cell.name, pair)
-
-
 def test_every_params_file_is_checked():
     """ALL_PARAMS holds the files the tests above name one by one, and then some."""
     assert {ROOT / "params.yaml", *PRESETS, PAYOFF, *NOBJ, *IMPORTED} <= set(ALL_PARAMS)
@@ -85,12 +68,12 @@ def test_every_known_section_has_a_model():
 
 
 def test_paper_presets_cover_the_five_envs_with_the_paper_settings():
-    assert {p.stem for p in PRESETS} == set(PAPER_ENV_SETTINGS)
+    assert {p.stem for p in PRESETS} == set(paper_extract_envs())
     for path in PRESETS:
         raw = load_params(path)
         env = section(raw, "env", EnvParams, path)
         ex = section(raw, "extract", ExtractParams, path).resolved(env.id)
-        assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS[env.id]
+        assert (ex.epochs, ex.beta, ex.omega_max) == paper_extract(env.id)
         assert (ex.iterations, ex.child_buffer_size, ex.eval_episodes, ex.warmup_steps) == (1200, 200_000, 5, 1000)
         ts = section(raw, "train_specialist", TrainSpecialistParams, path)
         assert ts.total_steps == (1_000_000 if env.id == "mo-swimmer-v5" else 2_000_000)
@@ -129,10 +112,10 @@ def test_presets_set_pderls_rl_sync_period_of_their_env():
 
 def test_three_objective_presets():
     """A paper-scale and a quickstart-scale preset for each 3-objective env, all three objectives,
-    the reference point of presets/reference_points.yaml, and extraction values set explicitly
+    the reference point of presets/envs.yaml, and extraction values set explicitly
     (the paper has none for these envs); the paper-scale ones carry the paper's budgets. The facets
-    preset (benchmarks/facets.sh) has the facet rule on, which the script turns off for "before"."""
-    refs = yaml.safe_load((ROOT / "presets" / "reference_points.yaml").read_text())
+    preset has the facet rule on, and its variant mapex_td3_every_facet turns it off ("before")."""
+    refs = reference_points()
     assert {p.stem for p in NOBJ} == {
         "mo-hopper-v5",
         "mo-hopper-v5-quick",
@@ -151,6 +134,9 @@ def test_three_objective_presets():
         assert td3.secondary_critics
         if path.stem.endswith("-facets"):
             assert raw["extract"]["facet_bridge_ratio"] is not None and ts.total_steps >= 600_000
+            # "before" runs on the same specialists without the rule, paired against "after"
+            assert raw["variants"]["mapex_td3_every_facet"]["extract"] == {"facet_bridge_ratio": None}
+            assert ["mapex_td3", "mapex_td3_every_facet"] in raw["report"]["pairs"]
         elif not path.stem.endswith("-quick"):
             assert ts == TrainSpecialistParams(total_steps=2_000_000)
             assert td3 == TD3Params()
@@ -179,8 +165,12 @@ def test_every_section_a_running_stage_reads_is_in_the_file(path, tmp_path):
         for dep in stage.get("params", []):
             if isinstance(dep, dict):  # {params.gen.yaml: [keys]}: keys of the generated file
                 (file, keys), *_ = dep.items()
-                assert file == "params.gen.yaml", dep
-                missing_keys = [k for k in keys if k not in generated]
+                if file == "presets/envs.yaml":  # the per-env facts: one file for every params file
+                    facts = yaml.safe_load((ROOT / file).read_text())
+                    missing_keys = [f"{file}:{k}" for k in keys if k not in facts]
+                else:
+                    assert file == "params.gen.yaml", dep
+                    missing_keys = [k for k in keys if k not in generated]
             else:
                 missing_keys = [dep] if dep.split(".")[0] not in raw else []
             if missing_keys:
@@ -197,7 +187,7 @@ def test_payoff_preset_is_the_issue_settings():
     assert ts.total_steps >= 300_000 and td3.hidden_sizes == [256, 256] and td3.secondary_critics
     assert len(raw["seeds"]) >= 2
     ex = section(raw, "extract", ExtractParams, PAYOFF).resolved("mo-halfcheetah-v5")
-    assert (ex.epochs, ex.beta, ex.omega_max) == PAPER_ENV_SETTINGS["mo-halfcheetah-v5"]
+    assert (ex.epochs, ex.beta, ex.omega_max) == paper_extract("mo-halfcheetah-v5")
     assert ex.iterations * ex.children_per_iteration >= 12 and ex.children_per_iteration == 1
     assert (ex.child_buffer_size, ex.hidden_sizes) == (200_000, [256, 256])
 
@@ -226,3 +216,27 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
             f"{stage}@{s}-{m}" for s in raw["seeds"] for m in raw["methods"]
         }
     assert "report" in items
+
+
+@pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.stem)
+def test_study_grid_plans_its_cells(path):
+    """Each study grid names its command in its header and expands, at the repository's HEAD (what
+    `mapex sweep` runs), into cells whose params validate with the stages' models; every method a
+    cell lists is reported, and every pair the report compares is of methods the cell runs."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    header = path.read_text().split("\n", 1)[0]
+    assert header.startswith("# Study (docs/results.md"), f"{path}: the first line names the results section"
+    assert f"mapex sweep presets/studies/{path.name} --remote" in path.read_text(), path
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+    cells = plan_cells(load_grid(path), path, ROOT, head.stdout.strip())
+    assert cells, path
+    for cell in cells:
+        methods = cell.params["methods"]
+        for pair in (cell.params.get("report") or {}).get("pairs") or []:
+            assert set(pair) <= set(methods), f"{path}: cell {cell.name} pairs {pair}, not all in {methods}"
+
+
+def test_the_studies_of_the_results_have_grids():
+    """docs/results.md's studies each have a grid (the harness that ran them is gone)."""
+    assert {p.stem for p in STUDIES} >= {"answer64", "answer256", "hopper64", "facets", "payoff", "mixed"}

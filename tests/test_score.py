@@ -369,7 +369,7 @@ def test_bad_reference_point(run):
 
 
 REPO = Path(__file__).resolve().parents[1]
-TABLE = REPO / "presets" / "reference_points.yaml"
+TABLE = REPO / "presets" / "envs.yaml"
 
 
 @pytest.mark.parametrize(
@@ -389,29 +389,29 @@ def test_null_reference_point_is_the_envs_entry_in_the_table(env_id, n, point, t
 
 
 def test_table_entry_of_the_wrong_length_names_the_table(tmp_path):
-    with pytest.raises(ParamsError, match=r"reference_points.yaml: mo-swimmer-v5 = \[-50.0, -1500.0\] .* has 2 values"):
+    with pytest.raises(
+        ParamsError, match=r"envs.yaml: reference_point.mo-swimmer-v5 = \[-50.0, -1500.0\] .* has 2 values"
+    ):
         resolve_reference_point(None, "mo-swimmer-v5", 3, tmp_path / "params.yaml", TABLE)
 
 
 def test_score_with_null_reference_point_scores_against_the_table(run, monkeypatch):
-    """The stage's default table is presets/reference_points.yaml of the repository root (DVC's cwd)."""
+    """The stage's default table is presets/envs.yaml of the repository root (DVC's cwd)."""
     monkeypatch.chdir(REPO)
     code, out = score_run(run, write_params(run, ref=None))
     assert code == 0, out
     m = json.loads((run / "out" / "metrics.json").read_text())
     assert m["reference_point"] == [-100.0, -4500.0]
-    assert m["reference_point_source"] == (
-        "presets/reference_points.yaml, entry mo-halfcheetah-v5 (env.reference_point is null)"
-    )
+    assert m["reference_point_source"] == ("presets/envs.yaml, entry mo-halfcheetah-v5 (env.reference_point is null)")
 
 
 def test_score_of_an_env_without_an_entry_is_one_line(run):
     table = run / "points.yaml"
-    table.write_text("mo-swimmer-v5: [-50.0, -1500.0]\n")
+    table.write_text("reference_point:\n  mo-swimmer-v5: [-50.0, -1500.0]\n")
     code, out = score_run(run, write_params(run, ref=None), "--reference-points", table)
     assert code == 2 and not (run / "out").exists()
     assert out.strip() == (
-        f"error: {run / 'params.yaml'}: env.reference_point is null and {table} has no entry for "
+        f"error: {run / 'params.yaml'}: env.reference_point is null and {table} has no reference_point for "
         "'mo-halfcheetah-v5': set env.reference_point to 2 values, each worse than any policy scores "
         "(docs/reference_points.md)"
     )

@@ -60,7 +60,7 @@ def source(tmp_path_factory) -> Path:
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     (root / "presets").mkdir()
-    shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
+    shutil.copy(ROOT / "presets" / "envs.yaml", root / "presets" / "envs.yaml")
     save_params(root / "params.yaml", TINY, sort_keys=False)
     # valid params (objectives has a default), but dvc.yaml's stages list the key itself (DVC refuses it missing)
     (root / "no_objectives.yaml").write_text(
@@ -153,7 +153,7 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
     assert cells["mo-hopper-2obj-v5.joint"]["env"]["reference_point"] == [
         -100.0,
         -3390.0,
-    ]  # presets/reference_points.yaml
+    ]  # presets/envs.yaml
     assert cells["mo-hopper-2obj-v5.joint"]["extract"]["iterations"] == TINY["extract"]["iterations"]
     assert all(c["seeds"] == [1, 2] for c in cells.values())
 

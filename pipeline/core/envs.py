@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
+from pipeline.params.env_facts import objective_names_of
+
 
 class EnvError(ValueError):
     """The env id is unknown or the env does not fit MAPEX (discrete actions, scalar reward)."""
@@ -109,26 +111,14 @@ def env_spec(env: gym.Env, env_id: str, max_episode_steps: int) -> EnvSpec:
     )
 
 
-# Axis labels for the paper's envs (paper appendix, table "The v5 MO-Gymnasium MuJoCo environments").
-OBJECTIVE_NAMES: dict[str, list[str]] = {
-    "mo-ant-2obj-v5": ["x velocity", "y velocity"],
-    "mo-hopper-2obj-v5": ["x velocity", "jump height"],
-    "mo-swimmer-v5": ["x velocity", "energy efficiency"],
-    "mo-walker2d-v5": ["x velocity", "energy efficiency"],
-    "mo-halfcheetah-v5": ["x velocity", "energy efficiency"],
-    # the 3-objective versions (docs/n_objectives.md)
-    "mo-hopper-v5": ["x velocity", "jump height", "energy efficiency"],
-    "mo-ant-v5": ["x velocity", "y velocity", "energy efficiency"],
-}
-
-
 def objective_names(env_id: str, n_objectives: int, override: list[str] | None = None) -> list[str]:
-    """Human-readable objective names: the params override, the known table, or 'objective m'."""
+    """Human-readable objective names: the params override, the env's entry in presets/envs.yaml
+    (`objective_names`), or 'objective m'."""
     if override is not None:
         if len(override) != n_objectives:
             raise EnvError(f"env.objective_names has {len(override)} names, env {env_id} has {n_objectives} objectives")
         return list(override)
-    names = OBJECTIVE_NAMES.get(env_id)
+    names = objective_names_of(env_id)
     if names is not None and len(names) == n_objectives:
         return list(names)
     return [f"objective {m}" for m in range(n_objectives)]

@@ -27,7 +27,7 @@ class _Strict(BaseModel):
 
 class EnvSpec(_Strict):
     """One env of the grid. `id` alone takes the base params with env.id (and the env's
-    reference point from presets/reference_points.yaml); `preset` starts from that params file
+    reference point from presets/envs.yaml); `preset` starts from that params file
     instead of the base; `params` is merged in on top of either."""
 
     name: str | None = Field(None, description="cell name prefix (default: the env id)")
@@ -201,9 +201,11 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
     """The grid's cells in order (envs outer, override sets inner), params validated."""
     base = _yaml_at(repo, commit, grid.base, f"{grid_path}: base")
     refs_raw = subprocess.run(
-        ["git", "show", f"{commit}:presets/reference_points.yaml"], cwd=repo, capture_output=True, text=True
+        ["git", "show", f"{commit}:presets/envs.yaml"], cwd=repo, capture_output=True, text=True
+    )  # the per-env facts (pipeline/params/env_facts.py): their reference points
+    ref_points = (
+        ((yaml.safe_load(refs_raw.stdout) or {}).get("reference_point") or {}) if refs_raw.returncode == 0 else {}
     )
-    ref_points = (yaml.safe_load(refs_raw.stdout) or {}) if refs_raw.returncode == 0 else {}
     overrides = grid.overrides if grid.overrides is not None else {"": {}}
     cells: list[Cell] = []
     for i, entry in enumerate(grid.envs):

@@ -20,25 +20,28 @@ __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "K
 # Top-level keys params.yaml may hold. Shared: env and the lists of RUN_KEYS. The others are the
 # stage sections, each named like its stage (dvc.yaml stage = stages/<name>.py = section).
 RUN_KEYS = tuple(RunParams.model_fields)  # the top-level lists, validated together by RunParams
-KNOWN_SECTIONS = (
-    "env",
-    *RUN_KEYS,
-    "td3",
-    "train_specialist",
-    "train_pderl",
-    "import_specialists",
-    "fit_critics",
-    "critic_fidelity",
-    "extract",
-    "evaluate",
-    "score",
-    "report",
-    "export",
-    "render",
-    "mopderl",
-    "morld",
-    "interpolate",
-)
+# Every stage section and its model (module:class under pipeline/params/), in one table: the
+# section names params.yaml may hold and pipeline.params.registry.section_models both come from
+# it, so a new section is one line here. Models are imported only by registry (a stage imports
+# its own section's model alone: its DVC code deps stay its own).
+SECTION_MODELS = {
+    "td3": "td3:TD3Params",
+    "train_specialist": "train_specialist:TrainSpecialistParams",
+    "train_pderl": "train_pderl:TrainPderlParams",
+    "import_specialists": "import_specialists:ImportSpecialistsParams",
+    "fit_critics": "fit_critics:FitCriticsParams",
+    "critic_fidelity": "critic_fidelity:CriticFidelityParams",
+    "extract": "extract:ExtractParams",
+    "evaluate": "evaluate:EvaluateParams",
+    "score": "score:ScoreParams",
+    "report": "report:ReportParams",
+    "export": "export:ExportParams",
+    "render": "render:RenderParams",
+    "mopderl": "mopderl:MopderlParams",
+    "morld": "morld:MorldParams",
+    "interpolate": "interpolate:InterpolateParams",
+}
+KNOWN_SECTIONS = ("env", *RUN_KEYS, *SECTION_MODELS)
 
 # Keys that moved to another section: an old params file that still has one where it was gets a
 # line naming the key and its new home (instead of an "unknown key", or worse, a stage that

@@ -2,11 +2,25 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, get_args, get_origin
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator, model_validator
 
-from pipeline.params.methods import derived_lists
+from pipeline.params.methods import RUN_LISTS, derived_lists
+
+
+def _element(annotation: Any) -> Any:
+    """The element type of a run list's annotation (list[X] or list[X] | None); None if not a list."""
+    options = (
+        [annotation] if get_origin(annotation) is list else [a for a in get_args(annotation) if a is not type(None)]
+    )
+    lists = [get_args(a)[0] for a in options if get_origin(a) is list]
+    return lists[0] if lists else None
+
+
+# The derived run lists the validators below check, by their element type (RUN_LISTS)
+INT_LISTS = tuple(k for k, (ann, _) in RUN_LISTS.items() if _element(ann) is int)
+CHOICE_LISTS = tuple(k for k, (ann, _) in RUN_LISTS.items() if get_origin(_element(ann)) is Literal)
 
 
 class Strict(BaseModel):
@@ -38,7 +52,7 @@ class EnvParams(Strict):
     reference_point: list[float] | None = Field(
         None,
         description="hypervolume reference point, one value per objective, worse than any policy scores; "
-        "null: the env's entry in presets/reference_points.yaml (read by stage score)",
+        "null: the env's entry in presets/envs.yaml, reference_point (read by stage score)",
     )
     objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
 
@@ -51,14 +65,15 @@ GENERATED_END = "# --- end of generated lists ---"
 USER_RUN_KEYS = ("seeds", "objectives", "methods", "variants")
 
 
-class RunParams(Strict):
+class _RunParams(Strict):
     """The top-level lists: what to run (`seeds`, `objectives`, `methods`, written by hand) and
     the run lists dvc.yaml fans its producing stages out over, derived from `methods` and
     `seeds` (pipeline.params.methods.derived_lists) and written into the generated file beside
     params.yaml (params.gen.yaml) by `mapex sync-params`; `pipeline.params.load_params` merges
     them in. DVC cannot filter a matrix, hence the derived lists; lists that disagree with
     `methods` (a stale generated file) are an error naming the list and the command that fixes
-    it. Lists left out are not checked (a params dict without its generated file).
+    it. Lists left out are not checked (a params dict without its generated file). The derived
+    lists' fields are declared in RUN_LISTS (pipeline/params/methods.py) and added below.
     """
 
     seeds: list[int] = Field(
@@ -77,74 +92,8 @@ class RunParams(Strict):
         description="named variants: name -> {of: <method or kind>, label, specialists, <section>: {key: value}} "
         "(pipeline/params/variants.py); methods lists the method variants that run",
     )
-    # derived (params.gen.yaml): see pipeline.params.methods.derived_lists
-    td3_seeds: list[int] | None = Field(
-        None,
-        description="derived: seeds of stage train_specialist (TD3 specialists); dvc.yaml needs it written, "
-        "validation accepts it left out",
-    )
-    pderl_seeds: list[int] = Field([], description="derived: seeds of stage train_pderl (PDERL specialists)")
-    imported_seeds: list[int] = Field(
-        [], description="derived: seeds of stage import_specialist (imported specialists)"
-    )
-    import_collect: list[dict] = Field(
-        [], description="derived: import_specialists.policies whose buffer stage import_specialist collects"
-    )
-    import_buffered: list[dict] = Field(
-        [], description="derived: import_specialists.policies that bring a buffer (stage import_specialist_buffered)"
-    )
-    import_train: list[int] = Field(
-        [],
-        description="derived: objectives without an import_specialists.policies entry, whose slots of the imported "
-        "kind stage train_specialist_imported trains here by TD3",
-    )
-    extract_from: list[Literal["td3", "pderl"]] = Field(
-        ["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"
-    )
-    extract_variants: list[Literal["mapex"]] = Field(
-        ["mapex"],
-        description="derived: variants stage extract runs from each kind, with the joint critics",
-    )
-    warmup_from: list[Literal["td3", "pderl", "imported"]] | None = Field(
-        None,
-        description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from; "
-        "dvc.yaml needs it written, validation accepts it left out",
-    )
-    posthoc_from: list[Literal["td3", "pderl", "imported"]] = Field(
-        [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
-    )
-    interpolate_from: list[Literal["td3", "pderl", "imported"]] = Field(
-        [], description="derived: kinds of specialists the interpolation baseline mixes (stage interpolate)"
-    )
-    mopderl_seeds: list[int] = Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")
-    morld_seeds: list[int] = Field([], description="derived: seeds of the MORL/D baseline (stage morld)")
-    export_methods: list[str] = Field([], description="derived: export.methods, the fronts stage export writes")
-    specialist_variants: list[str] = Field(
-        [], description="derived: the specialists variants the method variants start from (train_specialist_variant)"
-    )
-    extract_variant_runs: list[dict] = Field(
-        [], description="derived: method variants of MAPEX and warm-up only (stage extract_variant)"
-    )
-    interpolate_variant_runs: list[dict] = Field(
-        [], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"
-    )
-    run_seeds: list[int] = Field([], description="derived: seeds, as dvc.yaml's matrices read them")
-    run_objectives: list[int] = Field([], description="derived: objectives, as dvc.yaml's matrices read them")
-    run_methods: list[str] = Field([], description="derived: methods, as dvc.yaml's matrices read them")
-    variant_labels: dict[str, str] = Field(
-        {}, description="derived: the report's names of the variants run (stages report and render track them)"
-    )
 
-    @field_validator(
-        "seeds",
-        "objectives",
-        "td3_seeds",
-        "pderl_seeds",
-        "imported_seeds",
-        "import_train",
-        "mopderl_seeds",
-        "morld_seeds",
-    )
+    @field_validator("seeds", "objectives", *INT_LISTS, check_fields=False)
     @classmethod
     def _unique_non_negative(cls, v: list[int] | None) -> list[int] | None:
         if v is None:
@@ -155,7 +104,7 @@ class RunParams(Strict):
             raise ValueError(f"entries must be >= 0, got {v}")
         return v
 
-    @field_validator("extract_from", "extract_variants", "warmup_from", "posthoc_from", "interpolate_from", "methods")
+    @field_validator("methods", *CHOICE_LISTS, check_fields=False)
     @classmethod
     def _unique(cls, v: list[str] | None) -> list[str] | None:
         if v is not None and len(set(v)) != len(v):
@@ -163,7 +112,7 @@ class RunParams(Strict):
         return v
 
     @model_validator(mode="after")
-    def _consistent(self, info: ValidationInfo) -> "RunParams":
+    def _consistent(self, info: ValidationInfo) -> "_RunParams":
         # the import entries come from section import_specialists (pipeline.params.section passes them)
         context = info.context or {}
         want = derived_lists(
@@ -188,5 +137,10 @@ class RunParams(Strict):
                 )
         return self
 
+
+# The class: the user's keys above and one field per derived run list (RUN_LISTS, beside
+# derived_lists in pipeline/params/methods.py), in that order.
+RunParams = create_model("RunParams", __base__=_RunParams, __module__=__name__, **RUN_LISTS)
+RunParams.__doc__ = _RunParams.__doc__
 
 DERIVED_KEYS = tuple(k for k in RunParams.model_fields if k not in USER_RUN_KEYS)

@@ -1,7 +1,7 @@
 """Section `extract`: MAPEX extraction (paper Algorithm 1 and its appendix tables).
 
 `epochs`, `beta` and `omega_max` left at null take the paper's per-environment values
-(appendix table "Environment-specific MAPEX hyperparameters"); the other defaults are the
+(appendix table "Environment-specific MAPEX hyperparameters", in presets/envs.yaml: `paper_extract`); the other defaults are the
 paper's shared MAPEX table, or the precursor code's value where the paper gives none.
 Two settings deviate from the paper and say so in their descriptions: `advantage_norm: none`,
 the default (a mix of units, see pipeline/extraction/mapex.py), and `children_per_iteration` above 1
@@ -17,15 +17,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from pipeline.params.common import PrecisionChoice, Strict, precision_field
-
-# Paper, appendix table "Environment-specific MAPEX hyperparameters": (epochs, beta, omega_max).
-PAPER_ENV_SETTINGS: dict[str, tuple[int, float, float]] = {
-    "mo-ant-2obj-v5": (20, 0.5, 1.0),
-    "mo-hopper-2obj-v5": (10, 0.1, 20.0),
-    "mo-swimmer-v5": (10, 1.0, 20.0),
-    "mo-walker2d-v5": (20, 0.5, 20.0),
-    "mo-halfcheetah-v5": (20, 1.0, 1.0),
-}
+from pipeline.params.env_facts import paper_extract, paper_extract_envs
 
 
 class ExtractParams(Strict):
@@ -125,13 +117,14 @@ class ExtractParams(Strict):
     )
 
     def resolved(self, env_id: str) -> "ExtractParams":
-        """A copy with epochs, beta and omega_max filled from the paper's table for `env_id`."""
-        defaults = PAPER_ENV_SETTINGS.get(env_id)
+        """A copy with epochs, beta and omega_max filled from the paper's table for `env_id`
+        (presets/envs.yaml, `paper_extract`)."""
         missing = [k for k in ("epochs", "beta", "omega_max") if getattr(self, k) is None]
+        defaults = paper_extract(env_id) if missing else None
         if missing and defaults is None:
             raise ValueError(
-                f"extract.{missing[0]} is null but env {env_id!r} has no paper preset; set it explicitly "
-                f"(presets exist for {sorted(PAPER_ENV_SETTINGS)})"
+                f"extract.{missing[0]} is null but env {env_id!r} has no paper values (presets/envs.yaml, "
+                f"paper_extract); set it explicitly (the paper has values for {paper_extract_envs()})"
             )
         fill = dict(zip(("epochs", "beta", "omega_max"), defaults or (None, None, None)))
         return self.model_copy(update={k: fill[k] for k in missing})

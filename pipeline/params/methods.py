@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, Literal, NamedTuple
+
+from pydantic import Field
 
 
 class Method(NamedTuple):
@@ -191,6 +193,100 @@ def _import_item(entry: dict, *keys: str) -> dict:
     be optional, and a matrix item cannot add one)."""
     stats = normalize_file(entry)
     return {k: entry[k] for k in keys} | {"normalize": stats or "none", "normalize_dep": stats or entry["file"]}
+
+
+# The run lists derived_lists returns, each as (type, pydantic Field): RunParams
+# (pipeline/params/common.py) has one field per entry, so a new run list is its line here and its
+# value in derived_lists, in this one file. Lists of ints are checked unique and >= 0, lists of
+# named choices (Literal) unique.
+RUN_LISTS: dict[str, tuple[Any, Any]] = {
+    "td3_seeds": (
+        list[int] | None,
+        Field(
+            None,
+            description="derived: seeds of stage train_specialist (TD3 specialists); dvc.yaml needs it written, "
+            "validation accepts it left out",
+        ),
+    ),
+    "pderl_seeds": (list[int], Field([], description="derived: seeds of stage train_pderl (PDERL specialists)")),
+    "imported_seeds": (
+        list[int],
+        Field([], description="derived: seeds of stage import_specialist (imported specialists)"),
+    ),
+    "import_collect": (
+        list[dict],
+        Field([], description="derived: import_specialists.policies whose buffer stage import_specialist collects"),
+    ),
+    "import_buffered": (
+        list[dict],
+        Field(
+            [],
+            description="derived: import_specialists.policies that bring a buffer (stage import_specialist_buffered)",
+        ),
+    ),
+    "import_train": (
+        list[int],
+        Field(
+            [],
+            description="derived: objectives without an import_specialists.policies entry, whose slots of the imported "
+            "kind stage train_specialist_imported trains here by TD3",
+        ),
+    ),
+    "extract_from": (
+        list[Literal["td3", "pderl"]],
+        Field(["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"),
+    ),
+    "extract_variants": (
+        list[Literal["mapex"]],
+        Field(
+            ["mapex"],
+            description="derived: variants stage extract runs from each kind, with the joint critics",
+        ),
+    ),
+    "warmup_from": (
+        list[Literal["td3", "pderl", "imported"]] | None,
+        Field(
+            None,
+            description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from; "
+            "dvc.yaml needs it written, validation accepts it left out",
+        ),
+    ),
+    "posthoc_from": (
+        list[Literal["td3", "pderl", "imported"]],
+        Field(
+            [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
+        ),
+    ),
+    "interpolate_from": (
+        list[Literal["td3", "pderl", "imported"]],
+        Field([], description="derived: kinds of specialists the interpolation baseline mixes (stage interpolate)"),
+    ),
+    "mopderl_seeds": (list[int], Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")),
+    "morld_seeds": (list[int], Field([], description="derived: seeds of the MORL/D baseline (stage morld)")),
+    "export_methods": (list[str], Field([], description="derived: export.methods, the fronts stage export writes")),
+    "specialist_variants": (
+        list[str],
+        Field(
+            [],
+            description="derived: the specialists variants the method variants start from (train_specialist_variant)",
+        ),
+    ),
+    "extract_variant_runs": (
+        list[dict],
+        Field([], description="derived: method variants of MAPEX and warm-up only (stage extract_variant)"),
+    ),
+    "interpolate_variant_runs": (
+        list[dict],
+        Field([], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"),
+    ),
+    "run_seeds": (list[int], Field([], description="derived: seeds, as dvc.yaml's matrices read them")),
+    "run_objectives": (list[int], Field([], description="derived: objectives, as dvc.yaml's matrices read them")),
+    "run_methods": (list[str], Field([], description="derived: methods, as dvc.yaml's matrices read them")),
+    "variant_labels": (
+        dict[str, str],
+        Field({}, description="derived: the report's names of the variants run (stages report and render track them)"),
+    ),
+}
 
 
 def derived_lists(

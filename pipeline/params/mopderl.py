@@ -20,12 +20,12 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from pipeline.params.common import PrecisionChoice, Strict, precision_field
+from pipeline.params.env_facts import mopderl_values
 
-# Paper appendix, "Environment interaction budgets": MOPDERL stage-2 frames (2M elsewhere).
-PAPER_STAGE2_FRAMES = {"mo-hopper-2obj-v5": 1_750_000, "mo-swimmer-v5": 1_000_000}
+# Per env (paper appendix, "Environment interaction budgets": stage-2 frames; the authors' code,
+# `num_evals`: episodes per fitness evaluation) in presets/envs.yaml, `mopderl`; an env without an
+# entry gets these.
 DEFAULT_STAGE2_FRAMES = 2_000_000
-# Authors' code (`num_evals`): episodes per fitness evaluation, 1 on the other environments.
-CODE_EVAL_EPISODES = {"mo-hopper-2obj-v5": 3, "mo-walker2d-v5": 5}
 DEFAULT_EVAL_EPISODES = 1
 
 
@@ -116,8 +116,10 @@ class MopderlParams(Strict):
     def resolved(self, env_id: str) -> "MopderlParams":
         """A copy with total_frames and eval_episodes filled in for `env_id` where they are null."""
         fill = {}
-        if self.total_frames is None:
-            fill["total_frames"] = PAPER_STAGE2_FRAMES.get(env_id, DEFAULT_STAGE2_FRAMES)
-        if self.eval_episodes is None:
-            fill["eval_episodes"] = CODE_EVAL_EPISODES.get(env_id, DEFAULT_EVAL_EPISODES)
+        if self.total_frames is None or self.eval_episodes is None:
+            env = mopderl_values(env_id) or {
+                "total_frames": DEFAULT_STAGE2_FRAMES,
+                "eval_episodes": DEFAULT_EVAL_EPISODES,
+            }
+            fill = {k: env[k] for k in ("total_frames", "eval_episodes") if getattr(self, k) is None}
         return self.model_copy(update=fill)

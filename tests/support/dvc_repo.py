@@ -34,14 +34,14 @@ def ran(output: str) -> set[str]:
 
 def make_repo(root: Path, params: dict) -> Path:
     """`root` as a git + DVC repository holding pipeline/, stages/, dvc.yaml,
-    presets/reference_points.yaml and `params`."""
+    presets/envs.yaml and `params`."""
     if shutil.which("dvc", path=str(BIN)) is None:
         pytest.fail(f"dvc is not installed next to {sys.executable}")
     for name in ("pipeline", "stages"):
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     (root / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
-    shutil.copy(ROOT / "presets" / "reference_points.yaml", root / "presets" / "reference_points.yaml")
+    shutil.copy(ROOT / "presets" / "envs.yaml", root / "presets" / "envs.yaml")
     write_params_files(root / "params.yaml", params)  # and params.gen.yaml, as `mapex sync-params` leaves them
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     for cmd in (
