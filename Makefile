@@ -1,5 +1,6 @@
 # Two entry points for a fresh machine (see README):
-#   make repro   install into .venv, write params.gen.yaml's run lists, then run the whole pipeline (dvc repro)
+#   make repro   install into .venv, write params.gen.yaml's run lists, then run the whole pipeline
+#                (mapex repro: dvc repro with independent stage items side by side, one per core)
 #   make test    install into .venv, then run the test suite
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
 #
@@ -23,6 +24,8 @@ BIN := $(VENV)/bin
 # pytest-xdist workers for `make test`, one per core of the 2-core machines this project targets;
 # each test file runs whole in one worker (--dist loadfile), so module fixtures are built once.
 TEST_WORKERS ?= 2
+# stage items side by side in `make repro` (0: one per core)
+JOBS ?= 0
 
 .PHONY: install repro test test-fast test-kernels test-slow lint format bench bench-speed clean-venv
 
@@ -44,7 +47,10 @@ install: $(BIN)/python
 # `mapex sync-params` after such an edit; every stage names it when the lists are stale).
 repro: install
 	PATH="$(CURDIR)/$(BIN):$$PATH" mapex sync-params
-	PATH="$(CURDIR)/$(BIN):$$PATH" dvc repro
+	@# `dvc repro` runs one stage item at a time; `mapex repro` runs each item's `dvc repro
+	@# --single-item` once its upstream is done, one per core (JOBS=1: plain dvc repro), so the
+	@# two seeds' extractions, evaluations and scores share the cores (docs/manual.md, "Running")
+	PATH="$(CURDIR)/$(BIN):$$PATH" mapex repro --jobs $(JOBS)
 
 test: install
 	@# the test tools (dev, with stable-baselines3) and the optional extras (Ray, morl-baselines,

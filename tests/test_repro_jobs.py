@@ -1,0 +1,214 @@
+"""`mapex repro --jobs N`: stage items side by side in one DVC workspace.
+
+The scheduler (pipeline.distributed.local.run_items) on fake processes: it never runs more than
+N items, never starts an item before its upstream has finished, starts nothing new after a
+failure, and interrupts the running items on Ctrl-C. Then the command on a toy DVC project whose
+two first items can only both succeed when they run at the same time (each waits for the
+other's flag file), so the test shows they did, without timing anything.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import textwrap
+from pathlib import Path
+
+import pytest
+import yaml
+from support.dvc_repo import BIN, DVC, ROOT
+
+from pipeline.distributed.local import ItemResult, ReproResult, outcome_of, run_items, summary_table
+from pipeline.distributed.workspace import StageItem
+
+
+def item(name: str, *upstream: str) -> StageItem:
+    return StageItem(name, name.split("@")[0], tuple(upstream), (), "")
+
+
+class FakeProcess:
+    """Ends with `rc` after `polls` polls; records signals."""
+
+    def __init__(self, rc: int = 0, polls: int = 2):
+        self.rc, self.polls, self.signals = rc, polls, []
+
+    def poll(self):
+        self.polls -= 1
+        return self.rc if self.polls <= 0 else None
+
+    def send_signal(self, sig):
+        self.signals.append(sig)
+
+    def wait(self, timeout=None):
+        return self.rc
+
+
+def run_fake(items, jobs, rcs=None, polls=None):
+    rcs, polls = rcs or {}, polls or {}
+    live: set[str] = set()
+    peak = [0]
+    order: list[str] = []
+    done: list[str] = []
+
+    def launch(it):
+        # every upstream item has ended (with exit code 0) before this one starts
+        assert all(u in done for u in it.upstream if u in {i.name for i in items}), (it.name, done)
+        live.add(it.name)
+        peak[0] = max(peak[0], len(live))
+        order.append(it.name)
+        return FakeProcess(rcs.get(it.name, 0), polls.get(it.name, 2))
+
+    def finished(it, rc, s):
+        live.discard(it.name)
+        if rc == 0:
+            done.append(it.name)
+
+    ended, not_started = run_items(items, jobs, launch, finished=finished, sleep=lambda s: None)
+    return order, peak[0], ended, not_started
+
+
+CHAIN = [
+    item("train@0"),
+    item("train@1"),
+    item("extract@0", "train@0"),
+    item("extract@1", "train@1"),
+    item("evaluate@0", "extract@0"),
+    item("evaluate@1", "extract@1"),
+    item("report", "evaluate@0", "evaluate@1"),
+]
+
+
+@pytest.mark.parametrize("jobs", [1, 2, 3])
+def test_at_most_jobs_items_run_and_each_after_its_upstream(jobs):
+    order, peak, ended, not_started = run_fake(CHAIN, jobs, polls={"train@0": 5})
+    assert sorted(order) == sorted(i.name for i in CHAIN) and not not_started
+    assert peak == min(jobs, 2)  # two independent chains: never more than two items ready at once
+    assert order[-1] == "report"
+    assert all(rc == 0 for _, rc, _ in ended)
+
+
+def test_with_one_job_the_items_run_in_the_order_given():
+    order, peak, _, _ = run_fake(CHAIN, 1)
+    assert order == [i.name for i in CHAIN] and peak == 1
+
+
+def test_after_a_failure_nothing_new_starts_and_the_running_item_finishes():
+    # extract@0 fails while extract@1 runs (slowly): extract@1 finishes, nothing after either starts
+    order, _, ended, not_started = run_fake(CHAIN, 2, rcs={"extract@0": 1}, polls={"extract@1": 6})
+    assert {i.name: rc for i, rc, _ in ended} == {"train@0": 0, "train@1": 0, "extract@0": 1, "extract@1": 0}
+    assert set(not_started) == {"evaluate@0", "evaluate@1", "report"}
+    assert "evaluate@1" not in order
+
+
+def test_an_interrupt_reaches_every_running_item_then_propagates():
+    procs = []
+
+    def launch(it):
+        procs.append(FakeProcess(polls=10**9))
+        return procs[-1]
+
+    calls = {"n": 0}
+
+    def sleep(s):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_items(CHAIN, 2, launch, sleep=sleep)
+    assert len(procs) == 2 and all(p.signals == [signal.SIGINT] for p in procs)
+
+
+def test_jobs_below_one_is_refused():
+    with pytest.raises(ValueError, match="jobs must be at least 1"):
+        run_items(CHAIN, 0, lambda it: FakeProcess())
+
+
+def test_outcome_and_summary_read_what_dvc_printed():
+    assert outcome_of("Stage 'a@0' didn't change, skipping\n", 0) == "unchanged"
+    assert outcome_of("Stage 'a@0' is cached - skipping run, checking out outputs\n", 0) == "restored"
+    assert outcome_of("Running stage 'a@0':\n> echo\n", 0) == "ran"
+    assert outcome_of("Stage 'a@0' didn't change, skipping\n", 2) == "failed"
+    table = summary_table(
+        ReproResult([ItemResult("extract@mapex-td3-0", 0, 12.5, "ran"), ItemResult("b", 1, 1.0, "failed")], [], 13.0)
+    )
+    lines = table.splitlines()
+    assert lines[1].split() == ["extract@mapex-td3-0", "ran", "12.5"] and lines[2].split() == ["b", "failed", "1.0"]
+    assert lines[-1].startswith("2 items in 13.0 s wall")
+
+
+# ------------------------------------------------------------------ the command on a toy project
+
+# a@0 and a@1 each leave a flag and wait (up to 60 s) for the other's: both succeed only when
+# they run at the same time. b@S copies a@S's output; c reads both b's, and exits 1 when FAIL exists.
+TOY = textwrap.dedent(
+    """\
+    stages:
+      a:
+        matrix:
+          s: [0, 1]
+        cmd: >-
+          touch flag${item.s} &&
+          for i in $(seq 600); do [ -e flag$((1-${item.s})) ] && break; sleep 0.1; done &&
+          [ -e flag$((1-${item.s})) ] && echo ${item.s} > "a${item.s}.txt"
+        outs: ["a${item.s}.txt"]
+      b:
+        matrix:
+          s: [0, 1]
+        cmd: cat a${item.s}.txt > b${item.s}.txt
+        deps: ["a${item.s}.txt"]
+        outs: ["b${item.s}.txt"]
+      c:
+        cmd: test ! -e FAIL && cat b0.txt b1.txt > c.txt
+        deps: [b0.txt, b1.txt]
+        outs: [c.txt]
+    """
+)
+
+
+def mapex(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [str(BIN / "python"), "-m", "stages.cli", *args], cwd=cwd, env=env, capture_output=True, text=True
+    )
+
+
+@pytest.fixture
+def toy(tmp_path: Path) -> Path:
+    (tmp_path / "dvc.yaml").write_text(TOY)
+    (tmp_path / ".gitignore").write_text("flag*\nFAIL\n")
+    for cmd in (["git", "init", "-q"], [DVC, "init", "-q"]):
+        subprocess.run(cmd, cwd=tmp_path, check=True, capture_output=True)
+    return tmp_path
+
+
+@pytest.mark.integration  # real dvc processes, about 25 s
+def test_independent_items_run_side_by_side_and_dvc_ends_up_to_date(toy):
+    r = mapex(["repro", "--jobs", "2", "--root", str(toy)], toy)
+    assert r.returncode == 0, r.stderr
+    assert (toy / "c.txt").read_text() == "0\n1\n"
+    lock = yaml.safe_load((toy / "dvc.lock").read_text())["stages"]
+    assert set(lock) == {"a@0", "a@1", "b@0", "b@1", "c"}
+    status = subprocess.run([DVC, "status"], cwd=toy, capture_output=True, text=True)
+    assert "up to date" in status.stdout, status.stdout
+    # a second run runs nothing: every item unchanged
+    again = mapex(["repro", "-j", "2", "--root", str(toy)], toy)
+    assert again.returncode == 0 and len(re.findall(r"^\[\d/5\] unchanged ", again.stderr, re.M)) == 5, again.stderr
+
+
+@pytest.mark.integration  # real dvc processes, about 25 s
+def test_a_failed_item_is_named_with_its_output_and_fails_the_command(toy):
+    (toy / "FAIL").touch()
+    r = mapex(["repro", "-j", "2", "--root", str(toy)], toy)
+    assert r.returncode == 1
+    assert "error: c failed" in r.stderr and "exited with" in r.stderr
+    assert (toy / ".dvc" / "tmp" / "mapex-repro" / "c.log").is_file()
+    assert (toy / "b0.txt").is_file() and not (toy / "c.txt").exists()
+
+
+@pytest.mark.integration  # real dvc processes, about 25 s
+def test_an_unknown_target_is_named(toy):
+    r = mapex(["repro", "-j", "2", "--root", str(toy), "nope"], toy)
+    assert r.returncode == 2 and "'nope' is no stage or stage item" in r.stderr
