@@ -12,7 +12,7 @@ from typing import Optional
 
 import typer
 
-from pipeline.distributed.local import repro_parallel, summary_table
+from pipeline.distributed.local import Terminated, repro_parallel, summary_table
 from pipeline.distributed.workspace import _dvc_bin, stage_items
 from stages.common import reports_errors
 
@@ -47,7 +47,8 @@ def repro(
     outputs are the same bytes (every stage is a pure command; one torch thread a process).
     Items' output goes to .dvc/tmp/mapex-repro/ITEM.log; a line here as each starts and ends, the
     end of a failed item's log, and a table of every item's wall time at the end. After a failure
-    nothing new starts; Ctrl-C stops the running items cleanly (DVC keeps nothing half-written).
+    nothing new starts; Ctrl-C (or SIGTERM) reaches the running items, which stop as under
+    `dvc repro` (nothing half-written); it exits 130 (143).
     """
     jobs = jobs or _cores()
     if not (root / "dvc.yaml").is_file():
@@ -66,6 +67,9 @@ def repro(
     except KeyboardInterrupt:
         typer.echo("stopped: the running stage items were interrupted; rerun to go on", err=True)
         raise typer.Exit(code=130) from None
+    except Terminated:
+        typer.echo("stopped by SIGTERM: it reached the running stage items; rerun to go on", err=True)
+        raise typer.Exit(code=143) from None
     typer.echo(summary_table(result), err=True)
     if result.failed:
         names = ", ".join(r.name for r in result.failed)

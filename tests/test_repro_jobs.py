@@ -9,11 +9,13 @@ other's flag file), so the test shows they did, without timing anything.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import signal
 import subprocess
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -212,3 +214,29 @@ def test_a_failed_item_is_named_with_its_output_and_fails_the_command(toy):
 def test_an_unknown_target_is_named(toy):
     r = mapex(["repro", "-j", "2", "--root", str(toy), "nope"], toy)
     assert r.returncode == 2 and "'nope' is no stage or stage item" in r.stderr
+
+
+@pytest.mark.integration  # real dvc processes, about 10 s
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_ctrl_c_or_sigterm_stops_the_running_items_cleanly(toy, sig, code):
+    # a@0 alone waits (up to 60 s) for a flag nobody leaves: it is still running when the signal comes
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(ROOT)}
+    p = subprocess.Popen(
+        [str(BIN / "python"), "-m", "stages.cli", "repro", "-j", "2", "--root", str(toy), "a@0"],
+        cwd=toy,
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    for _ in range(600):  # the item's own shell has started once its flag exists
+        if (toy / "flag0").exists():
+            break
+        time.sleep(0.05)
+    assert (toy / "flag0").exists()
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=30)  # well before the item's own 60 s
+    assert p.returncode == code, err
+    assert "stopped" in err and not (toy / "a0.txt").exists()
+    # DVC let go of the item's outputs: no write lock is left behind
+    rwlock = toy / ".dvc" / "tmp" / "rwlock"
+    assert not rwlock.exists() or not json.loads(rwlock.read_text() or "{}").get("write")

@@ -35,6 +35,10 @@ _UNCHANGED = re.compile(r"didn't change, skipping")
 _RESTORED = re.compile(r"is cached - skipping run, checking out outputs")
 
 
+class Terminated(Exception):
+    """SIGTERM reached `mapex repro` (repro_parallel turns it into this)."""
+
+
 class Process(Protocol):
     def poll(self) -> int | None: ...
 
@@ -82,6 +86,7 @@ def run_items(
     launch: Callable[[StageItem], Process],
     finished: Callable[[StageItem, int, float], None] = lambda item, rc, s: None,
     started: Callable[[StageItem], None] = lambda item: None,
+    stop: Callable[[Process, int], None] = lambda p, sig: p.send_signal(sig),
     poll_seconds: float = 0.2,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
@@ -90,8 +95,9 @@ def run_items(
     at most `jobs` at a time, in the order given among those ready (stage_items' order: the
     longest chain of dependents first). After a failure nothing new starts and the running items
     finish. Returns (item, exit code, seconds) in the order they finished, and the names of the
-    items never started. On KeyboardInterrupt every running item gets SIGINT (DVC and the stages
-    stop cleanly on it: nothing half-written) and is waited for; then it re-raises."""
+    items never started. On KeyboardInterrupt every running item gets SIGINT, on Terminated
+    SIGTERM, through `stop` (DVC and the stages stop cleanly on either: nothing half-written),
+    and is waited for; then it re-raises."""
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     names = {i.name for i in items}
@@ -125,16 +131,37 @@ def run_items(
                     done.add(name)
                 else:
                     failed = True
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Terminated) as exc:
+        sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
         for _, p, _ in running.values():
             try:
-                p.send_signal(signal.SIGINT)
+                stop(p, sig)
             except ProcessLookupError:
                 pass
         for _, p, _ in running.values():
             p.wait()
         raise
     return out, [i.name for i in pending]
+
+
+def group_members(pgid: int) -> list[int] | None:
+    """The processes of process group `pgid`, from /proc (None where there is no /proc)."""
+    proc = Path("/proc")
+    if not proc.is_dir():
+        return None
+    out = []
+    for entry in proc.iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue  # gone meanwhile
+        # fields after the command (in parentheses, which may hold spaces): state, ppid, pgrp
+        fields = stat[stat.rfind(")") + 2 :].split()
+        if len(fields) > 2 and int(fields[2]) == pgid:
+            out.append(int(entry.name))
+    return out
 
 
 def _safe_name(name: str) -> str:
@@ -170,6 +197,10 @@ def repro_parallel(
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
             env=env,
+            # a process group of its own, so that Ctrl-C reaches each item once, from here: DVC
+            # ignores SIGINT while its stage's command runs and counts on the command getting it,
+            # as a terminal's Ctrl-C does to a whole group (stop_group below)
+            start_new_session=True,
         )
 
     def started(item: StageItem) -> None:
@@ -187,10 +218,32 @@ def repro_parallel(
             tail = "\n".join(text.rstrip().splitlines()[-30:])
             echo(f"{item.name} exited with {rc}; the end of its output ({path}):\n{tail}")
 
+    def stop_group(p: Process, sig: int) -> None:
+        pgid = p.pid  # type: ignore[attr-defined]  (a Popen in a session of its own: its group is its pid)
+        if sig == signal.SIGINT:
+            os.killpg(pgid, sig)  # as a terminal's Ctrl-C: DVC ignores it while the command runs
+            return
+        # SIGTERM to the stage's command only (it stops at a safe point, keeping its checkpoint,
+        # and exits 143): DVC itself, killed by it, would leave its locks behind
+        members = group_members(pgid)
+        if members is None:
+            os.killpg(pgid, sig)
+        for pid in members or ():
+            if pid != pgid:
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+
+    def on_term(signum, frame):
+        raise Terminated
+
     t0 = time.monotonic()
+    old_term = signal.signal(signal.SIGTERM, on_term)
     try:
-        _, result.not_started = run_items(items, jobs, launch, finished=finished, started=started)
+        _, result.not_started = run_items(items, jobs, launch, finished=finished, started=started, stop=stop_group)
     finally:
+        signal.signal(signal.SIGTERM, old_term)
         for _, fh in files.values():
             fh.close()
         result.seconds = time.monotonic() - t0
