@@ -17,6 +17,12 @@ from pipeline.distributed.workspace import _dvc_bin, stage_items
 from stages.common import reports_errors
 
 
+# The default's ceiling: each item is a process of about 0.5 GB (torch) and may start workers of
+# its own (processes: 2), so more than 8 at once buys little on the quickstart's chains (two
+# seeds) and risks a laptop's memory; --jobs sets any number.
+MAX_DEFAULT_JOBS = 8
+
+
 def _cores() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -34,7 +40,7 @@ def repro(
         "--jobs",
         "-j",
         min=0,
-        help="stage items at most side by side (default 0: one per core of this machine); 1 is plain `dvc repro`",
+        help="stage items at most side by side (default 0: one per core of this machine, at most 8); 1 is plain `dvc repro`",
     ),
     root: Path = typer.Option(Path("."), "--root", help="the DVC workspace (the repository root)"),
 ) -> None:
@@ -50,7 +56,7 @@ def repro(
     nothing new starts; Ctrl-C (or SIGTERM) reaches the running items, which stop as under
     `dvc repro` (nothing half-written); it exits 130 (143).
     """
-    jobs = jobs or _cores()
+    jobs = jobs or min(_cores(), MAX_DEFAULT_JOBS)
     if not (root / "dvc.yaml").is_file():
         raise FileNotFoundError(f"{root / 'dvc.yaml'}: no dvc.yaml here (--root names the DVC workspace)")
     if jobs == 1:
