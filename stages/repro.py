@@ -16,7 +16,6 @@ from pipeline.distributed.local import Terminated, repro_parallel, summary_table
 from pipeline.distributed.workspace import _dvc_bin, stage_items
 from stages.common import reports_errors
 
-
 # The default's ceiling: each item is a process of about 0.5 GB (torch) and may start workers of
 # its own (processes: 2), so more than 8 at once buys little on the quickstart's chains (two
 # seeds) and risks a laptop's memory; --jobs sets any number.
