@@ -240,3 +240,40 @@ def test_study_grid_plans_its_cells(path):
 def test_the_studies_of_the_results_have_grids():
     """docs/results.md's studies each have a grid (the harness that ran them is gone)."""
     assert {p.stem for p in STUDIES} >= {"answer64", "answer256", "hopper64", "facets", "payoff", "mixed"}
+    # issue 44's study, "Is the hybrid ahead?" (results section 2.6)
+    assert {p.stem for p in STUDIES} >= {"front64", "front256", "fronthopper", "frontmixed"}
+
+
+def test_the_hybrid_studies_compare_four_methods_on_equal_children():
+    """Issue 44's grids run the hybrid, the paper form, warm-up only and interpolation from the same
+    specialists, the hybrid seeded with as many interpolated policies as the paper form trains
+    children, and pair the hybrid with each; the answer grids over the same presets still leave the
+    hybrid out. The mixed-source case, whose method has no variants, is two cells that differ only
+    in the hybrid's extract keys (so everything else is one run each, shared)."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+
+    def cells(name: str) -> dict[str, dict]:
+        path = ROOT / "presets" / "studies" / f"{name}.yaml"
+        return {c.name: c.params for c in plan_cells(load_grid(path), path, ROOT, head.stdout.strip())}
+
+    def seeded(ext: dict) -> dict:
+        return {"init": "interpolate", "seed_interpolation": ext["iterations"] * ext["children_per_iteration"]}
+
+    for name in ("front64", "front256", "fronthopper"):
+        (params,) = cells(name).values()
+        assert params["methods"] == ["mapex_td3", "hybrid_td3", "warmup_only_td3", "interpolate_td3"], name
+        hybrid = params["variants"]["hybrid_td3"]
+        assert hybrid["of"] == "mapex_td3" and hybrid["extract"] == seeded(params["extract"]), name
+        pairs = {tuple(p) for p in params["report"]["pairs"]}
+        assert {("hybrid_td3", b) for b in ("mapex_td3", "interpolate_td3", "warmup_only_td3")} <= pairs, name
+    for name in ("answer256", "hopper64"):
+        assert all("hybrid_td3" not in params["methods"] for params in cells(name).values()), name
+    mixed = cells("frontmixed")
+    paper, hybrid = mixed["halfcheetah-mixed.paper"], mixed["halfcheetah-mixed.hybrid"]
+    assert paper["methods"] == ["mapex_posthoc_imported", "warmup_only_imported", "interpolate_imported"]
+    ext = paper["extract"]
+    assert "init" not in ext and ext["epochs"] == paper_extract("mo-halfcheetah-v5")[0] and ext["lr"] == 0.0003
+    assert hybrid["extract"] == ext | seeded(ext)
+    assert {k: v for k, v in hybrid.items() if k != "extract"} == {k: v for k, v in paper.items() if k != "extract"}
