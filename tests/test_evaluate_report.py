@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -25,7 +26,8 @@ from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.params import section
 from pipeline.params.methods import specialist_kind
 from pipeline.params.report import ReportParams
-from pipeline.reporting.runs import Run
+from pipeline.reporting.cost import verdict_cost_table
+from pipeline.reporting.runs import Run, load_runs
 from pipeline.reporting.specialists import own_returns_table, sources_line, weak_sentence, weak_specialists
 from pipeline.reporting.tables import (
     fmt_num,
@@ -921,6 +923,108 @@ def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
     assert all((tmp_path / "grid_report" / f).stat().st_size > 5000 for f in ("fronts.png", "hypervolume.png"))
     code, out = invoke("grid-report", tmp_path / "nothing_here", "--out", tmp_path / "x")
     assert code == 2 and "nothing_here: not a directory" in out
+
+
+def _cross_cell(runs: Path, ws: Path, hv: dict[int, float], core_s: float, report: dict | None = None) -> None:
+    """A cell workspace from the fixture's runs: MAPEX-TD3 of the seeds of `hv` (seed S copied
+    from the fixture's seed min(S, 1)) with hypervolume hv[S] and an extraction record of
+    `core_s` core-seconds, warm-up only of seeds 0 and 1 as they are."""
+    for kind in ("score", "evaluate"):
+        shutil.copytree(runs / kind / "warmup_only_td3", ws / "data" / kind / "warmup_only_td3")
+    for s, value in hv.items():
+        score = ws / "data" / "score" / "mapex_td3" / f"seed{s}"
+        shutil.copytree(runs / "score" / "mapex_td3" / f"seed{min(s, 1)}", score)
+        shutil.copytree(
+            runs / "evaluate" / "mapex_td3" / f"seed{min(s, 1)}",
+            ws / "data" / "evaluate" / score.parent.name / score.name,
+        )
+        metrics = json.loads((score / "metrics.json").read_text())
+        metrics["seed"], metrics["front"]["hypervolume"] = s, value
+        (score / "metrics.json").write_text(json.dumps(metrics))
+        record = ws / "data" / "provenance" / "fronts" / "mapex_td3" / f"seed{s}.json"
+        record.parent.mkdir(parents=True, exist_ok=True)
+        record.write_text(json.dumps({"stage": "extract", "cost": {"cpu_seconds": core_s}}))
+    params = yaml.safe_load((runs / "params.yaml").read_text()) | {"seeds": sorted({0, 1, *hv})}
+    params["report"] |= report or {}
+    (ws / "params.yaml").write_text(yaml.safe_dump(params))
+
+
+def test_grid_report_verdict_across_cells_is_the_per_cell_verdict(runs, tmp_path):
+    """--pair hybrid/mapex_td3,paper/mapex_td3: the verdict (sentence and cost row) the per-cell
+    report's functions give on the same runs laid out as one cell (paper's MAPEX-TD3 posing as
+    warm-up only (PDERL)), each method named with its cell; paired over seeds 0-2, seeds 3 and 4
+    (one side each) left out and named."""
+    work = tmp_path / "sweeps" / "frontmixed"
+    _cross_cell(runs, work / "hybrid", {0: 110.0, 1: 120.0, 2: 130.0, 3: 50.0}, 100.0)
+    _cross_cell(runs, work / "paper", {0: 100.0, 1: 100.0, 2: 100.0, 4: 500.0}, 200.0)
+    one = tmp_path / "one"  # the same numbers as one cell: paper's MAPEX-TD3 as a second method
+    for side, method in (("hybrid", "mapex_td3"), ("paper", "warmup_only_pderl")):
+        for kind, sub in (("score", "score"), ("evaluate", "evaluate"), ("provenance", "provenance/fronts")):
+            shutil.copytree(work / side / "data" / sub / "mapex_td3", one / sub / method)
+        for metrics_path in (one / "score" / method).glob("seed*/metrics.json"):
+            metrics_path.write_text(json.dumps(json.loads(metrics_path.read_text()) | {"method": method}))
+    one_runs = load_runs(one / "score", one / "evaluate", one / "provenance")
+    (per_cell,) = verdicts(one_runs, 0.05, 2.0, [["mapex_td3", "warmup_only_pderl"]])
+    per_cell_costs = verdict_cost_table([per_cell], one_runs)
+    names = {"MAPEX-TD3": "MAPEX-TD3 [hybrid]", "warm-up only (PDERL)": "MAPEX-TD3 [paper]"}
+
+    def across(text: str) -> str:
+        return re.sub(r"MAPEX-TD3|warm-up only \(PDERL\)", lambda m: names[m.group()], text)
+
+    code, out = invoke(
+        "grid-report",
+        work,
+        "--out",
+        tmp_path / "report",
+        "--dpi",
+        "40",
+        "--pair",
+        "hybrid/mapex_td3,paper/mapex_td3",
+        "--pair",
+        "paper/mapex_td3 hybrid/warmup_only_td3",
+    )
+    assert code == 0, out
+    text = (tmp_path / "report" / "report.md").read_text()
+    section = text.split("## Verdicts across cells", 1)[1].split("\n## ", 1)[0]
+    bullets = [line for line in section.splitlines() if line.startswith("- ")]
+    assert per_cell.outcome == "beat" and "+20.0% of warm-up only (PDERL)'s mean" in per_cell.sentence
+    assert "over seeds 0, 1, 2:" in per_cell.sentence  # seeds 3 (50) and 4 (500) unpaired
+    assert bullets[0] == (
+        f"- {across(per_cell.sentence)} Left out, unpaired: seed 3 (MAPEX-TD3 [hybrid] only), "
+        "seed 4 (MAPEX-TD3 [paper] only)."
+    )
+    assert bullets[1].startswith("- At this scale (2 seeds, ") and bullets[1].endswith(
+        "Left out, unpaired: seed 2 (MAPEX-TD3 [paper] only), seed 4 (MAPEX-TD3 [paper] only)."
+    )
+    assert "MAPEX-TD3 [paper] " in bullets[1] and "warm-up only (TD3) [hybrid] on re-evaluated" in bullets[1]
+    per_cell_row = across(per_cell_costs.splitlines()[2])
+    assert "| 0.5x |" in per_cell_row and per_cell_row in section.splitlines()
+
+
+@pytest.mark.parametrize(
+    ("pair", "report", "message"),
+    [
+        ("hybird/mapex_td3,paper/mapex_td3", None, "'hybird' is not a cell in"),
+        ("unscored/mapex_td3,paper/mapex_td3", None, "'unscored' is not scored (no data/score) in"),
+        ("hybrid/mapex_td3,paper/mapex_pderl", None, "cell paper of"),
+        ("hybrid/mapex_td3", None, "expected CELL_A/METHOD_A,CELL_B/METHOD_B"),
+        ("hybrid/mapex_td3,hybrid/mapex_td3", None, "compares mapex_td3 of cell hybrid with itself"),
+        ("hybrid/mapex_td3,paper/mapex_td3", {"noise_sems": 3.0}, "have different report.noise_sems (2 and 3"),
+    ],
+)
+def test_grid_report_pair_errors(runs, tmp_path, pair, report, message):
+    work = tmp_path / "grid"
+    _cross_cell(runs, work / "hybrid", {0: 1.0, 1: 2.0}, 1.0)
+    _cross_cell(runs, work / "paper", {0: 1.0, 1: 2.0}, 1.0, report)
+    (work / "unscored").mkdir()
+    (work / "unscored" / "params.yaml").write_text((runs / "params.yaml").read_text())
+    code, out = invoke("grid-report", work, "--out", tmp_path / "report", "--pair", pair)
+    (line,) = [x for x in out.splitlines() if x.startswith("error: ")]
+    assert code == 2 and message in line and not (tmp_path / "report").exists()
+    if "is not" in message:
+        assert line.endswith("(scored cells: hybrid, paper)")
+    if "cell paper of" in message:
+        assert line.endswith("has no scored run of method 'mapex_pderl' (its methods: mapex_td3, warmup_only_td3)")
 
 
 # ---------------------------------------------------------------- weak specialists

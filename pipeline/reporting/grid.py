@@ -1,17 +1,20 @@
 """The grid report (`mapex grid-report`): one report across the cells of a sweep, each a
 workspace with its env and scored runs: Table 1 with a row per cell, the seeds behind each
 cell, the weak-specialist warnings of each cell (by its own report params), the provenance of
-every cell's runs, and fronts and hypervolume-vs-frames per cell."""
+every cell's runs, and fronts and hypervolume-vs-frames per cell; on request, paired verdicts
+between a method of one cell and a method of another (`cross_verdicts`), by the per-cell
+report's own verdict function and cost column."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from pipeline.params.methods import colour, label
 from pipeline.params.report import ReportParams
+from pipeline.reporting.cost import verdict_cost_table
 from pipeline.reporting.figures import _band, _front_line, _panels, _shared_legend, step_values
 from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.specialists import weak_sentence, weak_specialists
@@ -26,6 +29,7 @@ from pipeline.reporting.tables import (
     specialist_groups,
     specialist_metrics,
 )
+from pipeline.reporting.verdicts import Verdict, verdicts
 
 
 @dataclass
@@ -37,6 +41,79 @@ class Cell:
     runs: list[Run]
     names: list[str] | None = None  # objective names; None: "objective m"
     report: ReportParams = field(default_factory=ReportParams)  # the cell's `report` section (weak specialists)
+
+
+@dataclass(frozen=True)
+class Side:
+    """One side of a verdict across cells: a method's runs in one cell."""
+
+    cell: Cell
+    method: str
+
+    @property
+    def name(self) -> str:
+        """How the verdict names it: the method's label, then its cell in brackets."""
+        return f"{label(self.method)} [{self.cell.name}]"
+
+    def runs(self) -> list[Run]:
+        """The cell's runs of the method, renamed after the side (so that two cells' runs of one
+        method are two methods to the verdict function)."""
+        return [replace(r, method=self.name) for r in self.cell.runs if r.method == self.method]
+
+    def seeds(self) -> list[int]:
+        return sorted(r.seed for r in self.cell.runs if r.method == self.method)
+
+
+def left_out(a: Side, b: Side) -> str:
+    """Which seeds a verdict across cells left out: those only one side has."""
+    sa, sb = set(a.seeds()), set(b.seeds())
+    only = [(s, a) for s in sorted(sa - sb)] + [(s, b) for s in sorted(sb - sa)]
+    if not only:
+        return "No seed left out: both sides have the same ones."
+    return "Left out, unpaired: " + ", ".join(f"seed {s} ({side.name} only)" for s, side in only) + "."
+
+
+def cross_verdicts(pairs: list[tuple[Side, Side]]) -> tuple[list[tuple[Verdict, str]], str]:
+    """Per pair (a, b): did a beat, lose to or tie with b, paired by seed over the seeds both
+    sides have, by the per-cell report's own function (pipeline.reporting.verdicts.verdicts:
+    its rule, wording and numbers, with report.min_difference and report.noise_sems of a's
+    cell; `mapex grid-report` refuses a pair whose cells disagree on them), with the seeds it
+    left out; and the per-cell report's cost column beside them (verdict_cost_table; '' when
+    no run recorded a cost). Each side's runs are its cell's, renamed `Side.name`, so each
+    sentence names the cell of each method."""
+    runs = {s.name: s.runs() for pair in pairs for s in pair}
+    said = []
+    for a, b in pairs:
+        rule = a.cell.report
+        (v,) = verdicts(runs[a.name] + runs[b.name], rule.min_difference, rule.noise_sems, [[a.name, b.name]])
+        said.append((v, left_out(a, b)))
+    return said, verdict_cost_table([v for v, _ in said], [r for rs in runs.values() for r in rs])
+
+
+def cross_lines(pairs: list[tuple[Side, Side]]) -> list[str]:
+    """The grid report's section of verdicts across cells (markdown lines; [] without pairs)."""
+    if not pairs:
+        return []
+    said, costs = cross_verdicts(pairs)
+    lines = [
+        "## Verdicts across cells",
+        "",
+        "Each `--pair`: a method of one cell (named 'method [cell]') against a method of another, paired "
+        "by seed over the seeds both have, by the rule and in the words of each cell's own report "
+        "(pipeline/reporting/verdicts.py; report.min_difference and report.noise_sems, the same in both cells).",
+        "",
+        *(f"- {v.sentence} {out}" for v, out in said),
+        "",
+    ]
+    if costs:
+        lines += [
+            "Each verdict beside what each side cost: the core-seconds of the stage that made each method's "
+            "front in its cell (mean over its seeds; its evaluation episodes included, the specialists not), as "
+            "in each cell's own report.",
+            "",
+            costs,
+        ]
+    return lines
 
 
 def grid_table(cells: list[Cell]) -> str:
@@ -139,14 +216,17 @@ def grid_history_figure(cells: list[Cell], width: float) -> Figure:
     return fig
 
 
-def grid_markdown(cells: list[Cell], figures: dict[str, str]) -> str:
-    """report.md across a grid: Table 1 (one row per cell), the seeds behind each cell, figures, provenance."""
+def grid_markdown(cells: list[Cell], figures: dict[str, str], across: list[str] | None = None) -> str:
+    """report.md across a grid: the verdicts across cells (`across`: cross_lines' section, if
+    any pair was asked for), Table 1 (one row per cell), the seeds behind each cell, figures,
+    provenance."""
     lines = [
         "# MAPEX grid report",
         "",
         f"- cells: {', '.join(c.name for c in cells)}",
         f"- methods: {', '.join(f'{label(v)} ({v})' for v in methods_in([r for c in cells for r in c.runs]))}",
         "",
+        *(across or []),
         "## Table 1 across the grid",
         "",
         "Mean ± SEM over each cell's seeds of the re-evaluated final fronts (the definitions are those "
