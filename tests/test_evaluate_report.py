@@ -950,15 +950,16 @@ def _cross_cell(runs: Path, ws: Path, hv: dict[int, float], core_s: float, repor
 
 
 def test_grid_report_verdict_across_cells_is_the_per_cell_verdict(runs, tmp_path):
-    """--pair hybrid/mapex_td3,paper/mapex_td3: the verdict (sentence and cost row) the per-cell
+    """--pair CELL.hybrid/mapex_td3,CELL.paper/mapex_td3: the verdict (sentence and cost row) the per-cell
     report's functions give on the same runs laid out as one cell (paper's MAPEX-TD3 posing as
     warm-up only (PDERL)), each method named with its cell; paired over seeds 0-2, seeds 3 and 4
     (one side each) left out and named."""
     work = tmp_path / "sweeps" / "frontmixed"
-    _cross_cell(runs, work / "hybrid", {0: 110.0, 1: 120.0, 2: 130.0, 3: 50.0}, 100.0)
-    _cross_cell(runs, work / "paper", {0: 100.0, 1: 100.0, 2: 100.0, 4: 500.0}, 200.0)
+    hybrid, paper = "halfcheetah-mixed.hybrid", "halfcheetah-mixed.paper"  # the grid's cell names
+    _cross_cell(runs, work / hybrid, {0: 110.0, 1: 120.0, 2: 130.0, 3: 50.0}, 100.0)
+    _cross_cell(runs, work / paper, {0: 100.0, 1: 100.0, 2: 100.0, 4: 500.0}, 200.0)
     one = tmp_path / "one"  # the same numbers as one cell: paper's MAPEX-TD3 as a second method
-    for side, method in (("hybrid", "mapex_td3"), ("paper", "warmup_only_pderl")):
+    for side, method in ((hybrid, "mapex_td3"), (paper, "warmup_only_pderl")):
         for kind, sub in (("score", "score"), ("evaluate", "evaluate"), ("provenance", "provenance/fronts")):
             shutil.copytree(work / side / "data" / sub / "mapex_td3", one / sub / method)
         for metrics_path in (one / "score" / method).glob("seed*/metrics.json"):
@@ -966,7 +967,7 @@ def test_grid_report_verdict_across_cells_is_the_per_cell_verdict(runs, tmp_path
     one_runs = load_runs(one / "score", one / "evaluate", one / "provenance")
     (per_cell,) = verdicts(one_runs, 0.05, 2.0, [["mapex_td3", "warmup_only_pderl"]])
     per_cell_costs = verdict_cost_table([per_cell], one_runs)
-    names = {"MAPEX-TD3": "MAPEX-TD3 [hybrid]", "warm-up only (PDERL)": "MAPEX-TD3 [paper]"}
+    names = {"MAPEX-TD3": f"MAPEX-TD3 [{hybrid}]", "warm-up only (PDERL)": f"MAPEX-TD3 [{paper}]"}
 
     def across(text: str) -> str:
         return re.sub(r"MAPEX-TD3|warm-up only \(PDERL\)", lambda m: names[m.group()], text)
@@ -979,9 +980,9 @@ def test_grid_report_verdict_across_cells_is_the_per_cell_verdict(runs, tmp_path
         "--dpi",
         "40",
         "--pair",
-        "hybrid/mapex_td3,paper/mapex_td3",
+        f"{hybrid}/mapex_td3,{paper}/mapex_td3",
         "--pair",
-        "paper/mapex_td3 hybrid/warmup_only_td3",
+        f"{paper}/mapex_td3 {hybrid}/warmup_only_td3",
     )
     assert code == 0, out
     text = (tmp_path / "report" / "report.md").read_text()
@@ -990,13 +991,13 @@ def test_grid_report_verdict_across_cells_is_the_per_cell_verdict(runs, tmp_path
     assert per_cell.outcome == "beat" and "+20.0% of warm-up only (PDERL)'s mean" in per_cell.sentence
     assert "over seeds 0, 1, 2:" in per_cell.sentence  # seeds 3 (50) and 4 (500) unpaired
     assert bullets[0] == (
-        f"- {across(per_cell.sentence)} Left out, unpaired: seed 3 (MAPEX-TD3 [hybrid] only), "
-        "seed 4 (MAPEX-TD3 [paper] only)."
+        f"- {across(per_cell.sentence)} Left out, unpaired: seed 3 (MAPEX-TD3 [{hybrid}] only), "
+        f"seed 4 (MAPEX-TD3 [{paper}] only)."
     )
     assert bullets[1].startswith("- At this scale (2 seeds, ") and bullets[1].endswith(
-        "Left out, unpaired: seed 2 (MAPEX-TD3 [paper] only), seed 4 (MAPEX-TD3 [paper] only)."
+        f"Left out, unpaired: seed 2 (MAPEX-TD3 [{paper}] only), seed 4 (MAPEX-TD3 [{paper}] only)."
     )
-    assert "MAPEX-TD3 [paper] " in bullets[1] and "warm-up only (TD3) [hybrid] on re-evaluated" in bullets[1]
+    assert f"MAPEX-TD3 [{paper}] lost to warm-up only (TD3) [{hybrid}] on re-evaluated" in bullets[1]
     per_cell_row = across(per_cell_costs.splitlines()[2])
     assert "| 0.5x |" in per_cell_row and per_cell_row in section.splitlines()
 

@@ -3,6 +3,7 @@ dvc.yaml and match the paper."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -277,3 +278,13 @@ def test_the_hybrid_studies_compare_four_methods_on_equal_children():
     assert "init" not in ext and ext["epochs"] == paper_extract("mo-halfcheetah-v5")[0] and ext["lr"] == 0.0003
     assert hybrid["extract"] == ext | seeded(ext)
     assert {k: v for k, v in hybrid.items() if k != "extract"} == {k: v for k, v in paper.items() if k != "extract"}
+    # hybrid vs paper form crosses the cells: the grid report's --pair, as the grid's header and
+    # results 2.6 give it, names these two cells and the method they both run
+    for doc in (ROOT / "presets" / "studies" / "frontmixed.yaml", ROOT / "docs" / "results.md"):
+        (pair,) = re.findall(r"--pair ([\w.\-/,]+)", doc.read_text()) or [None]
+        sides = [side.partition("/") for side in (pair or "").split(",")]
+        assert [(c, m) for c, _, m in sides] == [
+            ("halfcheetah-mixed.hybrid", "mapex_posthoc_imported"),
+            ("halfcheetah-mixed.paper", "mapex_posthoc_imported"),
+        ], doc
+        assert all(m in mixed[c]["methods"] for c, _, m in sides), doc
