@@ -31,12 +31,14 @@ def item(name: str, *upstream: str) -> StageItem:
 
 
 class FakeProcess:
-    """Ends with `rc` after `polls` polls; records signals."""
+    """Ends with `rc` after `polls` polls, or once it has had `ends_on` signals; records them."""
 
-    def __init__(self, rc: int = 0, polls: int = 2):
-        self.rc, self.polls, self.signals = rc, polls, []
+    def __init__(self, rc: int = 0, polls: int = 2, ends_on: int | None = None):
+        self.rc, self.polls, self.signals, self.ends_on = rc, polls, [], ends_on
 
     def poll(self):
+        if self.ends_on is not None and len(self.signals) >= self.ends_on:
+            return self.rc
         self.polls -= 1
         return self.rc if self.polls <= 0 else None
 
@@ -104,23 +106,72 @@ def test_after_a_failure_nothing_new_starts_and_the_running_item_finishes():
     assert "evaluate@1" not in order
 
 
+def interrupted_run(ends_on: list[int], exc: type[BaseException] = KeyboardInterrupt, ctrl_c_again_at: int = 0):
+    """run_items on CHAIN, 2 jobs, interrupted (`exc`) at the third poll sleep; its two running items
+    end once they have had ends_on[i] signals; a fake clock advances 1 s a sleep, again_after 5 s.
+    Returns the processes and the number of sleeps."""
+    procs: list[FakeProcess] = []
+    kinds = iter(ends_on)
+
+    def launch(it):
+        procs.append(FakeProcess(polls=10**9, ends_on=next(kinds)))
+        return procs[-1]
+
+    t = {"now": 0.0, "n": 0}
+
+    def sleep(s):
+        t["n"] += 1
+        t["now"] += 1.0
+        if t["n"] == 3:
+            raise exc
+        if t["n"] == ctrl_c_again_at:
+            raise KeyboardInterrupt
+        assert t["n"] < 100, "still waiting: the items were never stopped"
+
+    with pytest.raises(exc):
+        run_items(CHAIN, 2, launch, sleep=sleep, clock=lambda: t["now"], again_after=5.0)
+    return procs, t["n"]
+
+
 def test_an_interrupt_reaches_every_running_item_then_propagates():
-    procs = []
+    procs, _ = interrupted_run([1, 1])
+    assert len(procs) == 2 and all(p.signals == [signal.SIGINT] for p in procs)
+
+
+def test_a_lost_ctrl_c_is_sent_again_until_the_item_ends():
+    # the second item's command misses the first SIGINT (a shell between fork and exec) and ends
+    # on the second, which comes again_after (5 s) later; the first item got one and ended
+    procs, sleeps = interrupted_run([1, 2])
+    assert procs[0].signals == [signal.SIGINT] and procs[1].signals == [signal.SIGINT, signal.SIGINT]
+    assert sleeps == 3 + 5
+    # a second Ctrl-C while waiting passes it on at once rather than leaving the items running
+    procs, sleeps = interrupted_run([1, 2], ctrl_c_again_at=4)
+    assert procs[1].signals == [signal.SIGINT, signal.SIGINT] and sleeps == 4
+
+
+def test_sigterm_goes_once_and_is_waited_for():
+    from pipeline.distributed.local import Terminated
+
+    # a stage stops on SIGTERM at its next safe point: no second one however long it takes
+    procs: list[FakeProcess] = []
 
     def launch(it):
         procs.append(FakeProcess(polls=10**9))
         return procs[-1]
 
-    calls = {"n": 0}
+    t = {"n": 0}
 
     def sleep(s):
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
+        t["n"] += 1
+        if t["n"] == 3:
+            raise Terminated
+        if t["n"] == 40:
+            for p in procs:
+                p.polls = 0  # the stages reached their safe points
 
-    with pytest.raises(KeyboardInterrupt):
-        run_items(CHAIN, 2, launch, sleep=sleep)
-    assert len(procs) == 2 and all(p.signals == [signal.SIGINT] for p in procs)
+    with pytest.raises(Terminated):
+        run_items(CHAIN, 2, launch, sleep=sleep, clock=lambda: float(t["n"]), again_after=5.0)
+    assert all(p.signals == [signal.SIGTERM] for p in procs) and t["n"] == 40
 
 
 def test_jobs_below_one_is_refused():

@@ -87,6 +87,8 @@ def run_items(
     finished: Callable[[StageItem, int, float], None] = lambda item, rc, s: None,
     started: Callable[[StageItem], None] = lambda item: None,
     stop: Callable[[Process, int], None] = lambda p, sig: p.send_signal(sig),
+    again: Callable[[Process, int], None] | None = None,
+    again_after: float = 5.0,
     poll_seconds: float = 0.2,
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
@@ -97,7 +99,10 @@ def run_items(
     finish. Returns (item, exit code, seconds) in the order they finished, and the names of the
     items never started. On KeyboardInterrupt every running item gets SIGINT, on Terminated
     SIGTERM, through `stop` (DVC and the stages stop cleanly on either: nothing half-written),
-    and is waited for; then it re-raises."""
+    and is waited for; then it re-raises. A SIGINT can be lost by a stage's command (a shell
+    whose child got it between fork and exec goes on with its script), so an item still running
+    `again_after` seconds later gets it again through `again` (default `stop`), and so on until it
+    ends; a second Ctrl-C while waiting does the same at once instead of abandoning the items."""
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     names = {i.name for i in items}
@@ -133,15 +138,44 @@ def run_items(
                     failed = True
     except (KeyboardInterrupt, Terminated) as exc:
         sig = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
-        for _, p, _ in running.values():
-            try:
-                stop(p, sig)
-            except ProcessLookupError:
-                pass
-        for _, p, _ in running.values():
-            p.wait()
+        _stop_and_wait(
+            [p for _, p, _ in running.values()], sig, stop, again or stop, again_after, poll_seconds, clock, sleep
+        )
         raise
     return out, [i.name for i in pending]
+
+
+def _stop_and_wait(
+    procs: list[Process],
+    sig: int,
+    stop: Callable[[Process, int], None],
+    again: Callable[[Process, int], None],
+    again_after: float,
+    poll_seconds: float,
+    clock: Callable[[], float],
+    sleep: Callable[[float], None],
+) -> None:
+    """`stop` each process with `sig`, then wait for all of them; SIGINT again (through `again`) to
+    those still running every `again_after` seconds, and at once on another Ctrl-C. SIGTERM is
+    sent once: a stage stops on it at its next safe point, however long that takes."""
+
+    def send(fn: Callable[[Process, int], None], ps: list[Process]) -> None:
+        for p in ps:
+            try:
+                fn(p, sig)
+            except ProcessLookupError:
+                pass
+
+    send(stop, procs)
+    last = clock()
+    while procs := [p for p in procs if p.poll() is None]:
+        try:
+            sleep(poll_seconds)
+        except KeyboardInterrupt:
+            last = float("-inf")  # a second Ctrl-C: pass it on now
+        if sig == signal.SIGINT and clock() - last >= again_after:
+            send(again, [p for p in procs if p.poll() is None])
+            last = clock()
 
 
 def group_members(pgid: int) -> list[int] | None:
@@ -235,13 +269,26 @@ def repro_parallel(
                 except ProcessLookupError:
                     pass
 
+    def stop_command(p: Process, sig: int) -> None:
+        # a signal again, to the stage's command only: DVC, done with the command and releasing
+        # its locks, must not be interrupted there
+        members = group_members(p.pid)  # type: ignore[attr-defined]
+        for pid in members or ():
+            if pid != p.pid:  # type: ignore[attr-defined]
+                try:
+                    os.kill(pid, sig)
+                except ProcessLookupError:
+                    pass
+
     def on_term(signum, frame):
         raise Terminated
 
     t0 = time.monotonic()
     old_term = signal.signal(signal.SIGTERM, on_term)
     try:
-        _, result.not_started = run_items(items, jobs, launch, finished=finished, started=started, stop=stop_group)
+        _, result.not_started = run_items(
+            items, jobs, launch, finished=finished, started=started, stop=stop_group, again=stop_command
+        )
     finally:
         signal.signal(signal.SIGTERM, old_term)
         for _, fh in files.values():
