@@ -278,6 +278,10 @@ def test_ctrl_c_or_sigterm_stops_the_running_items_cleanly(toy, sig, code):
         env=env,
         stderr=subprocess.PIPE,
         text=True,
+        # as from a terminal: SIGINT at its default, whatever this test process inherited (a process
+        # started with SIGINT ignored keeps it ignored, and Python then raises no KeyboardInterrupt;
+        # under the full suite an earlier test leaves the xdist worker so)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     for _ in range(600):  # the item's own shell has started once its flag exists
         if (toy / "flag0").exists():
