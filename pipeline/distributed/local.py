@@ -252,33 +252,26 @@ def repro_parallel(
             tail = "\n".join(text.rstrip().splitlines()[-30:])
             echo(f"{item.name} exited with {rc}; the end of its output ({path}):\n{tail}")
 
-    def stop_group(p: Process, sig: int) -> None:
+    def stop_command(p: Process, sig: int) -> None:
+        # the signal to the stage's command only, not to DVC (the group's leader): DVC killed, or
+        # interrupted while it releases its locks, would leave them behind
         pgid = p.pid  # type: ignore[attr-defined]  (a Popen in a session of its own: its group is its pid)
-        if sig == signal.SIGINT:
-            os.killpg(pgid, sig)  # as a terminal's Ctrl-C: DVC ignores it while the command runs
-            return
-        # SIGTERM to the stage's command only (it stops at a safe point, keeping its checkpoint,
-        # and exits 143): DVC itself, killed by it, would leave its locks behind
-        members = group_members(pgid)
-        if members is None:
-            os.killpg(pgid, sig)
-        for pid in members or ():
+        for pid in group_members(pgid) or ():
             if pid != pgid:
                 try:
                     os.kill(pid, sig)
                 except ProcessLookupError:
                     pass
 
-    def stop_command(p: Process, sig: int) -> None:
-        # a signal again, to the stage's command only: DVC, done with the command and releasing
-        # its locks, must not be interrupted there
-        members = group_members(p.pid)  # type: ignore[attr-defined]
-        for pid in members or ():
-            if pid != p.pid:  # type: ignore[attr-defined]
-                try:
-                    os.kill(pid, sig)
-                except ProcessLookupError:
-                    pass
+    def stop_group(p: Process, sig: int) -> None:
+        pgid = p.pid  # type: ignore[attr-defined]
+        if sig == signal.SIGINT or group_members(pgid) is None:
+            # SIGINT as a terminal's Ctrl-C (DVC ignores it while the command runs); without /proc
+            # the whole group is all there is to signal
+            os.killpg(pgid, sig)
+            return
+        # SIGTERM: the command stops at a safe point, keeping its checkpoint, and exits 143
+        stop_command(p, sig)
 
     def on_term(signum, frame):
         raise Terminated
