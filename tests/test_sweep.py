@@ -565,3 +565,22 @@ def test_stages_with_worker_processes_reserve_a_cpu_per_process():
     given = Grid(envs=["mo-hopper-2obj-v5"], resources={"train_specialist": {"cpus": 4}})
     assert _resources(given, "train_specialist", 0, 2) == (4.0, 0.0, 2)  # 2 processes x 2 threads
     assert _resources(given, "train_specialist", 1, 1)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads
+
+
+def test_an_upstream_output_missing_after_the_pull_is_named(tmp_path, monkeypatch):
+    """The task pulls its upstream items' outputs with one `dvc pull dvc.yaml` (a path target each
+    made DVC re-parse dvc.yaml and dvc.lock per path); whatever did not arrive fails the task by name."""
+    import pipeline.distributed.task as task_mod
+
+    calls = []
+    monkeypatch.setattr(task_mod, "_run_dvc", lambda cwd, env, *args: calls.append(args) or "")
+    (tmp_path / "data" / "score").mkdir(parents=True)
+    (tmp_path / "data" / "score" / "metrics.json").write_text("{}")
+    task = StageTask("c", "report", "s", "c", "", "/remote", ("data/score/metrics.json",), 1, 0.0)
+    task_mod._pull_upstream(tmp_path, {}, task)  # everything there: no error
+    assert calls == [("pull", "--quiet", "--allow-missing", "dvc.yaml")]
+    lost = StageTask("c", "report", "s", "c", "", "/remote", ("data/score/metrics.json", "data/evaluate/x.csv"), 1, 0.0)
+    with pytest.raises(
+        RuntimeError, match=r"1 upstream output\(s\) not in the remote /remote after `dvc pull`: data/evaluate/x.csv$"
+    ):
+        task_mod._pull_upstream(tmp_path, {}, lost)

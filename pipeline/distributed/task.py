@@ -133,6 +133,27 @@ def task_resume_dir(task: StageTask) -> Path | None:
     return Path(task.resume_root) / _safe(task.cell) / _safe(task.item)
 
 
+def _pull_upstream(clone: Path, env: dict[str, str], task: StageTask) -> None:
+    """Pull the outputs of every upstream item in the clone's dvc.lock (which holds only those),
+    then check that each path of task.pull arrived.
+
+    One target, the dvc.yaml file: DVC parses dvc.yaml and dvc.lock once. Given the outputs as
+    path targets instead, it re-parsed both for every path, twice (fetch, then checkout): about
+    2 s a path with 40-60 upstream entries in the lock, 374 s for a 5-seed report's 160 paths
+    (docs/benchmarks.md, "Sweep: pulling a report's inputs"). This pulls a little more than
+    task.pull (every output of those upstream items, such as the populations beside the
+    provenance a report reads), none of it large next to what the stages write. --allow-missing:
+    the stages of dvc.yaml that are not upstream have no lock entry, so nothing to pull; whether
+    the outputs this item needs arrived is checked below, by name."""
+    _run_dvc(clone, env, "pull", "--quiet", "--allow-missing", "dvc.yaml")
+    missing = [p for p in task.pull if not (clone / p).exists()]
+    if missing:
+        shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+        raise RuntimeError(
+            f"{len(missing)} upstream output(s) not in the remote {task.remote} after `dvc pull`: {shown}"
+        )
+
+
 def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
     """Run one stage item in a fresh clone: the Ray task body. Upstream results are its args."""
     start = time.monotonic()
@@ -161,7 +182,7 @@ def run_stage_task(task: StageTask, *upstream: StageResult) -> StageResult:
         try:
             t = time.monotonic()
             if task.pull:
-                _run_dvc(clone, env, "pull", "--quiet", *task.pull)
+                _pull_upstream(clone, env, task)
                 phases["pull"] = time.monotonic() - t
             t = time.monotonic()
             out = _run_dvc(clone, env, "repro", "--single-item", "--pull", task.item)
