@@ -139,7 +139,7 @@ def _pull_upstream(clone: Path, env: dict[str, str], task: StageTask) -> None:
 
     One target, the dvc.yaml file: DVC parses dvc.yaml and dvc.lock once. Given the outputs as
     path targets instead, it re-parsed both for every path, twice (fetch, then checkout): about
-    2 s a path with 40-60 upstream entries in the lock, 374 s for a 5-seed report's 160 paths
+    2.3 s a path with 40-60 upstream entries in the lock, 374 s for a 5-seed report's 160 paths
     (docs/benchmarks.md, "Sweep: pulling a report's inputs"). This pulls a little more than
     task.pull (every output of those upstream items, such as the populations beside the
     provenance a report reads), none of it large next to what the stages write. --allow-missing:
