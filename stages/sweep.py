@@ -72,6 +72,13 @@ def sweep(
         "resume progress, one folder per stage item: a task retried after its node died resumes there instead of "
         "starting over (default: progress lives in the worker's clone and dies with it)",
     ),
+    seed: Optional[list[int]] = typer.Option(
+        None,
+        "--seed",
+        min=0,
+        help="run only this seed instead of the grid's seeds (repeatable): a first look at a long grid; "
+        "a later run of the whole grid restores these seeds' stage items from the remote",
+    ),
     remote_option: Optional[list[str]] = typer.Option(
         None,
         "--remote-option",
@@ -109,6 +116,7 @@ def sweep(
             dry_run=dry_run,
             remote_options=options,
             resume_root=resume_root,
+            seeds=seed,
             log=typer.echo,
         )
     except SweepError as exc:

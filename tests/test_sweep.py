@@ -158,6 +158,25 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
     assert all(c["seeds"] == [1, 2] for c in cells.values())
 
 
+def test_seed_option_runs_a_subset_of_the_grids_seeds(tmp_path, source):
+    grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [1, 2]})
+    args = [grid, "--remote", tmp_path / "remote", "--repo", source, "--workdir", tmp_path / "work", "--dry-run"]
+    result = run_cli(*args, "--seed", "2")
+    assert result.exit_code == 0, result.output
+    ws = tmp_path / "work" / "mo-hopper-2obj-v5"
+    assert yaml.safe_load((ws / "params.yaml").read_text())["seeds"] == [2]
+    first = {i.name: i.signature for i in stage_items(ws)}
+    assert "train_specialist@2" in first and not any("@1" in n for n in first)
+    # the whole grid later: seed 2's items keep their run-cache keys (restored, not rerun)
+    assert run_cli(*args).exit_code == 0
+    assert yaml.safe_load((ws / "params.yaml").read_text())["seeds"] == [1, 2]
+    whole = {i.name: i.signature for i in stage_items(ws)}
+    kept = {n for n in first if "@2" in n and whole[n] == first[n]}
+    assert kept == {n for n in first if "@2" in n} and "train_specialist@1" in whole
+    result = run_cli(*args, "--seed", "0", "--seed", "0")
+    assert result.exit_code == 2 and "--seed [0, 0]: seeds must be unique" in result.output
+
+
 def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source):
     grid = write_grid(tmp_path / "grid.yaml", {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]})
     result = run_cli(

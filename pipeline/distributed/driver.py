@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from pipeline.distributed.errors import GridError, StageFailed, SweepError
-from pipeline.distributed.grid import Cell, Grid, ResourceSpec, load_grid, plan_cells
+from pipeline.distributed.grid import Cell, Grid, ResourceSpec, load_grid, plan_cells, with_seeds
 from pipeline.distributed.task import StageResult, StageTask, run_stage_task
 from pipeline.distributed.workspace import StageItem, _git, prepare_workspace, stage_items, write_lock
 
@@ -103,6 +103,7 @@ def run_sweep(
     dry_run: bool = False,
     remote_options: dict[str, str] | None = None,
     resume_root: Path | None = None,
+    seeds: list[int] | None = None,
     log: Callable[[str], None] = lambda line: None,
 ) -> list[CellResult]:
     """Run a grid: prepare one workspace per cell, run every stage item as a Ray task, write each
@@ -111,6 +112,8 @@ def run_sweep(
     the other cells completed."""
     grid_path = Path(grid_path)
     grid = load_grid(grid_path)
+    if seeds:
+        grid = with_seeds(grid, grid_path, seeds)
     options = _remote_settings(remote_options)
     repo = _repo_root(Path(repo).resolve())
     commit = _git(repo, "rev-parse", "HEAD").strip()

@@ -197,6 +197,15 @@ def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
     return user
 
 
+def with_seeds(grid: Grid, path: Path, seeds: list[int]) -> Grid:
+    """The grid with its seeds replaced (`mapex sweep --seed`): a first look at one seed of a long
+    grid. Per-seed stage items do not read the seed list, so a later run of the grid's own seeds
+    restores these from the remote's run-cache instead of recomputing them."""
+    if len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
+        raise GridError(f"{path}: --seed {seeds}: seeds must be unique and >= 0")
+    return grid.model_copy(update={"seeds": list(seeds)})
+
+
 def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cell]:
     """The grid's cells in order (envs outer, override sets inner), params validated."""
     base = _yaml_at(repo, commit, grid.base, f"{grid_path}: base")
