@@ -603,3 +603,72 @@ def test_an_upstream_output_missing_after_the_pull_is_named(tmp_path, monkeypatc
         RuntimeError, match=r"1 upstream output\(s\) not in the remote /remote after `dvc pull`: data/evaluate/x.csv$"
     ):
         task_mod._pull_upstream(tmp_path, {}, lost)
+
+
+def test_data_added_with_dvc_add_is_pulled_by_the_task_that_reads_it(tmp_path):
+    """An input the user tracked with `dvc add` and pushed (an imported specialist's model file) is
+    no stage item; the item that reads it pulls its .dvc file in its clone, and its hash is part
+    of the item's signature (a sweep of a mixed-sources preset failed on it before)."""
+    from pipeline.distributed.task import run_stage_task
+
+    repo, remote = tmp_path / "repo", tmp_path / "remote"
+    repo.mkdir()
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
+
+    def sh(*args: str) -> None:
+        subprocess.run(args, cwd=repo, env=env, check=True, capture_output=True)
+
+    sh("git", "init", "-q")
+    sh("git", "config", "user.email", "t@example.com")
+    sh("git", "config", "user.name", "t")
+    sh(str(BIN / "dvc"), "init", "-q")
+    (repo / "models").mkdir()
+    (repo / "models" / "speed.bin").write_bytes(b"weights v1")
+    sh(str(BIN / "dvc"), "add", "-q", "models/speed.bin")
+    (repo / "dvc.yaml").write_text(
+        "stages:\n"
+        "  use:\n    cmd: cp models/speed.bin copy.bin\n    deps: [models/speed.bin]\n    outs: [copy.bin]\n"
+        "  after:\n    cmd: cp copy.bin after.bin\n    deps: [copy.bin]\n    outs: [after.bin]\n"
+    )
+    (repo / "params.yaml").write_text("{}\n")
+    sh("git", "add", "-A")
+    sh("git", "commit", "-qm", "toy")
+    (repo / ".dvc" / "config.local").write_text(f"['remote \"r\"']\n    url = {remote}\n")
+    sh(str(BIN / "dvc"), "push", "-q", "-r", "r", "models/speed.bin.dvc")
+
+    items = {i.name: i for i in stage_items(repo)}
+    assert list(items) == ["use", "after"]  # the .dvc file is data, not an item
+    assert items["use"].sources == ("models/speed.bin.dvc",) and items["use"].pull == ("models/speed.bin",)
+    assert items["after"].sources == () and items["after"].upstream == ("use",)
+    assert [i.name for i in stage_items(repo, ["use"])] == ["use"]
+
+    # the task clones the commit (no model file in it), pulls the model and runs the stage
+    commit = git(repo, "rev-parse", "HEAD")
+    it = items["use"]
+    task = StageTask(
+        "c",
+        "use",
+        str(repo),
+        commit,
+        "{}\n",
+        str(remote),
+        it.pull,
+        1,
+        0.0,
+        str(tmp_path / "scratch"),
+        (),
+        None,
+        it.sources,
+    )
+    result = run_stage_task(task)
+    assert result.executed and result.lock["outs"][0]["path"] == "copy.bin"
+    assert (
+        result.lock["deps"][0]["md5"]
+        == yaml.safe_load((repo / "models" / "speed.bin.dvc").read_text())["outs"][0]["md5"]
+    )
+
+    # another model: another signature for its reader and everything downstream
+    (repo / "models" / "speed.bin").write_bytes(b"weights v2")
+    sh(str(BIN / "dvc"), "add", "-q", "models/speed.bin")
+    again = {i.name: i for i in stage_items(repo)}
+    assert all(again[n].signature != items[n].signature for n in ("use", "after"))

@@ -280,6 +280,7 @@ def _submit_tasks(
                     scratch,
                     options,
                     str(Path(resume_root).resolve()) if resume_root else None,
+                    it.sources,
                 )
                 ref = remote_fn.options(
                     num_cpus=cpus,

@@ -41,6 +41,7 @@ class StageTask:
     scratch: str | None = None
     remote_options: tuple[tuple[str, str], ...] = ()  # DVC remote settings besides its url
     resume_root: str | None = None  # shared storage for the stages' resume progress (MAPEX_RESUME_ROOT)
+    sources: tuple[str, ...] = ()  # .dvc files of `dvc add`ed data it reads (StageItem.sources), pulled first
 
 
 @dataclass(frozen=True)
@@ -144,8 +145,11 @@ def _pull_upstream(clone: Path, env: dict[str, str], task: StageTask) -> None:
     task.pull (every output of those upstream items, such as the populations beside the
     provenance a report reads), none of it large next to what the stages write. --allow-missing:
     the stages of dvc.yaml that are not upstream have no lock entry, so nothing to pull; whether
-    the outputs this item needs arrived is checked below, by name."""
-    _run_dvc(clone, env, "pull", "--quiet", "--allow-missing", "dvc.yaml")
+    the outputs this item needs arrived is checked below, by name. Data the user tracked with `dvc
+    add` (task.sources: an imported model's .dvc file) is pulled by its .dvc file, in the same call."""
+    lock = (clone / "dvc.lock").is_file() or not task.sources  # no upstream item: no lock, only the data
+    targets = (["dvc.yaml"] if lock else []) + list(task.sources)
+    _run_dvc(clone, env, "pull", "--quiet", "--allow-missing", *targets)
     missing = [p for p in task.pull if not (clone / p).exists()]
     if missing:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")

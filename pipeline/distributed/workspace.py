@@ -93,8 +93,14 @@ class StageItem:
     name: str  # dvc addressing, e.g. extract@0-td3-mapex
     stage: str  # dvc.yaml stage name, e.g. extract
     upstream: tuple[str, ...]  # direct upstream items
-    pull: tuple[str, ...]  # upstream outputs inside a folder dep (pulled before `dvc repro --pull`)
-    signature: str  # what DVC's run-cache key depends on besides code: cmd, declared params, upstream
+    pull: tuple[str, ...]  # upstream outputs inside a folder dep, and data-source files it reads (pulled first)
+    signature: str  # what DVC's run-cache key depends on besides code: cmd, declared params, upstream, sources
+    sources: tuple[str, ...] = ()  # the .dvc files (`dvc add`) of the data it reads, e.g. an imported model
+
+
+def _name(stage: Any) -> str:
+    """A stage's name in dvc.yaml; a .dvc file's stage (data added with `dvc add`) has none: its path."""
+    return getattr(stage, "name", None) or stage.addressing
 
 
 def stage_items(workspace: Path, targets: list[str] | None = None) -> list[StageItem]:
@@ -112,10 +118,10 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
         if targets:
             keep = set()
             for t in targets:
-                hits = [s for s in graph if s.name == t or s.name.split("@")[0] == t]
+                hits = [s for s in graph if not s.is_data_source and (s.name == t or s.name.split("@")[0] == t)]
                 if not hits:
                     raise ValueError(
-                        f"target {t!r} is no stage or stage item of dvc.yaml (have {sorted({s.name.split('@')[0] for s in graph})})"
+                        f"target {t!r} is no stage or stage item of dvc.yaml (have {sorted({_name(s).split('@')[0] for s in graph if not s.is_data_source})})"
                     )
                 for s in hits:
                     keep |= {s} | nx.descendants(graph, s)
@@ -125,8 +131,29 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
         height: dict[Any, int] = {}
         for stage in nx.topological_sort(graph):  # dependents before their upstream
             height[stage] = 1 + max((height[d] for d in graph.predecessors(stage)), default=0)
-        for stage in nx.lexicographical_topological_sort(graph.reverse(copy=False), key=lambda s: (-height[s], s.name)):
-            ups = sorted(graph.successors(stage), key=lambda s: s.name)
+        for stage in nx.lexicographical_topological_sort(
+            graph.reverse(copy=False), key=lambda s: (-height[s], _name(s))
+        ):
+            if stage.is_data_source:
+                continue  # a .dvc file (`dvc add`, such as a user's model): data, no item; its readers pull it
+            ups = sorted((u for u in graph.successors(stage) if not u.is_data_source), key=lambda s: s.name)
+            # Data a user tracked with `dvc add` and pushed: `dvc repro --single-item --pull` does not
+            # fetch a dep that no pipeline stage writes, so the task pulls its .dvc file first; its
+            # hash joins the signature (two cells with different models are different runs).
+            data = {}
+            for src in graph.successors(stage):
+                if src.is_data_source:
+                    for out in src.outs:
+                        if any(
+                            out.fs_path == d.fs_path
+                            or out.fs.isin(d.fs_path, out.fs_path)
+                            or out.fs.isin(out.fs_path, d.fs_path)
+                            for d in stage.deps
+                        ):
+                            data[os.path.relpath(out.fs_path, root)] = (
+                                os.path.relpath(src.path, root),
+                                str(out.hash_info.value),
+                            )
             # `dvc repro --pull` pulls a missing dep that is an upstream output (or inside one)
             # itself; a dep that is a folder holding outputs (report's data/evaluate) it cannot,
             # so the task pulls those outputs first.
@@ -149,7 +176,13 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
                             "leaves out (DVC refuses to run it)"
                         )
             key = json.dumps(
-                {"item": stage.name, "cmd": stage.cmd, "params": params, "upstream": [signatures[u.name] for u in ups]},
+                {
+                    "item": stage.name,
+                    "cmd": stage.cmd,
+                    "params": params,
+                    "upstream": [signatures[u.name] for u in ups],
+                    **({"sources": {k: h for k, (_, h) in sorted(data.items())}} if data else {}),
+                },
                 sort_keys=True,
                 default=str,
             )
@@ -159,8 +192,9 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
                     stage.name,
                     stage.name.split("@")[0],
                     tuple(u.name for u in ups),
-                    tuple(sorted(pull)),
+                    tuple(sorted(pull | set(data))),
                     signatures[stage.name],
+                    tuple(sorted({f for f, _ in data.values()})),
                 )
             )
     return items
