@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from support.browser import open_browser
+from support.browser import changes, open_browser
 
 from pipeline.core.envs import env_spec, make_env
 from pipeline.core.nets import Actor
@@ -195,8 +195,7 @@ def test_explorer_plays_the_clip_of_the_point_clicked(rendered, tmp_path):
         ).json_value()
         assert state == [WIDTH, HEIGHT], state
         t0 = page.evaluate("document.getElementById('clip').currentTime")
-        page.wait_for_timeout(300)
-        assert page.evaluate("document.getElementById('clip').currentTime") != t0
+        assert changes(page, "document.getElementById('clip').currentTime", t0), "the clip does not play"
         info = page.locator("#info").inner_text()
         assert "0.6, 0.8" in info and "0, 1" in info and "member_0003.pt" in info, info
         page.screenshot(path=str(tmp_path / "explorer.png"))

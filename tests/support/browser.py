@@ -15,6 +15,9 @@ from pathlib import Path
 import pytest
 
 CHROMIUM_NAMES = ("chromium", "chromium-browser", "google-chrome")
+# How long `changes` waits for a page value to move: generous, since a loaded machine can stall a
+# headless decoder or animation for seconds; a page that never moves still fails, after this.
+WAIT_MS = 15_000
 
 
 def chromium() -> str | None:
@@ -83,3 +86,15 @@ def open_browser(width: int = 1280, height: int = 900):
         finally:
             context.close()
             browser.close()
+
+
+def changes(page, expression: str, before) -> bool:
+    """Whether the page's JavaScript `expression` comes to differ from `before` within WAIT_MS
+    (polled every animation frame): a clip's time moving on, a turning view's coordinates."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        page.wait_for_function(f"(before) => ({expression}) !== before", arg=before, timeout=WAIT_MS)
+    except PlaywrightTimeout:
+        return False
+    return True
