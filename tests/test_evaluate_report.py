@@ -552,6 +552,21 @@ def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
     ]
 
 
+def test_a_hybrid_run_against_warm_up_only_is_not_called_the_advantage_weighted_phase():
+    """MAPEX run with extract.init: interpolate (its metrics.json records init_fallbacks) differs
+    from warm-up only in its start and seeds too: the verdict names the method and its start, not
+    'the advantage-weighted phase'; the paper form's verdict keeps that name."""
+    runs = _runs([3.0, 5.1, 7.9], [2.0, 4.0, 7.0])
+    assert "the advantage-weighted phase (MAPEX-TD3) beat warm-up only" in hv_verdict(runs).sentence
+    for r in runs[:3]:
+        r.metrics["init_fallbacks"] = {}
+    sentence = hv_verdict(runs).sentence
+    assert "advantage-weighted" not in sentence, sentence
+    assert "MAPEX-TD3, started from interpolated weights, beat warm-up only" in sentence, sentence
+    # a pair given by name (report.pairs) is named by its label alone, as before
+    assert "(3 seeds, up to 4 iterations), MAPEX-TD3 beat" in hv_verdict(runs, what="MAPEX-TD3").sentence
+
+
 def test_sources_line_names_the_imported_and_the_trained_objectives():
     """Runs whose metrics record specialist_sources (imported slots beside ones trained here) give one
     line naming both; runs without them give none."""

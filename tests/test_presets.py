@@ -245,6 +245,29 @@ def test_the_studies_of_the_results_have_grids():
     assert {p.stem for p in STUDIES} >= {"front64", "front256", "fronthopper", "frontmixed"}
 
 
+def test_the_mixed_preset_runs_the_form_measured_best_and_section_8_keeps_its_own():
+    """Issue 44, item 5: presets/mixed.yaml's MAPEX-PostHoc is the hybrid exactly as its study's
+    `hybrid` cell ran it (results 2.6.4: ahead of the paper form, warm-up only and interpolation
+    in every seed), beside both baselines; section 8's grid still runs the gentle paper form."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+
+    def cells(name: str) -> dict[str, dict]:
+        path = ROOT / "presets" / "studies" / f"{name}.yaml"
+        return {c.name: c.params for c in plan_cells(load_grid(path), path, ROOT, head.stdout.strip())}
+
+    preset = load_params(ROOT / "presets" / "mixed.yaml")
+    measured = cells("frontmixed")["halfcheetah-mixed.hybrid"]
+    assert preset["extract"] == measured["extract"]
+    assert preset["extract"]["init"] == "interpolate" and preset["extract"]["seed_interpolation"] == 12
+    assert preset["methods"] == measured["methods"]
+    (section8,) = cells("mixed").values()
+    assert section8["methods"] == ["mapex_posthoc_imported", "warmup_only_imported"]
+    ext = section8["extract"]
+    assert (ext["init"], ext["seed_interpolation"], ext["epochs"], ext["lr"]) == ("warmup", 0, 1, 0.0001)
+
+
 def test_the_hybrid_studies_compare_four_methods_on_equal_children():
     """Issue 44's grids run the hybrid, the paper form, warm-up only and interpolation from the same
     specialists, the hybrid seeded with as many interpolated policies as the paper form trains
@@ -275,7 +298,8 @@ def test_the_hybrid_studies_compare_four_methods_on_equal_children():
     paper, hybrid = mixed["halfcheetah-mixed.paper"], mixed["halfcheetah-mixed.hybrid"]
     assert paper["methods"] == ["mapex_posthoc_imported", "warmup_only_imported", "interpolate_imported"]
     ext = paper["extract"]
-    assert "init" not in ext and ext["epochs"] == paper_extract("mo-halfcheetah-v5")[0] and ext["lr"] == 0.0003
+    assert ext["init"] == "warmup" and ext["seed_interpolation"] == 0  # the paper's start
+    assert ext["epochs"] == paper_extract("mo-halfcheetah-v5")[0] and ext["lr"] == 0.0003
     assert hybrid["extract"] == ext | seeded(ext)
     assert {k: v for k, v in hybrid.items() if k != "extract"} == {k: v for k, v in paper.items() if k != "extract"}
     # hybrid vs paper form crosses the cells: the grid report's --pair, as the grid's header and
