@@ -245,18 +245,19 @@ def test_the_studies_of_the_results_have_grids():
     assert {p.stem for p in STUDIES} >= {"front64", "front256", "fronthopper", "frontmixed"}
 
 
+def cells(name: str) -> dict[str, dict]:
+    """The cells of study grid presets/studies/<name>.yaml at HEAD: cell name -> its params."""
+    from pipeline.distributed.grid import load_grid, plan_cells
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+    path = ROOT / "presets" / "studies" / f"{name}.yaml"
+    return {c.name: c.params for c in plan_cells(load_grid(path), path, ROOT, head.stdout.strip())}
+
+
 def test_the_mixed_preset_runs_the_form_measured_best_and_section_8_keeps_its_own():
     """Issue 44, item 5: presets/mixed.yaml's MAPEX-PostHoc is the hybrid exactly as its study's
     `hybrid` cell ran it (results 2.6.4: ahead of the paper form, warm-up only and interpolation
     in every seed), beside both baselines; section 8's grid still runs the gentle paper form."""
-    from pipeline.distributed.grid import load_grid, plan_cells
-
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-
-    def cells(name: str) -> dict[str, dict]:
-        path = ROOT / "presets" / "studies" / f"{name}.yaml"
-        return {c.name: c.params for c in plan_cells(load_grid(path), path, ROOT, head.stdout.strip())}
-
     preset = load_params(ROOT / "presets" / "mixed.yaml")
     measured = cells("frontmixed")["halfcheetah-mixed.hybrid"]
     assert preset["extract"] == measured["extract"]
@@ -274,13 +275,6 @@ def test_the_hybrid_studies_compare_four_methods_on_equal_children():
     children, and pair the hybrid with each; the answer grids over the same presets still leave the
     hybrid out. The mixed-source case, whose method has no variants, is two cells that differ only
     in the hybrid's extract keys (so everything else is one run each, shared)."""
-    from pipeline.distributed.grid import load_grid, plan_cells
-
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-
-    def cells(name: str) -> dict[str, dict]:
-        path = ROOT / "presets" / "studies" / f"{name}.yaml"
-        return {c.name: c.params for c in plan_cells(load_grid(path), path, ROOT, head.stdout.strip())}
 
     def seeded(ext: dict) -> dict:
         return {"init": "interpolate", "seed_interpolation": ext["iterations"] * ext["children_per_iteration"]}
