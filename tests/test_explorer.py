@@ -221,10 +221,8 @@ def test_three_objectives_pairwise_projections_and_a_turning_3d_view(tmp_path, n
     assert sorted(view.locator("text.axis").all_text_contents()) == sorted(names)
     n_points = sum(len(p["points"]) for p in panels)
     assert view.locator(".pt").count() == n_points
-    where = "(ns) => ns.map((n) => n.getAttribute('cx')).join()"
-    before = view.locator("circle.pt").evaluate_all(where)
-    turned = "[...document.querySelectorAll('svg.view3d circle.pt')].map((n) => n.getAttribute('cx')).join()"
-    assert changes(page, turned, before), "the 3-D view does not turn"
+    where = "[...document.querySelectorAll('svg.view3d circle.pt')].map((n) => n.getAttribute('cx')).join()"
+    assert changes(page, where, page.evaluate(where)), "the 3-D view does not turn"
     weights = (0.2, 0.3, 0.5)
     for m, w in enumerate(weights):
         page.locator("input.weight").nth(m).fill(f"{w:g}")

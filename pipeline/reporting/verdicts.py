@@ -13,13 +13,13 @@ from pipeline.params.methods import VARIANT_BASES, VARIANT_METHODS, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 
-# Comparisons the verdict section states when both methods of a pair were run: (a, b, what a is).
 # How VERDICT_PAIRS names MAPEX against its warm-up-only ablation (the paper's form only: see hv_verdict)
 ABLATION = "the advantage-weighted phase"
+# Comparisons the verdict section states when both methods of a pair were run: (a, b, what a is).
 VERDICT_PAIRS = (
-    ("mapex_pderl", "warmup_only_pderl", "the advantage-weighted phase (MAPEX)"),
-    ("mapex_td3", "warmup_only_td3", "the advantage-weighted phase (MAPEX-TD3)"),
-    ("mapex_posthoc_imported", "warmup_only_imported", "the advantage-weighted phase (MAPEX-PostHoc, imported)"),
+    ("mapex_pderl", "warmup_only_pderl", f"{ABLATION} (MAPEX)"),
+    ("mapex_td3", "warmup_only_td3", f"{ABLATION} (MAPEX-TD3)"),
+    ("mapex_posthoc_imported", "warmup_only_imported", f"{ABLATION} (MAPEX-PostHoc, imported)"),
     # weight-space interpolation between the same specialists (a baseline the paper does not have)
     ("mapex_pderl", "interpolate_pderl", "MAPEX"),
     ("mapex_td3", "interpolate_td3", "MAPEX-TD3"),
