@@ -22,10 +22,10 @@ from pipeline.evaluation.render import (
     film_clips,
 )
 from pipeline.params import ParamsError
-from pipeline.params.methods import colour, label, use_variants
 from pipeline.params.render import RenderParams
 from pipeline.params.variants import parse_variants
 from pipeline.reporting.explorer import explorer_html, hex_colour, load_front_run, point_record
+from pipeline.reporting.presentation import colour, label, use_variants
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 INDEX_FORMAT = "mapex.render"

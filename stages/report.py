@@ -10,12 +10,12 @@ import typer
 from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
 from pipeline.params import ParamsError
-from pipeline.params.methods import label, use_variants
 from pipeline.params.report import ReportParams
 from pipeline.params.variants import parse_variants
 from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
 from pipeline.reporting.figures import cost_figure, front_caption, front_figure, history_figure
 from pipeline.reporting.gallery import gallery_markdown
+from pipeline.reporting.presentation import label, use_variants
 from pipeline.reporting.report import report_markdown
 from pipeline.reporting.runs import Run, check_comparable, load_runs
 from pipeline.reporting.specialists import sources_line

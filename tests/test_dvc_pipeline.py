@@ -128,3 +128,23 @@ def test_an_edit_that_changes_no_number_reruns_only_the_stage_it_touches(repo):
     assert new_outs[rel] != outs[rel]  # the record: the new commit
     assert before["stage"] == "train_specialist" and before["git_commit"] != head
     assert json.loads(record.read_text())["git_commit"] == head
+
+
+def test_a_new_label_or_colour_reruns_only_the_stages_that_draw(repo):
+    """Presentation is not computation: relabelling and recolouring MAPEX-TD3 leaves the
+    specialists, the extractions, the evaluations and the scores up to date; only render and
+    report see the change (their code closure holds the looks, no other stage's does)."""
+    dvc = str(BIN / "dvc")
+    run_copy([dvc, "repro"], repo)  # up to date after the tests above; the whole chain when run alone
+    looks = repo / "pipeline" / "reporting" / "presentation.py"
+    source = looks.read_text()
+    row = '"mapex_td3": Look("MAPEX-TD3", "tab:green")'
+    assert row in source
+    looks.write_text(source.replace(row, '"mapex_td3": Look("MAPEX, TD3 specialists", "tab:olive")'))
+    try:
+        from test_dvc_methods import stale_stages
+
+        assert stale_stages(repo) == {"render", "report"}
+    finally:
+        looks.write_text(source)
+    assert "up to date" in run_copy([dvc, "status"], repo)

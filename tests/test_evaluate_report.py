@@ -24,9 +24,9 @@ from pipeline.core.population import Member, actor_state, load_population, membe
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.params import section
-from pipeline.params.methods import specialist_kind
 from pipeline.params.report import ReportParams
 from pipeline.reporting.cost import verdict_cost_table
+from pipeline.reporting.presentation import specialist_kind
 from pipeline.reporting.runs import Run, load_runs
 from pipeline.reporting.specialists import own_returns_table, sources_line, weak_sentence, weak_specialists
 from pipeline.reporting.tables import (

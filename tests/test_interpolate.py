@@ -29,9 +29,10 @@ from pipeline.core.specialist import StartingPolicy
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.extraction import run as extraction_run
 from pipeline.params import RunParams, section
-from pipeline.params.methods import METHODS, derived_lists, label
+from pipeline.params.methods import METHODS, derived_lists
 from pipeline.params.sync import run_lists, synced_text
 from pipeline.params.td3 import TD3Params
+from pipeline.reporting.presentation import colour, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.verdicts import VERDICT_PAIRS, verdicts
 from pipeline.specialists.td3 import init_stacked, run_seeds
@@ -208,7 +209,7 @@ def test_interpolation_is_a_method_of_every_kind_with_its_own_stage_and_verdict(
             label(m.name)
             == f"interpolation ({'PDERL' if kind == 'pderl' else kind.upper() if kind == 'td3' else kind})"
         )
-    assert len({m.colour for m in METHODS.values()}) == len(METHODS)
+    assert len({colour(m) for m in METHODS}) == len(METHODS)
     pairs = {(a, b) for a, b, _ in VERDICT_PAIRS}
     assert {("mapex_td3", "interpolate_td3"), ("mapex_pderl", "interpolate_pderl")} <= pairs
     assert ("mapex_posthoc_imported", "interpolate_imported") in pairs

@@ -18,6 +18,7 @@ from pipeline.core.codedeps import ROOT, stage_module
 from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
 from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, derived_lists, method_name
 from pipeline.params.registry import section_models
+from pipeline.reporting.presentation import LOOKS
 from stages.cli import COMMANDS
 
 STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
@@ -60,8 +61,11 @@ def test_a_method_is_wired_into_every_place(name):
         assert s in KNOWN_SECTIONS, f"{name}: section {s!r} (stage {m.stage}) is not in KNOWN_SECTIONS"
         assert s in section_models() or s in ("seeds", "objectives", "methods"), f"{name}: no model for {s!r}"
     # and a name and colour of its own in the report
-    assert [x.label for x in METHODS.values()].count(m.label) == 1, f"{name}: label {m.label!r} is not unique"
-    assert [x.colour for x in METHODS.values()].count(m.colour) == 1, f"{name}: colour {m.colour!r} is not unique"
+    # its look in the report, on the reporting side (pipeline/reporting/presentation.py), unique
+    assert name in LOOKS, f"{name}: no label and colour in pipeline/reporting/presentation.py LOOKS"
+    look = LOOKS[name]
+    assert [x.label for x in LOOKS.values()].count(look.label) == 1, f"{name}: label {look.label!r} is not unique"
+    assert [x.colour for x in LOOKS.values()].count(look.colour) == 1, f"{name}: colour {look.colour!r} is not unique"
     # place 2: each section's model is one line of SECTION_MODELS, a module of pipeline/params/
     for s in sections - {"env", "seeds", "objectives", "methods", "variants"}:
         assert s in SECTION_MODELS, f"{name}: section {s!r} (stage {m.stage}) has no line in SECTION_MODELS"
@@ -98,3 +102,8 @@ def test_developing_md_lists_six_places_to_add_a_method():
 def test_every_run_list_of_derived_lists_is_declared_once():
     """derived_lists computes exactly the lists RUN_LISTS declares (RunParams' derived fields)."""
     assert list(derived_lists(["mapex_td3", "warmup_only_td3"], [0])) == list(RUN_LISTS)
+
+
+def test_every_method_has_a_look_and_every_look_a_method():
+    """Labels and colours sit on the reporting side, one row per method of METHODS, none stray."""
+    assert set(LOOKS) == set(METHODS)

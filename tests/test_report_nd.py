@@ -26,8 +26,8 @@ from typer.testing import CliRunner
 from pipeline.core.nets import Actor
 from pipeline.core.population import Member, actor_state, save_population
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.params.methods import colour, label
 from pipeline.reporting.figures import front_caption, front_figure, history_figure
+from pipeline.reporting.presentation import colour, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 from stages.evaluate import evaluate

@@ -583,7 +583,7 @@ def test_stages_with_worker_processes_reserve_a_cpu_per_process():
     assert _resources(grid, "extract", 0, 1) == (1.0, 0.0, 1)
     given = Grid(envs=["mo-hopper-2obj-v5"], resources={"train_specialist": {"cpus": 4}})
     assert _resources(given, "train_specialist", 0, 2) == (4.0, 0.0, 2)  # 2 processes x 2 threads
-    assert _resources(given, "train_specialist", 1, 1)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads
+    assert _resources(given, "train_specialist", 1, 1, True)[1:] == (1.0, 4)  # a GPU, 1 process x 4 threads
 
 
 def test_an_upstream_output_missing_after_the_pull_is_named(tmp_path, monkeypatch):
@@ -672,3 +672,59 @@ def test_data_added_with_dvc_add_is_pulled_by_the_task_that_reads_it(tmp_path):
     sh(str(BIN / "dvc"), "add", "-q", "models/speed.bin")
     again = {i.name: i for i in stage_items(repo)}
     assert all(again[n].signature != items[n].signature for n in ("use", "after"))
+
+
+def _without_devices(params: dict) -> dict:
+    """`params` with every section's `device` key removed: each stage at its model's default."""
+    return {
+        k: ({kk: vv for kk, vv in v.items() if kk != "device"} if isinstance(v, dict) else v) for k, v in params.items()
+    }
+
+
+def test_every_stage_that_trains_or_extracts_is_planned_with_a_gpu(tmp_path):
+    """On a (simulated) cluster with a GPU, `gpus: auto` gives one to every stage item that
+    trains or extracts, the variant stages and the baselines included, read from the params each
+    item lists; evaluation (device: cpu by default), scoring, the fidelity checks, interpolation
+    and the report get none; a variant that sets its device to cpu gets none either."""
+    from support.dvc_repo import make_repo
+    from support.tiny_params import TINY_ALL, with_lists
+
+    methods = [*TINY_ALL["methods"], "interpolate_td3", "hybrid", "warm", "interp_shared", "hybrid_cpu"]
+    variants = {
+        "hybrid": {"of": "mapex_td3", "extract": {"init": "interpolate"}},
+        "warm": {"of": "warmup_only_td3", "extract": {"warmup_steps": 10}},
+        "td3_shared": {"of": "td3", "td3": {"shared_init": True}},
+        "interp_shared": {"of": "interpolate_td3", "specialists": "td3_shared"},
+        "hybrid_cpu": {"of": "mapex_td3", "specialists": "td3_shared", "extract": {"device": "cpu"}},
+    }
+    params = with_lists(_without_devices({**TINY_ALL, "methods": methods, "variants": variants}))
+    root = make_repo(tmp_path / "repo", params)
+    grid = Grid(envs=["mo-hopper-2obj-v5"])
+    gpus = {}
+    for it in stage_items(root):
+        gpus[it.name] = _resources(grid, it.stage, 1.0, 1, it.on_device)[1]
+        assert _resources(grid, it.stage, 0.0, 1, it.on_device)[1] == 0.0  # no GPU in the cluster: none
+    by_stage: dict[str, set[float]] = {}
+    for name, g in gpus.items():
+        by_stage.setdefault(name.split("@")[0], set()).add(g)
+    # extract_variant: the variant told device: cpu is its one item a seed without a GPU
+    variant_items = [g for n, g in gpus.items() if n.startswith("extract_variant@")]
+    assert variant_items.count(0.0) == len(params["seeds"]) and variant_items.count(1.0) == 2 * len(params["seeds"])
+    by_stage["extract_variant"] = {1.0}
+    trains = {
+        "train_specialist",
+        "train_specialist_variant",
+        "train_pderl",
+        "fit_critics",
+        "extract",
+        "warmup_only",
+        "extract_posthoc",
+        "extract_variant",
+        "mopderl",
+        "morld",
+    }
+    assert trains <= set(by_stage), sorted(set(trains) - set(by_stage))
+    for stage in trains:
+        assert by_stage[stage] == {1.0}, (stage, by_stage[stage])
+    for stage in ("evaluate", "score", "critic_fidelity", "interpolate", "interpolate_variant", "report"):
+        assert by_stage[stage] == {0.0}, (stage, by_stage[stage])

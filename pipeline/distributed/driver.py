@@ -16,8 +16,6 @@ from pipeline.distributed.grid import Cell, Grid, ResourceSpec, load_grid, plan_
 from pipeline.distributed.task import StageResult, StageTask, run_stage_task
 from pipeline.distributed.workspace import StageItem, _git, prepare_workspace, stage_items, write_lock
 
-# Stages that get a GPU when the cluster has one (resources gpus: auto); the others run on CPU.
-GPU_STAGES = ("train_specialist", "train_pderl", "fit_critics", "extract", "warmup_only", "extract_posthoc")
 SWEEP_EXTRA = 'pip install -e ".[sweep]"'
 
 
@@ -68,15 +66,19 @@ def stage_processes(params: dict[str, Any], stage: str) -> int:
     return max(1, int((params.get(stage) or {}).get("processes", 1)))
 
 
-def _resources(grid: Grid, stage: str, cluster_gpus: float, processes: int = 1) -> tuple[float, float, int]:
+def _resources(
+    grid: Grid, stage: str, cluster_gpus: float, processes: int = 1, on_device: bool = False
+) -> tuple[float, float, int]:
     """(CPUs, GPUs, torch threads per process) of one task. A stage that runs `processes`
     worker processes reserves that many CPUs unless the grid says otherwise, and its threads
-    default to the reserved CPUs shared among its processes."""
+    default to the reserved CPUs shared among its processes. Under `gpus: auto` an item that
+    computes on a device (`on_device`: pipeline.distributed.workspace.wants_device, from the
+    params it lists) gets one GPU where the cluster has any."""
     spec = grid.resources.get(stage, ResourceSpec())
     cpus = spec.cpus if "cpus" in spec.model_fields_set else float(processes)
     gpus = spec.gpus
     if gpus == "auto":
-        gpus = 1.0 if cluster_gpus > 0 and stage in GPU_STAGES else 0.0
+        gpus = 1.0 if cluster_gpus > 0 and on_device else 0.0
     threads = spec.threads or max(1, int(cpus) // processes)
     return cpus, float(gpus), threads
 
@@ -205,7 +207,7 @@ def _plan_workspaces(
                 raise GridError(f"{grid_path}: targets: {exc}") from None
             except Exception as exc:  # noqa: BLE001 - DVC's own errors (dvc.yaml vs the cell's params)
                 raise SweepError(f"cell {cell.name}: DVC cannot read the pipeline in {ws}: {exc}") from None
-            known = {i.stage for i in plan.items} | set(GPU_STAGES)
+            known = {i.stage for i in plan.items} | _stage_names(ws)
             unknown = sorted(set(grid.resources) - known)
             if unknown:
                 raise GridError(
@@ -222,6 +224,16 @@ def _log_plan(todo: list[CellPlan], results: dict[str, CellResult], log: Callabl
         results[p.cell.name].status = "planned"
         for it in p.items:
             log(f"    {p.cell.name} {it.name}  <- {', '.join(it.upstream) or '-'}")
+
+
+def _stage_names(ws: Path) -> set[str]:
+    """Every stage dvc.yaml defines in workspace `ws`, those with no item in this cell included."""
+    try:
+        import yaml
+
+        return set((yaml.safe_load((ws / "dvc.yaml").read_text()) or {}).get("stages") or {})
+    except (OSError, ValueError):
+        return set()
 
 
 def _start_ray(ray, address: str | None, workers: int | None) -> bool:
@@ -266,7 +278,9 @@ def _submit_tasks(
             if it.signature in by_signature:
                 ref = by_signature[it.signature]
             else:
-                cpus, gpus, threads = _resources(grid, it.stage, cluster_gpus, stage_processes(p.cell.params, it.stage))
+                cpus, gpus, threads = _resources(
+                    grid, it.stage, cluster_gpus, stage_processes(p.cell.params, it.stage), it.on_device
+                )
                 task = StageTask(
                     p.cell.name,
                     it.name,

@@ -96,6 +96,41 @@ class StageItem:
     pull: tuple[str, ...]  # upstream outputs inside a folder dep, and data-source files it reads (pulled first)
     signature: str  # what DVC's run-cache key depends on besides code: cmd, declared params, upstream, sources
     sources: tuple[str, ...] = ()  # the .dvc files (`dvc add`) of the data it reads, e.g. an imported model
+    on_device: bool = False  # it computes on an accelerator when there is one (wants_device)
+
+
+def wants_device(params: dict[str, dict[str, Any]]) -> bool:
+    """Whether a stage item computes on an accelerator when one is there, read from what defines
+    it: the params it lists (`params`: file -> listed key -> value, as DVC reads them). True when
+    a params.yaml section it lists has a `device` setting in its model and that setting, the
+    file's or else the model's default, after the overrides of a variant it lists
+    (`variants.<name>`), is not cpu. So every stage that trains or extracts, variants included,
+    qualifies by being one, and a stage told `device: cpu` (evaluate's default) does not; no list
+    of stage names to keep beside dvc.yaml."""
+    from pipeline.params.registry import section_models
+
+    models = section_models()
+    values = params.get("params.yaml") or {}
+    sections: dict[str, dict[str, Any]] = {}
+    overrides: dict[str, dict[str, Any]] = {}
+    for key, value in values.items():
+        head, _, rest = key.partition(".")
+        if head == "variants" and rest and isinstance(value, dict):
+            for section, over in value.items():
+                if isinstance(over, dict):
+                    overrides.setdefault(section, {}).update(over)
+        elif not rest and isinstance(value, dict):
+            sections.setdefault(head, {}).update(value)
+        elif rest == "device":
+            sections.setdefault(head, {})["device"] = value
+    for section, body in sections.items():
+        model = models.get(section)
+        if model is None or "device" not in model.model_fields:
+            continue
+        device = {**body, **overrides.get(section, {})}.get("device", model.model_fields["device"].default)
+        if device != "cpu":
+            return True
+    return False
 
 
 def _name(stage: Any) -> str:
@@ -195,6 +230,7 @@ def stage_items(workspace: Path, targets: list[str] | None = None) -> list[Stage
                     tuple(sorted(pull | set(data))),
                     signatures[stage.name],
                     tuple(sorted({f for f, _ in data.values()})),
+                    wants_device(params),
                 )
             )
     return items

@@ -21,43 +21,29 @@ class Method(NamedTuple):
     name: str  # in params.yaml's `methods`, data/fronts/<name>/, every artifact's "method" key
     variant: str | None  # extraction variant (mapex, mapex_posthoc, warmup_only); None for a baseline
     kind: str | None  # the specialists it starts from: td3, pderl; None if none
-    label: str  # its name in the report (the paper's where it has one)
-    colour: str  # its colour in the report's figures (matplotlib)
     stage: str  # the dvc.yaml stage writing data/fronts/<name>/
 
 
-# In the report's usual order: the paper's MAPEX first.
+# What each method computes. How the report shows it (label, colour, row order) is presentation,
+# kept on the reporting side (pipeline/reporting/presentation.py): this file is in the code
+# closure of every stage, so a label here would make a recolouring retrain the specialists.
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("mapex_pderl", "mapex", "pderl", "MAPEX", "tab:blue", "extract"),
-        Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "MAPEX-PostHoc", "tab:cyan", "extract_posthoc"),
-        Method("warmup_only_pderl", "warmup_only", "pderl", "warm-up only (PDERL)", "tab:gray", "warmup_only"),
-        Method("mapex_td3", "mapex", "td3", "MAPEX-TD3", "tab:green", "extract"),
-        Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "MAPEX-TD3-PostHoc", "tab:olive", "extract_posthoc"),
-        Method("warmup_only_td3", "warmup_only", "td3", "warm-up only (TD3)", "tab:orange", "warmup_only"),
-        Method(
-            "mapex_posthoc_imported",
-            "mapex_posthoc",
-            "imported",
-            "MAPEX-PostHoc (imported)",
-            "tab:brown",
-            "extract_posthoc",
-        ),
-        Method(
-            "warmup_only_imported",
-            "warmup_only",
-            "imported",
-            "warm-up only (imported)",
-            "tab:pink",
-            "warmup_only",
-        ),
+        Method("mapex_pderl", "mapex", "pderl", "extract"),
+        Method("mapex_posthoc_pderl", "mapex_posthoc", "pderl", "extract_posthoc"),
+        Method("warmup_only_pderl", "warmup_only", "pderl", "warmup_only"),
+        Method("mapex_td3", "mapex", "td3", "extract"),
+        Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "extract_posthoc"),
+        Method("warmup_only_td3", "warmup_only", "td3", "warmup_only"),
+        Method("mapex_posthoc_imported", "mapex_posthoc", "imported", "extract_posthoc"),
+        Method("warmup_only_imported", "warmup_only", "imported", "warmup_only"),
         # the weight-space interpolation baseline (not in the paper): pipeline/baselines/interpolate.py
-        Method("interpolate_pderl", None, "pderl", "interpolation (PDERL)", "darkcyan", "interpolate"),
-        Method("interpolate_td3", None, "td3", "interpolation (TD3)", "goldenrod", "interpolate"),
-        Method("interpolate_imported", None, "imported", "interpolation (imported)", "rosybrown", "interpolate"),
-        Method("mopderl", None, "pderl", "MOPDERL", "tab:red", "mopderl"),
-        Method("morld", None, None, "MORL/D", "tab:purple", "morld"),
+        Method("interpolate_pderl", None, "pderl", "interpolate"),
+        Method("interpolate_td3", None, "td3", "interpolate"),
+        Method("interpolate_imported", None, "imported", "interpolate"),
+        Method("mopderl", None, "pderl", "mopderl"),
+        Method("morld", None, None, "morld"),
     )
 }
 
@@ -81,70 +67,14 @@ SPECIALIST_KINDS = ("td3", "pderl", "imported")
 # The kinds trained here with critics of their own (stage extract's joint variants read them).
 TRAINED_KINDS = ("td3", "pderl")
 BASELINES = tuple(m.name for m in METHODS.values() if m.variant is None)
-# The report's rows for the starting policies alone (no method made them).
-SPECIALISTS_LABELS = {
-    "specialists_pderl": "PDERL specialists only",
-    "specialists_td3": "TD3 specialists only",
-    "specialists_imported": "imported specialists only",
-}
+# The report's rows for the starting policies alone (no method made them): names a variant may
+# not take (their labels: pipeline/reporting/presentation.py).
+SPECIALISTS_ROWS = tuple(f"specialists_{k}" for k in SPECIALIST_KINDS)
 
 
 def method_name(variant: str, kind: str) -> str:
     """The method an extraction variant from one kind of specialists is: mapex_td3, mapex_posthoc_pderl, ..."""
     return f"{variant}_{kind}"
-
-
-# The named variants of the params file the report is for (pipeline/params/variants.py), as
-# Method rows: kind is the specialists they start from (a kind, or a specialists variant's name,
-# whose report rows are its own). Set once per process by `use_variants` (stages report and
-# render); empty otherwise, when a variant's name is its label.
-VARIANT_METHODS: dict[str, Method] = {}
-VARIANT_BASES: dict[str, str] = {}  # method variant -> the method it varies
-# The variants' colours in the figures, in the order they are declared (none of METHODS').
-VARIANT_COLOURS = ("tab:pink", "black", "darkorange", "mediumseagreen", "slateblue", "crimson", "teal", "olive")
-
-
-def use_variants(variants: dict) -> None:
-    """Make the report name, colour and order the method variants of `variants` (name -> a
-    pipeline.params.variants.Variant) and their specialists (specialists_<name> rows)."""
-    VARIANT_METHODS.clear()
-    VARIANT_BASES.clear()
-    SPECIALIST_VARIANT_LABELS.clear()
-    method_variants = [v for v in variants.values() if not v.is_specialists]
-    for i, v in enumerate(method_variants):
-        base = METHODS[v.of]
-        VARIANT_METHODS[v.name] = Method(
-            v.name, base.variant, v.specialists, v.label, VARIANT_COLOURS[i % len(VARIANT_COLOURS)], v.stage
-        )
-        VARIANT_BASES[v.name] = v.of
-    for v in variants.values():
-        if v.is_specialists:
-            SPECIALIST_VARIANT_LABELS[f"specialists_{v.name}"] = f"{v.label} specialists only"
-
-
-SPECIALIST_VARIANT_LABELS: dict[str, str] = {}
-
-
-def _row(method: str) -> Method | None:
-    return METHODS.get(method) or VARIANT_METHODS.get(method)
-
-
-def label(method: str) -> str:
-    """The method's name in the report (its own name if it is not in the table)."""
-    m = _row(method)
-    return m.label if m else SPECIALISTS_LABELS.get(method) or SPECIALIST_VARIANT_LABELS.get(method, method)
-
-
-def colour(method: str) -> str:
-    m = _row(method)
-    return m.colour if m else "grey"
-
-
-def specialist_kind(method: str) -> str | None:
-    """The specialists a method starts from ('pderl', 'td3', or a specialists variant's name),
-    None if none or unknown."""
-    m = _row(method)
-    return m.kind if m else None
 
 
 def statistics_beside(model: str) -> str | None:

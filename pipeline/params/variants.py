@@ -37,7 +37,7 @@ import copy
 import re
 from typing import Any, NamedTuple
 
-from pipeline.params.methods import METHODS, SPECIALIST_KINDS, SPECIALISTS_LABELS
+from pipeline.params.methods import METHODS, SPECIALIST_KINDS, SPECIALISTS_ROWS
 
 # What each base stage's variants may override (the sections that stage reads), and the dvc.yaml
 # stage that runs them. Variants of other bases (MAPEX-PostHoc, MOPDERL, MORL/D, the imported kind)
@@ -84,7 +84,7 @@ def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
         body, here = raw[name], f"{where}.{name}"
         if not isinstance(name, str) or not NAME.match(name):
             raise ValueError(f"{where}: name {name!r}: expected lower-case letters, digits and _ (a folder name)")
-        if name in METHODS or name in SPECIALIST_KINDS or name in SPECIALISTS_LABELS:
+        if name in METHODS or name in SPECIALIST_KINDS or name in SPECIALISTS_ROWS:
             raise ValueError(f"{here}: the name is taken by a built-in method or kind; choose another")
         if not isinstance(body, dict) or "of" not in body:
             raise ValueError(f"{here} = {body!r}: expected a mapping with `of` (the method or kind it varies)")

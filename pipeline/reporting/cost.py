@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.core.artifacts import ArtifactError
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.params.methods import label, specialist_kind
+from pipeline.reporting.presentation import label, specialist_kind
 from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.tables import _md_table
 

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from pipeline.core.pareto import pareto_mask
-from pipeline.params.methods import colour, label
+from pipeline.reporting.presentation import colour, label
 from pipeline.reporting.runs import Run, methods_in
 
 SPECIALIST_COLOURS = ("tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:olive")  # by the specialist's objective

@@ -9,8 +9,8 @@ import shutil
 from pathlib import Path
 
 from pipeline.core.artifacts import ArtifactError
-from pipeline.params.methods import label
 from pipeline.reporting.explorer import ends_and_middle
+from pipeline.reporting.presentation import label
 
 
 def gallery_markdown(render: Path, out: Path, tmp: Path, methods: list[str], seeds: list[int]) -> str:

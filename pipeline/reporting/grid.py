@@ -12,10 +12,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from matplotlib.figure import Figure
 
-from pipeline.params.methods import colour, label
 from pipeline.params.report import ReportParams
 from pipeline.reporting.cost import verdict_cost_table
 from pipeline.reporting.figures import _band, _front_line, _panels, _shared_legend, step_values
+from pipeline.reporting.presentation import colour, label
 from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.specialists import weak_sentence, weak_specialists
 from pipeline.reporting.tables import (

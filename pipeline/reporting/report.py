@@ -13,8 +13,8 @@ strings computed from the numbers. Mean +- SEM across seeds as in the paper's Ta
 
 from __future__ import annotations
 
-from pipeline.params.methods import label
 from pipeline.reporting.cost import cost_table, verdict_cost_table
+from pipeline.reporting.presentation import label
 from pipeline.reporting.runs import Run, methods_in
 from pipeline.reporting.specialists import own_returns_table, weak_sentence, weak_specialists
 from pipeline.reporting.tables import details_table, paper_table, provenance_table, sample_efficiency_table

@@ -15,9 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.artifacts import ArtifactError, read_json
-from pipeline.params.methods import METHODS, VARIANT_METHODS
+from pipeline.reporting.presentation import METHOD_ORDER, VARIANT_METHODS
 
-METHOD_ORDER = tuple(METHODS)  # the report's usual order: the paper's MAPEX first
 RUN_DIR = re.compile(r"^seed(\d+)$")
 METRICS_KEYS = (
     "env_id",

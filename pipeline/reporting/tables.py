@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.params.methods import label, specialist_kind
+from pipeline.reporting.presentation import label, specialist_kind
 from pipeline.reporting.runs import METHOD_ORDER, PROVENANCE_FOLDERS, Run, methods_in
 
 SPECIALIST_ORDER = ("pderl", "td3", "imported")  # the report's order of the kinds of specialists

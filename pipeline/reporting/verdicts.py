@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.params.methods import VARIANT_BASES, VARIANT_METHODS, label
+from pipeline.reporting.presentation import VARIANT_BASES, VARIANT_METHODS, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 
@@ -139,7 +139,7 @@ def hv_verdict(
 
 
 def default_pairs() -> list[tuple[str, str, str]]:
-    """VERDICT_PAIRS, then each method variant of the report (pipeline.params.methods.use_variants)
+    """VERDICT_PAIRS, then each method variant of the report (pipeline.reporting.presentation.use_variants)
     against the method it varies: (a, b, what a is)."""
     extra = [(name, VARIANT_BASES[name], label(name)) for name in VARIANT_METHODS]
     return [*VERDICT_PAIRS, *extra]

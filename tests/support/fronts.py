@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.evaluation.render import mp4_bytes
-from pipeline.params.methods import colour, label
 from pipeline.reporting.explorer import hex_colour
+from pipeline.reporting.presentation import colour, label
 
 
 def tiny_mp4(path: Path, shade: int, size: tuple[int, int] = (64, 48), frames: int = 8) -> None:
