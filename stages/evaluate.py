@@ -76,7 +76,7 @@ def evaluate(
     except ValueError as exc:
         raise ParamsError(f"{params}: evaluate.device: {exc}") from None
     precision = resolve(cfg.precision, device, 0, workload="act")
-    envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.episodes)]
+    envs = [make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms) for _ in range(cfg.episodes)]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     dims = (meta["obs_dim"], meta["act_dim"], meta["n_objectives"])
     if (spec.obs_dim, spec.act_dim, spec.n_objectives) != dims:
@@ -114,7 +114,7 @@ def evaluate(
             start = "fork" if torch.get_num_threads() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
             parts = [
                 ([(i, members[i]) for i in range(p, len(members), processes)], meta, env_p.id, env_p.max_episode_steps,
-                 seed, cfg.seed_stream, cfg.episodes, precision)
+                 env_p.reward_terms, seed, cfg.seed_stream, cfg.episodes, precision)
                 for p in range(processes)
             ]  # fmt: skip
             run_parts(_evaluate_part, parts, bar, lambda p: f"evaluate part {p}", on_result=done, start=start)
@@ -144,6 +144,7 @@ def _evaluate_part(
     meta: dict,
     env_id: str,
     max_episode_steps: int,
+    reward_terms: list | None,
     seed: int,
     seed_stream: int,
     episodes: int,
@@ -155,7 +156,7 @@ def _evaluate_part(
     loop does (the same envs' make, the same seeds, on the CPU), sent back as ("result", (index,
     EvalResult))."""
     torch.set_num_threads(threads)
-    envs = [make_env(env_id, max_episode_steps) for _ in range(episodes)]
+    envs = [make_env(env_id, max_episode_steps, reward_terms) for _ in range(episodes)]
     try:
         for i, member in members:
             res = evaluate_policy(

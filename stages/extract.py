@@ -121,7 +121,10 @@ def extract(
     if method is not None and (of := named_variant(raw, method, params).of) != base:
         raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
     cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
-    envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(cfg.eval_episodes * cfg.children_per_iteration)]
+    envs = [
+        make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
+        for _ in range(cfg.eval_episodes * cfg.children_per_iteration)
+    ]
     spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
     if spec.n_objectives < 2:
         raise EnvError(

@@ -89,12 +89,12 @@ def collect(
     }
     fp = run_fingerprint("import_specialist", config, "cpu", inputs)
     ckpt = Checkpoint(checkpoint_dir(out, inside=False) / CHECKPOINT_NAME, fp, lambda line: typer.echo(line, err=True))
-    probe = make_env(env_p.id, env_p.max_episode_steps)
+    probe = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
     problem = env_checkpoint_problem(probe)
     probe.close()
 
     def fresh() -> CollectionRun:
-        env = make_env(env_p.id, env_p.max_episode_steps)
+        env = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
         return CollectionRun(
             actor,
             env,
@@ -161,7 +161,7 @@ def import_specialist(
     With --provenance, what produced the run (pipeline.core.provenance) goes to that file, outside OUT.
     """
     _, env_p, cfg, _ = read_params(params, "import_specialists", ImportSpecialistsParams)
-    env = make_env(env_p.id, env_p.max_episode_steps)
+    env = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
     spec = env_spec(env, env_p.id, env_p.max_episode_steps)
     env.close()
     if not 0 <= objective < spec.n_objectives:

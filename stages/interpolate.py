@@ -97,7 +97,7 @@ def interpolate(
     ext = section(raw, "extract", ExtractParams, params)
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes
-    envs = [make_env(env_p.id, env_p.max_episode_steps) for _ in range(episodes)]
+    envs = [make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms) for _ in range(episodes)]
     try:
         spec = env_spec(envs[0], env_p.id, env_p.max_episode_steps)
         if spec.n_objectives < 2:

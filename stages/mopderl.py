@@ -107,7 +107,7 @@ def mopderl(
     raw, env_p, cfg, run_p = read_params(params, "mopderl", MopderlParams)
     td3 = section(raw, "td3", TD3Params, params)
     cfg = cfg.resolved(env_p.id)
-    env = make_env(env_p.id, env_p.max_episode_steps)
+    env = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
     try:
         spec = env_spec(env, env_p.id, env_p.max_episode_steps)
         require_every_objective(run_p.objectives, spec.n_objectives, env_p.id, params, "MOPDERL")

@@ -17,11 +17,12 @@ from pipeline.baselines.morld import (
 )
 from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
-from pipeline.core.envs import env_spec, make_env, spec_meta
+from pipeline.core.envs import spec_meta
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
 from pipeline.core.seeding import select_device
+from pipeline.evaluation.preflight import preflight
 from pipeline.params import ParamsError
 from pipeline.params.morld import MorldParams
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress_send, read_params, reports_errors
@@ -74,9 +75,7 @@ def morld(
     except BaselinesMissing as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from None
-    probe = make_env(env_p.id, env_p.max_episode_steps)
-    spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
-    probe.close()
+    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
     if cfg.weight_init == "uniform" and cfg.pop_size < spec.n_objectives:
         # morl-baselines spreads uniform weights with pymoo's Riesz-energy directions, which fail
         # (an AttributeError deep in pymoo 0.6.2) for fewer points than objectives

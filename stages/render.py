@@ -20,6 +20,8 @@ from pipeline.evaluation.render import (
     choose_gl,
     clip_key,
     film_clips,
+    needs_gl,
+    render_problem,
 )
 from pipeline.params import ParamsError
 from pipeline.params.render import RenderParams
@@ -102,6 +104,7 @@ def render(
     film = Film(
         env_p.id, env_p.max_episode_steps, cfg.frames, cfg.every, cfg.fps, cfg.width, cfg.height, cfg.camera,
         cfg.distance, cfg.elevation, cfg.azimuth, cfg.shadow_size, cfg.samples, cfg.episode_seed,
+        tuple(t.model_dump() for t in env_p.reward_terms or ()),
     )  # fmt: skip
     runs = [
         load_front_run(fronts / m / f"seed{s}" / "population.pt", evaluated / m / f"seed{s}")
@@ -128,7 +131,14 @@ def render(
             records[(r.method, r.seed, i)] = old
         else:
             todo.append((r, i, key, paths))
-    backend = choose_gl() if todo else None
+    # An env that cannot be filmed here gets the explorer without clips and one line saying why
+    # (render_problem); a MuJoCo env needs an OpenGL backend (choose_gl), any other draws itself.
+    no_clips = render_problem(film) if todo else None
+    if no_clips is not None:
+        typer.echo(f"render: no clips ({no_clips}); the explorer shows the fronts without them", err=True)
+        keep -= {p for *_, paths in todo for p in paths}
+        todo = []
+    backend = (choose_gl() if needs_gl(film) else "the env's own rgb_array") if todo else None
     if todo:
         jobs_of = [
             [(r.members[i], r.meta, paths, {"method": r.method, "seed": r.seed, "id": i, "episode_seed": film.episode_seed,
@@ -171,14 +181,23 @@ def render(
             }
         )
     index = {"format": INDEX_FORMAT, "format_version": INDEX_VERSION, "objectives": names, "panels": panels}
+    if no_clips is not None:
+        index["no_clips"] = no_clips
     write_text_atomic(out / "index.json", json.dumps(index, indent=1) + "\n")
     write_text_atomic(out / "fronts.csv", fronts_csv(panels, len(names)))
-    write_text_atomic(out / "explorer.html", explorer_html(panels, names, f"MAPEX fronts on {env_p.id}"))
+    write_text_atomic(
+        out / "explorer.html",
+        explorer_html(
+            panels, names, f"MAPEX fronts on {env_p.id}", None if no_clips is None else f"No clips: {no_clips}"
+        ),
+    )
     for stale in (out / "clips", out / "thumbs"):
         if stale.is_dir() and not any(stale.iterdir()):
             shutil.rmtree(stale)
     write_provenance(provenance, "render", "cpu")
-    rate = f" in {spent:.1f} s with MUJOCO_GL={backend}" if todo else ""
+    rate = (
+        f" in {spent:.1f} s with {backend if backend.startswith('the env') else 'MUJOCO_GL=' + backend}" if todo else ""
+    )
     typer.echo(
         f"render: {len(todo)} clip(s) rendered{rate}, {len(jobs) - len(todo)} kept; {out / 'explorer.html'}", err=True
     )

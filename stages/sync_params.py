@@ -7,7 +7,8 @@ from pathlib import Path
 import typer
 
 from pipeline.core.artifacts import write_text_atomic
-from pipeline.params import ParamsError, RunParams, load_params, section
+from pipeline.evaluation.preflight import preflight
+from pipeline.params import EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.sync import generated_path, generated_text, run_lists, synced_text
 from stages.common import PARAMS_OPTION, reports_errors
 
@@ -43,5 +44,8 @@ def sync_params(
     gen = generated_path(params)
     gen.unlink(missing_ok=True)  # load_params must not check the old one against the new params
     write_text_atomic(gen, generated_text(run_lists(load_params(params)), params.name))
-    section(load_params(params), "", RunParams, params)  # the result validates
+    loaded = load_params(params)
+    section(loaded, "", RunParams, params)  # the result validates
+    # the env: what a later stage would refuse for it, said now (pipeline/evaluation/preflight.py)
+    preflight(section(loaded, "env", EnvParams, params), params)
     typer.echo(f"{gen}: run lists written from {params}'s methods", err=True)

@@ -10,7 +10,7 @@ import typer
 
 from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
-from pipeline.core.envs import EnvSpec, env_spec, make_env, objective_names
+from pipeline.core.envs import EnvSpec, objective_names
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
@@ -19,6 +19,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
+from pipeline.evaluation.preflight import preflight
 from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
@@ -82,9 +83,7 @@ def train_pderl(
             f"{params}: td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
             f"({cfg.total_frames}), or the RL agent is never trained"
         )
-    probe = make_env(env_p.id, env_p.max_episode_steps)
-    spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
-    probe.close()
+    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
     bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
     if bad:
         where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"

@@ -10,7 +10,7 @@ import typer
 
 from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
-from pipeline.core.envs import env_spec, make_env, objective_names
+from pipeline.core.envs import make_env, objective_names
 from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
@@ -19,6 +19,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
+from pipeline.evaluation.preflight import preflight
 from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
@@ -113,9 +114,7 @@ def train_specialist(
     if kind == "imported" and not objective:
         raise ParamsError("--kind imported: name the objectives to train (--objective), those without an import entry")
     objectives = list(objective) if objective else run_p.objectives
-    probe = make_env(env_p.id, env_p.max_episode_steps)
-    spec = env_spec(probe, env_p.id, env_p.max_episode_steps)
-    probe.close()
+    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
     bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
     if bad:
         where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"
@@ -225,7 +224,7 @@ def train_group(
     precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
     fp = run_fingerprint("train_specialist", run_config(seed, group, env_p, td3, cfg), device, precision=precision)
     ckpt = Checkpoint(checkpoint_path(out, group), fp, lambda line: send("say", line))
-    probe = make_env(env_p.id, env_p.max_episode_steps)
+    probe = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
     problem = env_checkpoint_problem(probe)
     probe.close()
     if cfg.checkpoint_every and problem is not None:
@@ -239,7 +238,12 @@ def train_group(
 
     drive(
         lambda: SpecialistsRun(
-            [make_env(env_p.id, env_p.max_episode_steps) for _ in jobs], spec, td3, cfg, jobs, device
+            [make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms) for _ in jobs],
+            spec,
+            td3,
+            cfg,
+            jobs,
+            device,
         ),
         ckpt,
         who=f"train_specialist seed {seed}, {what}",

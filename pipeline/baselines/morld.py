@@ -315,8 +315,8 @@ class MorldRun:
         torch.manual_seed(self.seeds["torch"])
         np.random.seed(self.seeds["numpy"])
         self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run: after every training frame
-        self.env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps), self._frame)
-        self.eval_env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps))
+        self.env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps, spec.reward_terms), self._frame)
+        self.eval_env = FrameCounter(make_env(spec.env_id, spec.max_episode_steps, spec.reward_terms))
         policy_args = {
             "net_arch": list(cfg.hidden_sizes),
             "batch_size": cfg.batch_size,
@@ -676,7 +676,7 @@ def evaluate_exported(
     """Deterministic evaluation of each actor for `episodes` episodes; actor i on
     eval_seeds(seed, EVAL_STREAM, i, episodes), `chunk` actors at a time in one batch."""
     width = min(chunk, len(actors))
-    envs = [make_env(spec.env_id, spec.max_episode_steps) for _ in range(episodes * width)]
+    envs = [make_env(spec.env_id, spec.max_episode_steps, spec.reward_terms) for _ in range(episodes * width)]
     try:
         results: list[EvalResult] = []
         for start in range(0, len(actors), chunk):

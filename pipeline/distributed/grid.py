@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from pipeline.distributed.errors import GridError
 from pipeline.params import KNOWN_SECTIONS, ParamsError
+from pipeline.params.generated import with_tracked_env
 
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -241,7 +242,7 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
         if not NAME.match(env_name):
             raise GridError(f"{where}: cell name {env_name!r} is not a valid directory name; give the env a name")
         for set_name, over in overrides.items():
-            cell_params = merge(params, over or {})
+            cell_params = with_tracked_env(merge(params, over or {}))
             if grid.seeds is not None:
                 cell_params["seeds"] = list(grid.seeds)
             name = f"{env_name}.{set_name}" if set_name else env_name

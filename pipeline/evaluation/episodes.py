@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.envs import reward_dim
 from pipeline.core.nets import Actor, StackedActor
 from pipeline.core.precision import frozen
 from pipeline.core.seeding import derive_seeds
@@ -85,7 +86,7 @@ def evaluate_policies(
     width = max(len(s) for s in seeds)
     column = [e for policy_seeds in seeds for e in range(len(policy_seeds))]  # episode index within its policy
     obs = [envs[n].reset(seed=int(s))[0] for n, (_, s) in enumerate(slots)]
-    n_obj = envs[0].unwrapped.reward_space.shape[0]
+    n_obj = reward_dim(envs[0])
     returns = [np.zeros((len(s), n_obj)) for s in seeds]
     samples = [0] * len(actors)
     active = list(range(len(slots)))

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from pipeline.core.artifacts import TMP_SUFFIX, write_bytes_atomic
-from pipeline.core.envs import EnvError, quiet_settotalmass
+from pipeline.core.envs import EnvError, quiet_settotalmass, reward_dim
 
 RENDER_VERSION = 2  # part of every clip's key: bump when the same inputs would film differently
 BACKENDS = ("egl", "osmesa")
@@ -127,22 +127,96 @@ class Film:
     shadow_size: int  # shadow map texels per side; 0 = no shadows
     samples: int  # multisample anti-aliasing samples; 0 = none
     episode_seed: int
+    reward_terms: tuple = ()  # env.reward_terms (dicts): a single-objective env's objectives
+
+
+def is_mujoco(env) -> bool:
+    """Whether `env` is a MuJoCo env (a model and data that `Camera` can draw)."""
+    return hasattr(env.unwrapped, "model") and hasattr(env.unwrapped, "data")
 
 
 def make_render_env(film: Film):
-    """The env of `film` (its MuJoCo model and data are drawn by `Camera`)."""
+    """The env of `film`: a MuJoCo env as it is (its model and data are drawn by `Camera`), any
+    other env built with render_mode="rgb_array" (it draws its own frames: `EnvFrames`); with
+    film.reward_terms, made multi-objective as every stage makes it."""
     import gymnasium as gym
     import mo_gymnasium
 
+    from pipeline.core.envs import RewardTermsReward, _import_env_module
+
     quiet_settotalmass()
-    try:
-        env = mo_gymnasium.make(film.env_id, max_episode_steps=film.max_episode_steps)
-    except (gym.error.Error, TypeError, ValueError) as exc:
-        raise EnvError(f"env.id = {film.env_id!r}: cannot build it to render ({exc})") from None
-    if not hasattr(env.unwrapped, "model") or not hasattr(env.unwrapped, "data"):
+    if ":" in film.env_id:
+        _import_env_module(film.env_id)
+
+    def build(**kwargs):
+        try:
+            return mo_gymnasium.make(film.env_id, max_episode_steps=film.max_episode_steps, **kwargs)
+        except (gym.error.Error, TypeError, ValueError) as exc:
+            raise EnvError(f"env.id = {film.env_id!r}: cannot build it to render ({exc})") from None
+
+    env = build()
+    if not is_mujoco(env):
         env.close()
-        raise EnvError(f"env.id = {film.env_id!r}: not a MuJoCo env (no model and data to draw)")
-    return env
+        env = build(render_mode="rgb_array")
+    return RewardTermsReward(env, film.reward_terms) if film.reward_terms else env
+
+
+class EnvFrames:
+    """The frames of an env that is not MuJoCo: what its own `render()` returns in
+    render_mode="rgb_array" (Gymnasium's contract: an (H, W, 3) uint8 image), at its own size
+    (render.width and render.height are the MuJoCo camera's)."""
+
+    def __init__(self, env, film: Film):
+        self.env = env
+
+    def frame(self, data=None) -> np.ndarray:
+        image = self.env.render()
+        if image is None:
+            raise RenderError("the env's render() returned nothing in render_mode='rgb_array'")
+        image = np.asarray(image)
+        if image.ndim != 3 or image.shape[2] not in (3, 4) or image.shape[0] < 2 or image.shape[1] < 2:
+            raise RenderError(f"the env's render() returned an array of shape {image.shape}, not an RGB image")
+        return np.ascontiguousarray(image[:, :, :3]).astype(np.uint8)
+
+    def close(self) -> None:
+        pass
+
+
+def frame_source(env, film: Film):
+    """What draws `env`'s frames: a MuJoCo `Camera`, else the env itself (`EnvFrames`)."""
+    return Camera(env, film) if is_mujoco(env) else EnvFrames(env, film)
+
+
+def needs_gl(film: Film) -> bool:
+    """Whether filming `film`'s env needs an OpenGL backend (a MuJoCo env does; others draw themselves)."""
+    env = make_render_env(film)
+    try:
+        return is_mujoco(env)
+    finally:
+        env.close()
+
+
+def render_problem(film: Film) -> str | None:
+    """None if this machine can film `film`'s env, else why not, in one line: for a MuJoCo env no
+    OpenGL backend (gl_problem), for another env a render() that gives no RGB image. The
+    MuJoCo backend is chosen only for a MuJoCo env (choose_gl); another env needs none."""
+    try:
+        env = make_render_env(film)
+    except EnvError as exc:
+        return str(exc)
+    try:
+        if is_mujoco(env):
+            return gl_problem()
+        env.reset(seed=film.episode_seed)
+        try:
+            EnvFrames(env, film).frame()
+        except RenderError as exc:
+            return f"env.id = {film.env_id!r} cannot be filmed: {exc}"
+        except Exception as exc:  # noqa: BLE001 - the env's own render(): one line, never a failed stage
+            return f"env.id = {film.env_id!r} cannot be filmed: render() failed ({type(exc).__name__}: {exc})"
+        return None
+    finally:
+        env.close()
 
 
 def root_body(model) -> int:
@@ -229,17 +303,17 @@ class Clip:
 
 
 @torch.no_grad()
-def film_episode(actor, env, camera: Camera, film: Film, on_frame=None) -> Clip:
+def film_episode(actor, env, camera: Camera | EnvFrames, film: Film, on_frame=None) -> Clip:
     """One deterministic episode of `actor` from reset seed `film.episode_seed`, to its end (its
     returns), with a frame after the reset and after every `film.every`-th step until
     `film.frames` frames (all of the episode's when None). `on_frame()` is called per frame."""
     obs, _ = env.reset(seed=film.episode_seed)
-    data = env.unwrapped.data
+    data = getattr(env.unwrapped, "data", None)  # a MuJoCo env's state (EnvFrames draws the env itself)
     frames = [camera.frame(data)]
     if on_frame:
         on_frame()
     want = film.frames
-    n_obj = env.unwrapped.reward_space.shape[0]
+    n_obj = reward_dim(env)
     returns = np.zeros(n_obj)
     steps = rendered = 0
     done = False
@@ -305,7 +379,8 @@ def clip_key(member_actor: dict[str, torch.Tensor], hidden_sizes: list[int], met
     """What a clip depends on, hashed: the actor's weights, the env and how it is filmed."""
     h = hashlib.sha256()
     spec = {k: meta.get(k) for k in ("env_id", "obs_dim", "act_dim", "action_low", "action_high")}
-    h.update(json.dumps([RENDER_VERSION, spec, list(hidden_sizes), film.__dict__], sort_keys=True).encode())
+    filmed = {k: v for k, v in film.__dict__.items() if not (k == "reward_terms" and not v)}  # as before terms existed
+    h.update(json.dumps([RENDER_VERSION, spec, list(hidden_sizes), filmed], sort_keys=True).encode())
     for name in sorted(member_actor):
         tensor = member_actor[name].detach().cpu().contiguous()
         h.update(name.encode())
@@ -346,7 +421,7 @@ def film_clips(film: Film, jobs: list[tuple], gl_threads: int, threads: int, sen
     os.environ.setdefault("LP_NUM_THREADS", str(gl_threads))
     torch.set_num_threads(threads)
     env = make_render_env(film)
-    camera = Camera(env, film)
+    camera = frame_source(env, film)
     try:
         fps = clip_fps(film, env)
         spent, frames = 0.0, 0

@@ -44,17 +44,71 @@ def precision_field(
     )
 
 
-class EnvParams(Strict):
-    """Section `env`: which MO-Gymnasium environment every stage works on."""
+class RewardTerm(Strict):
+    """One objective of a single-objective env, from one of its reward terms (env.reward_terms)."""
 
-    id: str = Field("mo-halfcheetah-v5", description="MO-Gymnasium env id (continuous Box actions, vector reward)")
+    info: str | None = Field(
+        None, description="key of the info dict the env returns each step (e.g. reward_forward, reward_ctrl)"
+    )
+    function: str | None = Field(
+        None,
+        description="module:function, the user's own code, called each step as f(obs, action, reward, next_obs, info) "
+        "-> float (instead of info)",
+    )
+    scale: float = Field(1.0, description="the term's value is multiplied by this")
+    name: str | None = Field(None, description="the objective's name in the report (default: the key or function)")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "RewardTerm":
+        if (self.info is None) == (self.function is None):
+            raise ValueError("give exactly one of info (a key of the step's info dict) or function (module:function)")
+        if self.function is not None and ":" not in self.function:
+            raise ValueError(f"function = {self.function!r}: expected 'module:function'")
+        return self
+
+    @property
+    def label(self) -> str:
+        return self.name or self.info or str(self.function).split(":", 1)[1]
+
+
+class EnvParams(Strict):
+    """Section `env`: which environment every stage works on."""
+
+    id: str = Field(
+        "mo-halfcheetah-v5",
+        description="env id (continuous Box actions): an MO-Gymnasium id (vector reward), a Gymnasium id, or "
+        "Gymnasium's module:EnvId form (importing the module registers your env); a single-objective env needs "
+        "reward_terms",
+    )
     max_episode_steps: int = Field(750, gt=0, description="episode cap; the paper uses 750 steps")
+    reward_terms: list[RewardTerm] | None = Field(
+        None,
+        min_length=2,
+        description="a single-objective env's objectives, one per reward term: [{info: KEY} or {function: "
+        "module:function}, with scale and name]; null: the env returns a vector reward itself (MO-Gymnasium)",
+    )
     reference_point: list[float] | None = Field(
         None,
         description="hypervolume reference point, one value per objective, worse than any policy scores; "
         "null: the env's entry in presets/envs.yaml, reference_point (read by stage score)",
     )
-    objective_names: list[str] | None = Field(None, description="axis labels for the objectives (optional)")
+    objective_names: list[str] | None = Field(
+        None, description="axis labels for the objectives (optional; default: the reward terms' names)"
+    )
+
+    @model_validator(mode="after")
+    def _names_from_terms(self) -> "EnvParams":
+        if self.reward_terms and self.objective_names is None:
+            object.__setattr__(self, "objective_names", [t.label for t in self.reward_terms])
+        if (
+            self.reward_terms
+            and self.objective_names is not None
+            and len(self.objective_names) != len(self.reward_terms)
+        ):
+            raise ValueError(
+                f"objective_names has {len(self.objective_names)} names, reward_terms {len(self.reward_terms)} terms"
+            )
+        return self
 
 
 # The generated block older params files held (`mapex sync-params` removes it: the lists now live

@@ -62,11 +62,21 @@ def split_generated(params: dict[str, Any]) -> tuple[dict[str, Any], dict[str, l
     return user, run_lists(user)
 
 
+def with_tracked_env(params: dict[str, Any]) -> dict[str, Any]:
+    """`params` with env.reward_terms present (null where it is left out): every stage that builds
+    the env lists it, and DVC refuses a listed param missing from the file (`mapex sync-params`
+    fills it in the same way)."""
+    env = params.get("env")
+    if isinstance(env, dict) and "reward_terms" not in env:
+        params = {**params, "env": {**env, "reward_terms": None}}
+    return params
+
+
 def write_params_files(path: str | Path, params: dict[str, Any], **dump: Any) -> Path:
     """Write `params` as a params file at `path` (yaml.safe_dump with `dump`) and its generated
     file beside it (generated_path): what `mapex sync-params` leaves. Returns `path`."""
     path = Path(path)
-    user, lists = split_generated(params)
+    user, lists = split_generated(with_tracked_env(params))
     path.write_text(yaml.safe_dump(user, **dump))
     generated_path(path).write_text(generated_text(lists, path.name))
     return path

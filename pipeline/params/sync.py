@@ -11,7 +11,7 @@ import re
 
 import yaml
 
-from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END
+from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END, EnvParams
 from pipeline.params.generated import (  # noqa: F401  (re-exported: the writers of params files)
     generated_path,
     generated_text,
@@ -105,6 +105,8 @@ def with_tracked_keys(text: str) -> str:
         agents = False  # bad methods: the caller's validation names them
     if agents:
         text = _filled(text, raw, "td3", AGENT_KEYS, TD3Params.model_fields)
+    # every stage that builds the env lists env.reward_terms (null for an env with a vector reward)
+    text = _filled(text, raw, "env", ("reward_terms",), EnvParams.model_fields)
     return _filled(text, raw, "extract", tracked, ExtractParams.model_fields)
 
 

@@ -100,11 +100,15 @@ def hex_colour(name: str) -> str:
         return "#808080"
 
 
-def explorer_html(panels: list[dict], objective_names: list[str], title: str) -> str:
+def explorer_html(panels: list[dict], objective_names: list[str], title: str, note: str | None = None) -> str:
     """The page: `panels`, one per method and seed (method, label, colour, seed, points as
-    `point_record` gives them), plotted per seed; `objective_names` name the axes."""
+    `point_record` gives them), plotted per seed; `objective_names` name the axes; `note`, a line
+    under the title (why there are no clips, where there are none)."""
     data = {"panels": panels, "objectives": objective_names}
-    return PAGE.replace("__TITLE__", html.escape(title)).replace("__DATA__", script_json(data))
+    page = PAGE.replace("__TITLE__", html.escape(title)).replace("__DATA__", script_json(data))
+    if note:
+        page = page.replace("</h1>", f'</h1><p class="note" id="note">{html.escape(note)}</p>', 1)
+    return page
 
 
 # What a JSON text inside <script> must not hold literally: `<`, `>` and `&` (so that no `</script>`

@@ -85,7 +85,7 @@ def keep_best_hook(run) -> None:
     if not keep_best_due(run.cfg, run.td3.learning_starts, run.t):
         return
     if run.eval_envs is None:
-        run.eval_envs = [make_env(run.spec.env_id, run.spec.max_episode_steps) for _ in run.jobs]
+        run.eval_envs = [make_env(run.spec.env_id, run.spec.max_episode_steps, run.spec.reward_terms) for _ in run.jobs]
     for s, ((seed, objective), env) in enumerate(zip(run.jobs, run.eval_envs)):
         seeds = keep_best_seeds(seed, objective, len(run.checks[s]), run.cfg.keep_best_episodes)
         actor = unstack_actor(run.state.actor, s)

@@ -453,7 +453,7 @@ class PderlRun:
         self.episodes = 0
         self.history: list[GenerationRecord] = []
         self.own_env = env is None
-        self.env = make_env(spec.env_id, spec.max_episode_steps) if env is None else env
+        self.env = make_env(spec.env_id, spec.max_episode_steps, spec.reward_terms) if env is None else env
         self.rl_fitness: float | None = None  # the RL actor's final-evaluation fitness, once finished
         self.on_progress: Callable[[], None] | None = None  # pipeline.core.drive.Run
 
