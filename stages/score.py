@@ -74,13 +74,16 @@ def score(
     members, meta = load_population(population, META_KEYS)
     if not members:
         raise ArtifactError(f"{population}: population has no members")
-    resolved = resolve_reference_point(
-        env_p.reference_point, meta["env_id"], meta["n_objectives"], params, reference_points
-    )
-    ref = resolved.point
     record = read_json(evaluated / "evaluation.json", EVALUATION_KEYS)
     means = read_evaluated(evaluated / "evaluated.csv", members, meta["n_objectives"])
     check_same_run(evaluated / "evaluation.json", record, population, meta, len(members))
+    # auto: from the run's starting policies (MORL/D has none: its whole population)
+    starting = means[[m.origin == "specialist" for m in members]]
+    resolved = resolve_reference_point(
+        env_p.reference_point, meta["env_id"], meta["n_objectives"], params, reference_points,
+        starting if len(starting) else means,
+    )  # fmt: skip
+    ref = resolved.point
 
     iteration = np.array([m.iteration for m in members])
     extract_returns = np.array([m.returns for m in members], dtype=float)

@@ -86,7 +86,6 @@ def test_bad_env_params_are_refused_in_one_line_before_any_work(tmp_path):
         ({**RUNNER_ENV, "id": "no_such_module:Env-v0"}, "cannot import module"),
         ({**RUNNER_ENV, "id": "Pendulum-v1", "reward_terms": None}, "env.reward_terms"),  # scalar reward
         ({**RUNNER_ENV, "id": "CartPole-v1", "reward_terms": None}, "expected a continuous Box"),
-        ({**RUNNER_ENV, "reference_point": None}, "env.reference_point is null"),
         ({**RUNNER_ENV, "reference_point": [-1.0, -1.0, -1.0]}, "has 3 values"),
         ({**RUNNER_ENV, "reward_terms": None, "id": "mo-halfcheetah-v5", "objective_names": ["a"]}, "1 names"),
     ]
@@ -98,6 +97,8 @@ def test_bad_env_params_are_refused_in_one_line_before_any_work(tmp_path):
             assert expected in line and "\n" not in line, (env, line)
         else:
             pytest.fail(f"{env}: accepted")
+    # an env presets/envs.yaml does not list gets a derived point (auto), planned without error
+    assert preflight(EnvParams.model_validate({**RUNNER_ENV, "reference_point": None}), tmp_path).n_objectives == 2
     with pytest.raises(ValueError, match="objective_names has 1 names, reward_terms 2 terms"):
         EnvParams.model_validate({**RUNNER_ENV, "objective_names": ["a"]})
     with pytest.raises(ValueError, match="exactly one of info"):
@@ -132,7 +133,7 @@ def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_
     params = merge(
         TINY_CHAIN,
         {
-            "env": RUNNER_ENV,
+            "env": {**RUNNER_ENV, "reference_point": None},  # not in presets/envs.yaml: auto
             "train_specialist": {"total_steps": 600},
             "td3": {"learning_starts": 150},
             "render": {"methods": ["mapex_td3"], "frames": 6, "every": 5},
@@ -146,6 +147,10 @@ def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_
     assert {"train_specialist", "extract", "evaluate", "score", "render", "report"} <= ran(out)
     report = (root / "data" / "report" / "report.md").read_text()
     assert RUNNER in report and "speed" in report and "energy" in report
+    # the point came from the run's own starting policies, and the report says so
+    metrics = json.loads((root / "data" / "score" / "mapex_td3" / "seed0" / "metrics.json").read_text())
+    assert metrics["reference_point_source"].startswith("auto: derived from this run's 2 starting policies")
+    assert "derived from this run's" in report
     index = json.loads((root / "data" / "render" / "index.json").read_text())
     assert index["objectives"] == ["speed", "energy"] and "no_clips" not in index
     front = [p for panel in index["panels"] if panel["method"] == "mapex_td3" for p in panel["points"] if p["on_front"]]
@@ -160,6 +165,22 @@ def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_
     from test_dvc_methods import stale_stages
 
     assert {"train_specialist", "extract", "evaluate", "render", "report"} <= stale_stages(root)
+
+
+def test_auto_reference_point_rule_and_where_it_applies(tmp_path):
+    """The rule: worst return less 10% of the spread (at least 1% of the worst's magnitude, and 1);
+    null takes the table's entry for a listed env and the rule for any other; auto always the rule."""
+    from pipeline.evaluation.reference_points import auto_reference_point, resolve_reference_point
+
+    starting = np.array([[200.0, -50.0], [0.0, -0.5]])
+    assert auto_reference_point(starting).tolist() == pytest.approx([-20.0, -54.95])
+    assert auto_reference_point(np.array([[5.0, 5.0], [5.0, 5.0]])).tolist() == pytest.approx([4.0, 4.0])
+    listed = resolve_reference_point(None, "mo-halfcheetah-v5", 2, tmp_path, starting=starting)
+    assert listed.point.tolist() == [-100.0, -4500.0] and "auto" not in listed.source
+    for given, env_id in ((None, RUNNER), ("auto", "mo-halfcheetah-v5")):
+        got = resolve_reference_point(given, env_id, 2, tmp_path, starting=starting)
+        assert got.point.tolist() == pytest.approx([-20.0, -54.95]) and got.source.startswith("auto")
+    assert EnvParams.model_validate({**RUNNER_ENV, "reference_point": "auto"}).reference_point == "auto"
 
 
 def test_an_env_that_cannot_be_filmed_gets_the_explorer_without_clips(tmp_path, monkeypatch):

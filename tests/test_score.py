@@ -405,16 +405,16 @@ def test_score_with_null_reference_point_scores_against_the_table(run, monkeypat
     assert m["reference_point_source"] == ("presets/envs.yaml, entry mo-halfcheetah-v5 (env.reference_point is null)")
 
 
-def test_score_of_an_env_without_an_entry_is_one_line(run):
+def test_score_of_an_env_without_an_entry_derives_its_point_from_the_starting_policies(run):
+    """An env the table does not list, with env.reference_point null, is scored against the
+    auto rule's point from the run's starting policies (issue 59), and metrics.json says so."""
     table = run / "points.yaml"
     table.write_text("reference_point:\n  mo-swimmer-v5: [-50.0, -1500.0]\n")
     code, out = score_run(run, write_params(run, ref=None), "--reference-points", table)
-    assert code == 2 and not (run / "out").exists()
-    assert out.strip() == (
-        f"error: {run / 'params.yaml'}: env.reference_point is null and {table} has no reference_point for "
-        "'mo-halfcheetah-v5': set env.reference_point to 2 values, each worse than any policy scores "
-        "(docs/reference_points.md)"
-    )
+    assert code == 0, out
+    metrics = json.loads((run / "out" / "metrics.json").read_text())
+    assert metrics["reference_point_source"].startswith("auto: derived from this run's")
+    assert len(metrics["reference_point"]) == 2 and all(math.isfinite(v) for v in metrics["reference_point"])
 
 
 def test_unknown_score_param(run):

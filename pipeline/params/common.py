@@ -87,10 +87,11 @@ class EnvParams(Strict):
         description="a single-objective env's objectives, one per reward term: [{info: KEY} or {function: "
         "module:function}, with scale and name]; null: the env returns a vector reward itself (MO-Gymnasium)",
     )
-    reference_point: list[float] | None = Field(
+    reference_point: list[float] | Literal["auto"] | None = Field(
         None,
         description="hypervolume reference point, one value per objective, worse than any policy scores; "
-        "null: the env's entry in presets/envs.yaml, reference_point (read by stage score)",
+        "null: the env's entry in presets/envs.yaml, reference_point, or auto where it has none; auto: derived from "
+        "each run's starting policies (stage score; docs/reference_points.md)",
     )
     objective_names: list[str] | None = Field(
         None, description="axis labels for the objectives (optional; default: the reward terms' names)"

@@ -51,7 +51,17 @@ def report_markdown(
         f"- methods: {', '.join(f'{label(v)} ({v})' for v in methods_in(runs))}",
         f"- seeds: {', '.join(map(str, seeds))}",
         f"- objectives: {', '.join(f'{i}: {n}' for i, n in enumerate(names))}",
-        f"- hypervolume reference point: {ref}" + (f" (from {'; '.join(sources)})" if sources else ""),
+        *(
+            [
+                "- hypervolume reference points: derived per run from its own starting policies "
+                "(env.reference_point: auto; docs/reference_points.md), "
+                + "; ".join(f"{label(r.method)} seed {r.seed}: {r.metrics['reference_point']}" for r in runs)
+                + ". **Warning:** such hypervolumes compare only within runs that share a point: a verdict or a "
+                "mean across runs whose points differ mixes measures; set env.reference_point to one list to compare them",
+            ]
+            if len({tuple(r.metrics["reference_point"]) for r in runs}) > 1
+            else [f"- hypervolume reference point: {ref}" + (f" (from {'; '.join(sources)})" if sources else "")]
+        ),
         *(f"- {k}: {v}" for k, v in context.items()),
         "",
         "## Verdicts",
