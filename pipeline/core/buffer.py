@@ -130,6 +130,16 @@ def save_buffer(path: str | Path, data: dict[str, np.ndarray], attrs: dict[str, 
 
 
 def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """`_load_buffer`, with MemoryError and RecursionError as the one-line refusal naming the path."""
+    try:
+        return _load_buffer(path)
+    except MemoryError:
+        raise ArtifactError(f"{path}: refused: reading it needed more memory than this process may use") from None
+    except RecursionError:
+        raise ArtifactError(f"{path}: refused: its metadata nests too deep") from None
+
+
+def _load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """Read a replay buffer fully into RAM; returns (arrays, attributes).
 
     Raises ArtifactError naming the path if it is missing, not a mapex buffer, or truncated,
@@ -154,6 +164,7 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
     if missing:
         raise ArtifactError(f"{path}: attribute(s) {missing} missing")
     n = attrs["n_transitions"]
+    check_declared(path, attrs)  # shapes, dtypes, codecs and size, from the metadata, before any array is read
     data = {}
     for name in FIELDS:
         try:
@@ -180,6 +191,79 @@ def load_buffer(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]
             what = "NaN" if np.isnan(value) else f"{value:+}"  # NaN, +inf or -inf
             raise ArtifactError(f"{path}: array {name!r} holds {what} in row {bad} (its values must be finite)")
     return data, attrs
+
+
+# What a mapex buffer's arrays are (docs/artifacts.md): anything else in the metadata is refused
+# before an array is read (issue 57: a 1.6 KB buffer declaring a huge shape made zarr allocate and
+# fill 1 GiB before the shape check; a `pickle` codec was stopped only by zarr's dtype table).
+DTYPES = {
+    "obs": "float32", "action": "float32", "reward": "float32", "next_obs": "float32",
+    "terminated": "bool", "truncated": "bool", "episode": "int64", "episode_step": "int32",
+}  # fmt: skip
+CODECS = ("bytes", "zstd", "blosc", "gzip", "crc32c", "transpose")
+MAX_META_BYTES = 1 << 20  # an array's zarr.json is under 1 KB
+# The budget: the arrays' declared bytes at most this allowance plus DECODE_RATIO times the bytes
+# of the buffer's files (zstd level 0, the writer's codec, packs real transitions about 1.2-2x).
+DECLARED_ALLOWANCE = 64 << 20
+DECODE_RATIO = 64
+
+
+def check_declared(path: Path, attrs: dict[str, Any]) -> None:
+    """Refuse, in one line naming the buffer and the array, metadata a mapex buffer never holds:
+    an array that is not one of FIELDS' dtypes and shapes ((n_transitions, dim) or
+    (n_transitions,), the dims from the attributes), a codec outside CODECS, a chunk grid not
+    along time, or declared bytes above DECLARED_ALLOWANCE + DECODE_RATIO x the files' bytes (an
+    absurd shape over a few files). Reads only the small zarr.json files, so nothing is allocated
+    for a declared shape before it is checked."""
+    import json
+
+    n = attrs.get("n_transitions")
+    dims = {"obs": attrs.get("obs_dim"), "next_obs": attrs.get("obs_dim"), "action": attrs.get("act_dim")}
+    dims["reward"] = attrs.get("n_objectives")
+    if type(n) is not int or n < 0 or any(type(d) is not int or d < 1 for d in dims.values()):
+        raise ArtifactError(f"{path}: attributes n_transitions, obs_dim, act_dim, n_objectives must be ints >= 0/1")
+    declared = 0
+    for name in FIELDS:
+        meta_file = path / name / "zarr.json"
+        try:
+            size = meta_file.stat().st_size
+            if size > MAX_META_BYTES:
+                raise ArtifactError(f"{meta_file}: {size} bytes of metadata; refused above {MAX_META_BYTES}")
+            meta = json.loads(meta_file.read_text())
+        except ArtifactError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - missing, unreadable or not JSON: one line
+            raise ArtifactError(
+                f"{path}: array {name!r} is missing or unreadable (no metadata: {type(exc).__name__})"
+            ) from None
+        want_shape = [n, dims[name]] if name in dims else [n]
+        if not isinstance(meta, dict) or meta.get("node_type") != "array" or meta.get("zarr_format") != 3:
+            raise ArtifactError(f"{meta_file}: not a Zarr v3 array")
+        if meta.get("data_type") != DTYPES[name]:
+            raise ArtifactError(f"{meta_file}: data_type {str(meta.get('data_type'))[:40]!r}, expected {DTYPES[name]}")
+        if meta.get("shape") != want_shape:
+            expected = f"(T, {dims[name]})" if name in dims else "(T,)"
+            raise ArtifactError(
+                f"{path}: array {name!r} declares shape {str(meta.get('shape'))[:60]}; the attributes say {n} rows, "
+                f"expected {expected}"
+            )
+        codecs = meta.get("codecs")
+        names = [c.get("name") if isinstance(c, dict) else c for c in codecs] if isinstance(codecs, list) else None
+        if not names or any(c not in CODECS for c in names) or meta.get("storage_transformers") not in (None, []):
+            raise ArtifactError(f"{meta_file}: codecs {str(names)[:80]}; a mapex buffer uses only {list(CODECS)}")
+        grid = meta.get("chunk_grid") or {}
+        chunk = (grid.get("configuration") or {}).get("chunk_shape") if isinstance(grid, dict) else None
+        if grid.get("name") != "regular" or not isinstance(chunk, list) or chunk[1:] != want_shape[1:]:
+            raise ArtifactError(f"{meta_file}: chunks {str(chunk)[:60]}; expected chunks along time only")
+        if not (type(chunk[0]) is int and chunk[0] >= 1):
+            raise ArtifactError(f"{meta_file}: chunk rows {chunk[0]!r}; expected an int >= 1")
+        declared += n * (dims.get(name, 1)) * np.dtype(DTYPES[name]).itemsize
+    on_disk = sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+    if declared > DECLARED_ALLOWANCE + DECODE_RATIO * on_disk:
+        raise ArtifactError(
+            f"{path}: arrays declare {declared} bytes from {on_disk} bytes of files; refused above "
+            f"{DECLARED_ALLOWANCE} + {DECODE_RATIO} x the files (docs/trust.md)"
+        )
 
 
 def first_nonfinite_row(arr: np.ndarray, chunk: int = CHUNK_ROWS) -> int | None:

@@ -24,6 +24,7 @@ from typing import Any
 from pipeline.core.artifacts import ArtifactError, first_line
 
 MAX_OPCODES = 1_000_000  # a small policy's data.pkl runs a few hundred
+MAX_PICKLE_BYTES = 16 << 20  # a policy's data.pkl or constants.pkl is a few KB (its tensors are records)
 ITEMSIZE = {
     "BoolStorage": 1,
     "ByteStorage": 1,
@@ -93,9 +94,39 @@ def _reduce(self: "_Reader") -> None:
     self.stack[-1] = _Recorder()
 
 
+class _Inert(_Recorder):
+    """A dict or set of the pickle: its items are taken and dropped, never hashed, so that keys
+    which all hash alike cost no quadratic inserts (issue 57: 40,000 such keys took 9 s). The
+    check needs no container's contents: tensors are checked where they are rebuilt."""
+
+    def add(self, item: Any) -> None:
+        pass
+
+
+def _inert_dict(self: "_Reader") -> None:  # EMPTY_DICT, EMPTY_SET
+    self.append(_Inert())
+
+
+def _inert_from_mark(self: "_Reader") -> None:  # DICT, FROZENSET: the marked items, dropped
+    self.pop_mark()
+    self.append(_Inert())
+
+
+def _inert_additems(self: "_Reader") -> None:  # ADDITEMS: items into a set, dropped
+    self.pop_mark()
+
+
 class _Reader(pickle._Unpickler):  # pure Python: a dict memo, its opcode table replaceable, nothing imported
     dispatch = {code: _counted(op) for code, op in pickle._Unpickler.dispatch.items()}
     dispatch[pickle.REDUCE[0]] = _counted(_reduce)
+    for _op, _fn in (
+        (pickle.EMPTY_DICT, _inert_dict),
+        (pickle.EMPTY_SET, _inert_dict),
+        (pickle.DICT, _inert_from_mark),
+        (pickle.FROZENSET, _inert_from_mark),
+        (pickle.ADDITEMS, _inert_additems),
+    ):
+        dispatch[_op[0]] = _counted(_fn)
 
     def __init__(self, data: bytes, sizes: dict[str, int], folder: str):
         super().__init__(io.BytesIO(data))
@@ -147,8 +178,16 @@ def check_torchscript(data: bytes, path: Path | str) -> None:
     for name in pickles:
         root, member = name.split("/")
         folder = f"{root}/{'data' if member == 'data.pkl' else 'constants'}"
+        if sizes[name] > MAX_PICKLE_BYTES:  # declared size, before a byte is inflated
+            raise ArtifactError(
+                f"{path}: TorchScript {member} declares {sizes[name]} bytes; refused above {MAX_PICKLE_BYTES}"
+            )
         try:
-            _Reader(zf.read(name), sizes, folder).load()
+            with zf.open(name) as fh:
+                raw = fh.read(MAX_PICKLE_BYTES + 1)  # a header that lies about the size inflates no further
+            if len(raw) > MAX_PICKLE_BYTES:
+                raise _Unfit(f"inflates past {MAX_PICKLE_BYTES} bytes")
+            _Reader(raw, sizes, folder).load()
         except _Unfit as exc:
             raise ArtifactError(f"{path}: TorchScript {member} {exc}; refused before torch.jit.load reads it") from None
         except Exception as exc:  # damaged bytes: say so in one line (torch.jit.load would only fail later)

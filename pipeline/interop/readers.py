@@ -203,31 +203,53 @@ def _flat_dim(path: Path, space: dict, what: str) -> int:
 # -- Stable-Baselines3 --------------------------------------------------------------------------
 
 
+# A serialized SB3 entry (a space, policy_kwargs) runs a few hundred opcodes; its opcodes are
+# streamed and counted, never listed (issue 57: listing them built ~900 MiB from an 11 KB zip).
+MAX_ENTRY_OPCODES = 100_000
+MAX_ENTRY_STRINGS = 10_000
+
+
+def _entry_ops(encoded: str):
+    """The opcodes of a serialized entry, one at a time, at most MAX_ENTRY_OPCODES (ValueError past it)."""
+    for count, op in enumerate(pickletools.genops(base64.b64decode(encoded)), 1):
+        if count > MAX_ENTRY_OPCODES:
+            raise ValueError(f"more than {MAX_ENTRY_OPCODES} pickle opcodes")
+        yield op
+
+
 def _pickle_strings(encoded: str) -> list[str]:
-    """The string constants of a serialized SB3 entry (class names of a class pickled by value among them)."""
+    """The string constants of a serialized SB3 entry (class names of a class pickled by value
+    among them), at most MAX_ENTRY_STRINGS; [] for an unreadable or oversized entry."""
+    out: list[str] = []
     try:
-        return [arg for op, arg, _ in pickletools.genops(base64.b64decode(encoded)) if isinstance(arg, str)]
-    except (binascii.Error, ValueError, pickle.PickleError, EOFError):
+        for _, arg, _ in _entry_ops(encoded):
+            if isinstance(arg, str):
+                out.append(arg[:200])
+                if len(out) >= MAX_ENTRY_STRINGS:
+                    break
+    except (binascii.Error, ValueError, pickle.PickleError, EOFError, MemoryError, RecursionError):
         return []
+    return out
 
 
 def _pickle_globals(path: Path, key: str, encoded: str) -> list[tuple[str, str]]:
     """The (module, name) pairs a serialized SB3 entry refers to, read from its pickle opcodes
-    without running them (pickletools only lists them)."""
+    without running them (pickletools only decodes them, one at a time)."""
+    out: list[tuple[str, str]] = []
+    last: list[str] = []  # the two latest strings (STACK_GLOBAL takes its module and name from them)
     try:
-        raw = base64.b64decode(encoded)
-        ops = list(pickletools.genops(raw))
-    except (binascii.Error, ValueError, pickle.PickleError, EOFError) as exc:
+        for op, arg, _ in _entry_ops(encoded):
+            if op.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
+                last = [last[-1], arg] if last else [arg]
+            elif op.name == "STACK_GLOBAL" and len(last) == 2:
+                out.append((last[0], last[1]))
+            elif op.name in ("GLOBAL", "INST"):
+                module, name = str(arg).split(" ", 1)
+                out.append((module, name))
+            if len(out) > MAX_ENTRY_STRINGS:
+                raise ValueError(f"more than {MAX_ENTRY_STRINGS} names")
+    except (binascii.Error, ValueError, pickle.PickleError, EOFError, MemoryError, RecursionError) as exc:
         raise ArtifactError(f"{path}: data[{key!r}] is not a readable serialized entry ({exc})") from None
-    out, strings = [], []
-    for op, arg, _ in ops:
-        if op.name in ("SHORT_BINUNICODE", "BINUNICODE", "UNICODE", "BINUNICODE8"):
-            strings.append(arg)
-        elif op.name == "STACK_GLOBAL" and len(strings) >= 2:
-            out.append((strings[-2], strings[-1]))
-        elif op.name in ("GLOBAL", "INST"):
-            module, name = str(arg).split(" ", 1)
-            out.append((module, name))
     return out
 
 
@@ -572,6 +594,18 @@ def input_scale_warning(path: Path, input_scales: np.ndarray | None, obs: np.nda
 
 
 def read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path | None = None) -> ImportedPolicy:
+    """`_read_policy`, with what a reader of outside bytes can still raise past its own checks
+    (MemoryError under a memory limit, RecursionError on deep nesting) as the one-line refusal
+    naming the file, never a traceback (docs/trust.md)."""
+    try:
+        return _read_policy(path, fmt, spec, normalize)
+    except MemoryError:
+        raise ArtifactError(f"{path}: refused: reading it needed more memory than this process may use") from None
+    except RecursionError:
+        raise ArtifactError(f"{path}: refused: it nests deeper than a {fmt} model does") from None
+
+
+def _read_policy(path: str | Path, fmt: str, spec: EnvSpec, normalize: str | Path | None = None) -> ImportedPolicy:
     """Read a policy trained elsewhere (`fmt` one of FORMATS) for env `spec`, with the
     observation statistics of SB3 VecNormalize file `normalize` (None: none) baked in; raises
     ArtifactError naming the file for a missing or unreadable file, a format it is not, a
