@@ -344,7 +344,7 @@ def test_import_stage_writes_a_slot(cli, sb3_models, tmp_path):
     actor, meta = load_policy(out / "policy.pt")  # weights_only=True inside
     assert meta["source"]["format"] == "sb3" and meta["collection_frames"] == 60 and meta["objective"] == 0
     # only what the stage's declared inputs and params fix: no provenance, no undeclared param
-    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps"}
+    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps", "reward_terms"}
     assert meta["params"]["import_specialists"] == {"collect_rows": 60, "exploration_noise": 0.1}
     data, attrs = load_buffer(out / "buffer.zarr")
     assert "provenance" not in attrs

@@ -179,7 +179,7 @@ def test_policy_loads_and_acts_in_bounds(cheetah):
     assert TD3Params(**meta["params"]["td3"]).hidden_sizes == [32, 32]
     # only what inputs and params fix: no provenance, no scoring or labelling env key (a change
     # to those must not change the bytes that extraction and the rest hash)
-    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps"}
+    assert "provenance" not in meta and set(meta["params"]["env"]) == {"id", "max_episode_steps", "reward_terms"}
     data, _ = load_buffer(cheetah.out / "buffer.zarr")
     with torch.no_grad():
         a = actor(torch.from_numpy(data["obs"][:50]))
