@@ -9,7 +9,9 @@ import typer
 
 from pipeline.baselines.interpolate import interpolate as interpolate_policies
 from pipeline.baselines.interpolate import mixing_weights, starts_problem
+from pipeline.core.alignment import MixOptions, buffer_states, mixer
 from pipeline.core.artifacts import ArtifactError
+from pipeline.core.buffer import load_buffer
 from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
@@ -48,6 +50,22 @@ def load_starts(specialists: Path, n_objectives: int, seed: int, meta: dict, kin
     return starts
 
 
+def load_states(specialists: Path, n_objectives: int, count: int, seed: int):
+    """`count` states drawn from the specialists' buffers (SPECIALISTS/obj{K}/buffer.zarr), in
+    equal shares (pipeline.core.alignment.buffer_states, generator `seed`): what REPAIR and
+    RegMean measure on. A slot without a buffer is a one-line error naming it."""
+    buffers = []
+    for k in range(n_objectives):
+        path = specialists / f"obj{k}" / "buffer.zarr"
+        if not path.exists():
+            raise ArtifactError(
+                f"{path}: no replay buffer, which interpolate.repair and interpolate.mix: regmean measure states on "
+                "(set both off, or give the specialist its buffer)"
+            )
+        buffers.append(load_buffer(path)[0])
+    return buffer_states(buffers, count, seed)
+
+
 @reports_errors
 def interpolate(
     seed: int = typer.Option(
@@ -83,6 +101,14 @@ def interpolate(
     extract.eval_episodes). Its only env frames are those evaluations. Specialists whose actors
     differ in architecture, or are TorchScript or torch.export programs, are a one-line error.
 
+    Aligned interpolation (issue 61, not in the paper; pipeline/core/alignment.py):
+    interpolate.align: weights permutes the other specialists' hidden units to match the first's
+    (weight matching) before mixing; interpolate.repair rescales each mixed policy's hidden
+    preactivations to the specialists' statistics; interpolate.mix: regmean merges each layer by
+    least squares on its inputs. REPAIR and RegMean read interpolate.states states from the
+    specialists' buffers (obj{K}/buffer.zarr). Actors whose hidden layers cannot be permuted are
+    mixed plainly, and the run's metadata says so in one line (the report shows it).
+
     Writes OUT/population.pt (as extract's: origin 'interpolated', target_weight the mixing
     weights, parents the specialists mixed, iteration grid point // children_per_iteration + 1);
     evaluate, score and report read it like any method's. With --provenance, what produced the
@@ -109,6 +135,17 @@ def interpolate(
         problem = starts_problem(starts)
         if problem is not None:  # e.g. imported specialists of different nets
             raise ArtifactError(f"{specialists}: cannot interpolate: {problem}")
+        options = MixOptions(cfg.align, cfg.repair, cfg.mix, cfg.regmean_alpha)
+        obs = load_states(specialists, spec.n_objectives, cfg.states, seed) if options.needs_states else None
+        fallback: list[str] = []
+
+        def make_mixer(actors):
+            make, line = mixer(actors, options, obs)
+            if line is not None:
+                fallback.append(line)
+                typer.echo(f"interpolate {kind} seed {seed}: {line}", err=True)
+            return make
+
         total = len(starts) + len(mixing_weights(spec.n_objectives, policies))
         costs: list[dict] = []  # per-iteration cost rows, for the provenance record
         with progress(total, f"interpolate {kind} seed {seed}", unit="policy") as bar:
@@ -118,18 +155,32 @@ def interpolate(
                 bar.update(1)
 
             members = interpolate_policies(
-                starts, spec.n_objectives, policies, ext.children_per_iteration, episodes, seed, envs, shown, costs
+                starts,
+                spec.n_objectives,
+                policies,
+                ext.children_per_iteration,
+                episodes,
+                seed,
+                envs,
+                shown,
+                costs,
+                make_mixer=None if options.plain else make_mixer,
             )
     finally:
         for env in envs:
             env.close()
     config = {
         "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
-        "interpolate": {"policies": policies, "eval_episodes": episodes},
+        "interpolate": {"policies": policies, "eval_episodes": episodes}
+        | ({} if options.plain else cfg.model_dump(include={"align", "repair", "mix", "regmean_alpha", "states"})),
         "children_per_iteration": ext.children_per_iteration,
         "seed": seed,
         "kind": kind,
     }
     run_meta = meta | {"seed": seed, "method": method or base, "params": config}
+    if not options.plain:
+        run_meta["mixing"] = options.describe()
+    if fallback:
+        run_meta["mixing_fallback"] = fallback[0]
     save_population(out / "population.pt", members, run_meta)
     write_provenance(provenance, "interpolate", "cpu", cost={"iterations": costs})

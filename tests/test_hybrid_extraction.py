@@ -281,3 +281,45 @@ def test_early_stopping_stops_a_toy_run_where_the_rule_says(envs):
     # a gain no run reaches stops at the patience itself
     eager = run(tiny_run(envs, stop_patience=1, stop_min_gain=1e9))
     assert eager.stopped_at == 1 and eager.iteration == 1
+
+
+# ---------------------------------------------------------------- aligned mixing (issue 61)
+
+
+def test_an_aligned_hybrid_start_of_a_parent_and_its_permuted_copy_is_that_parent():
+    """extract.align weights: the child's start mixes its parents after weight matching, the
+    interpolation stage's implementation; a parent mixed with a permuted copy of itself gives it back."""
+    from pipeline.core.alignment import MixOptions, _permuted
+
+    buffers, _, actors = inputs()
+    rng = np.random.default_rng(0)
+    copy_of_0 = _permuted(actors[0], [rng.permutation(32), rng.permutation(32)])
+    pair = [actors[0], copy_of_0]
+    plain = ex.start_child(RETURNS[:2], pair, buffers, config(), np.random.default_rng(5), 77, "cpu")
+    cfg = replace(config(), mixing=MixOptions(align="weights"))
+    aligned = ex.start_child(RETURNS[:2], pair, buffers, cfg, np.random.default_rng(5), 77, "cpu")
+    assert sorted(aligned.parents) == [0, 1] and aligned.parents == plain.parents and aligned.init == "interpolated"
+    x = torch.from_numpy(buffers[0]["obs"][:64])
+    with torch.no_grad():
+        assert torch.allclose(aligned.actor(x), actors[0](x), atol=1e-5)
+        assert not torch.allclose(plain.actor(x), actors[0](x), atol=1e-3)
+
+
+def test_seeds_mixed_with_the_extract_options_are_the_interpolation_stage_s(envs):
+    from pipeline.core.alignment import MixOptions, buffer_states, mixer
+
+    r = run(tiny_run(envs, iterations=1, seed_interpolation=2, align="weights", repair=True, mix_states=128))
+    seeds = [m for m in r.members if m.origin == "interpolated"]
+    assert len(seeds) == 2
+    make, line = mixer(
+        [r.starts[0].actor, r.starts[1].actor],
+        MixOptions(align="weights", repair=True),
+        buffer_states(r.buffers, 128, 3),
+    )
+    assert line is None
+    for m in seeds:
+        assert all(torch.equal(m.actor[k], v) for k, v in make(m.target_weight).state_dict().items())
+    assert r.record()["seed_interpolation"]["mixing"] == "aligned (weight matching), linear, REPAIR"
+    # recorded only where set: a run at the defaults keeps its record
+    dump = without_default_extensions(ExtractParams(align="weights").model_dump())
+    assert dump["align"] == "weights" and "repair" not in dump and "mix" not in dump

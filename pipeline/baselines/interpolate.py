@@ -59,6 +59,7 @@ def interpolate(
     envs: Sequence[gym.Env],
     on_member: Callable[[Member], None] | None = None,
     costs: list[dict] | None = None,
+    make_mixer: Callable[[Sequence[Actor]], Callable[[Sequence[float]], Actor]] | None = None,
 ) -> list[Member]:
     """The interpolation baseline's population: every starting policy evaluated (members
     0 .. n_start - 1, as extraction's population starts), then one member per point of the grid
@@ -72,7 +73,10 @@ def interpolate(
     far: its only cost. Raises ValueError (one line) when the specialists' actors cannot be
     mixed (`starts_problem`), before any episode runs. `costs`, a list, receives the rows of
     pipeline.core.cost.COST_FIELDS: the starting policies' evaluation (phase "start"), then per
-    iteration its grid points' mixing ("train") and evaluation (phase "interpolated")."""
+    iteration its grid points' mixing ("train") and evaluation (phase "interpolated").
+    `make_mixer(actors)` returns the function w -> mixed actor (pipeline.core.alignment.mixer:
+    aligned, repaired or RegMean mixes); its set-up (the alignment) is counted in the first grid
+    point's "train" time. Default: the plain linear mix, `mix_actors`."""
     problem = starts_problem(starts)
     if problem is not None:
         raise ValueError(problem)
@@ -112,9 +116,14 @@ def interpolate(
     rows = [cost_row(0, "start", len(starts), None, ev)]
     chosen = chosen_specialists(starts, [m.returns for m in members], n_objectives)
     actors = [starts[i].actor for i in chosen]
+    with Stopwatch() as setup:
+        mix_of = make_mixer(actors) if make_mixer is not None else (lambda w: mix_actors(actors, w))
     for j, w in enumerate(mixing_weights(n_objectives, policies)):
         with Stopwatch() as mix:
-            actor = mix_actors(actors, w)
+            actor = mix_of(w)
+        if j == 0:
+            mix.wall += setup.wall
+            mix.cpu += setup.cpu
         with Stopwatch() as ev:
             res = run(actor, len(members))
         it = j // per_iteration + 1

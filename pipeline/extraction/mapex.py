@@ -61,12 +61,14 @@ regression, raising TrainingDiverged (stacked: naming the child, "child j of K")
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, field
 from typing import Callable, NamedTuple, Sequence
 
 import numpy as np
 import torch
 
+from pipeline.core.alignment import MixOptions, mixer
 from pipeline.core.finite import check_finite, due, weights
 from pipeline.core.mixing import architecture_problem, mix_actors
 from pipeline.core.nets import Actor, CriticEnsemble
@@ -368,6 +370,10 @@ class ChildConfig:
     # the hybrid extraction (not in the paper; `start_child`): "warmup" (the paper) or "interpolate"
     init: str = "warmup"
     warmup_after_interpolate: bool = False  # init "interpolate": warm up from the interpolated start too
+    # init "interpolate": how the parents are mixed (extract.align, repair, mix, regmean_alpha;
+    # pipeline.core.alignment); the default is the plain linear mix
+    mixing: MixOptions = field(default_factory=MixOptions)
+    mix_states: int = 4096  # repair or regmean: the hybrid buffer's first rows they measure on
 
 
 class ChildSeeds(NamedTuple):
@@ -423,7 +429,9 @@ def interpolation_problem(parents: Sequence[Actor], hidden_sizes: Sequence[int])
     return architecture_problem(parents, [f"parent {i}" for i in range(len(parents))])
 
 
-def interpolated_start(parents: Sequence[Actor]) -> Actor:
+def interpolated_start(
+    parents: Sequence[Actor], mixing: MixOptions | None = None, obs: torch.Tensor | None = None
+) -> Actor:
     """The hybrid extraction's child before training (not in the paper): its parents' weights
     mixed with equal coefficients 1/N (pipeline.core.mixing.mix_actors), on the CPU.
 
@@ -431,8 +439,18 @@ def interpolated_start(parents: Sequence[Actor]) -> Actor:
     normalised returns, so the point of the parents' simplex it points at is that centroid, the
     mix 1/N of each parent (exactly, where returns are linear in the mixing weights). The
     target weight's own components (one per objective) name no parent unless the parents are
-    the specialists themselves, where both readings give the same mix for 2 objectives."""
-    return mix_actors(parents, [1 / len(parents)] * len(parents))
+    the specialists themselves, where both readings give the same mix for 2 objectives.
+
+    `mixing` (extract.align, repair, mix; not in the paper): the mix aligned, repaired on `obs`
+    or merged by RegMean, through pipeline.core.alignment.mixer, the interpolation stage's own
+    implementation. Parents that reach here are mapex MLPs (`interpolation_problem`), which can
+    always be aligned."""
+    weights = [1 / len(parents)] * len(parents)
+    if mixing is None or mixing.plain:
+        return mix_actors(parents, weights)
+    cpu = [copy.deepcopy(p).cpu() for p in parents] if any(p.net[0].weight.is_cuda for p in parents) else parents
+    make, _ = mixer(cpu, mixing, None if obs is None else obs.detach().float().cpu())
+    return make(weights)
 
 
 def start_child(
@@ -466,7 +484,8 @@ def start_child(
             a_bar = (
                 mean_parent_action(mine, hybrid.obs, precision=cfg.precision) if steps else hybrid.action[:0].clone()
             )
-            actor = interpolated_start(mine).to(device)
+            obs = hybrid.obs[: cfg.mix_states] if cfg.mixing.needs_states else None
+            actor = interpolated_start(mine, cfg.mixing, obs).to(device)
             return ChildStart(parents, w, hybrid, a_bar, actor, steps, "interpolated")
     a_bar = mean_parent_action(mine, hybrid.obs, precision=cfg.precision)
     ref = actors[parents[0]]

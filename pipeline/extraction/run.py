@@ -32,6 +32,7 @@ them), for the stage's provenance record: never in an artifact.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict
 from typing import Any, Callable, Sequence
 
@@ -39,11 +40,12 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from pipeline.core.alignment import MixOptions, buffer_states, mixer
 from pipeline.core.artifacts import csv_text
 from pipeline.core.cost import Stopwatch, cost_row
 from pipeline.core.drive import fmt_vec
 from pipeline.core.finite import TrainingDiverged
-from pipeline.core.mixing import chosen_specialists, mix_actors, mixing_weights, starts_problem
+from pipeline.core.mixing import chosen_specialists, mixing_weights, starts_problem
 from pipeline.core.nets import CriticEnsemble
 from pipeline.core.pareto import hypervolume, normalised_hypervolume, pareto_mask
 from pipeline.core.population import Member, actor_state, member_actor
@@ -91,7 +93,14 @@ def child_config(cfg: ExtractParams, precision: str = "fp32") -> ChildConfig:
         facet_bridge_ratio=cfg.facet_bridge_ratio,
         init=cfg.init,
         warmup_after_interpolate=cfg.warmup_after_interpolate,
+        mixing=mix_options(cfg),
+        mix_states=cfg.mix_states,
     )
+
+
+def mix_options(cfg: ExtractParams) -> MixOptions:
+    """extract.align, repair, mix and regmean_alpha as the interpolation stage's MixOptions."""
+    return MixOptions(align=cfg.align, repair=cfg.repair, mix=cfg.mix, regmean_alpha=cfg.regmean_alpha)
 
 
 def stop_hypervolume(returns: np.ndarray, lo: np.ndarray, span: np.ndarray) -> float:
@@ -175,6 +184,7 @@ class ExtractionRun:
             if cfg.seed_interpolation and self.seed_problem is None
             else []
         )
+        self.seed_mixing_fallback: str | None = None  # why extract.align/repair/mix could not apply to the seeds
         self._fallbacks: dict[str, int] = {}  # init interpolate: why children fell back, reason -> count
         self.costs: list[dict] = []  # per-iteration cost rows (pipeline.core.cost.COST_FIELDS)
         self.stop_curve: list[float] = []  # stop_hypervolume after iterations 0, 1, ... (stop_patience > 0)
@@ -274,11 +284,18 @@ class ExtractionRun:
         weights; parents: the specialists mixed with a weight > 0)."""
         n_obj = len(self.seed_weights[0])
         chosen = chosen_specialists(self.starts, [m.returns for m in self.members], n_obj)
+        # on the CPU (a copy where the run trains on a GPU: the population's actors stay put)
         mixed = [self.starts[i].actor for i in chosen]
+        mixed = [copy.deepcopy(a).cpu() if next(a.parameters()).is_cuda else a for a in mixed]
         spent = np.zeros(4)  # wall and CPU seconds of mixing, then of evaluating
+        options = mix_options(self.cfg)
+        with Stopwatch() as setup:  # extract.align, repair, mix: the interpolation stage's mixer
+            obs = buffer_states(self.buffers, self.cfg.mix_states, self.seed) if options.needs_states else None
+            make, self.seed_mixing_fallback = mixer(mixed, options, obs)
+        spent += (setup.wall, setup.cpu, 0, 0)
         for w in self.seed_weights:
             with Stopwatch() as mix:
-                actor = mix_actors(mixed, w).to(self.device)
+                actor = make(w).to(self.device)
             with Stopwatch() as ev:
                 res = evaluate_policy(actor, self.envs, self._seeds(len(self.members)))
             spent += (mix.wall, mix.cpu, ev.wall, ev.cpu)
@@ -418,6 +435,10 @@ class ExtractionRun:
             out["init_fallbacks"] = dict(self._fallbacks)
         if self.cfg.seed_interpolation:
             out["seed_interpolation"] = {"policies": len(self.seed_weights), "problem": self.seed_problem}
+            if not mix_options(self.cfg).plain:
+                out["seed_interpolation"]["mixing"] = mix_options(self.cfg).describe()
+                if self.seed_mixing_fallback:
+                    out["seed_interpolation"]["mixing_fallback"] = self.seed_mixing_fallback
         if self.cfg.stop_patience:
             out["stopped_at"] = self.stopped_at
         return out

@@ -96,6 +96,25 @@ class ExtractParams(Strict):
         "'interpolated'), so gap selection sends children into the gaps interpolation leaves; 0 = off (the paper); "
         "skipped, and recorded, where the specialists cannot be mixed",
     )
+    # how init interpolate's starts and seed_interpolation's grid are mixed: the options of stage
+    # interpolate (section interpolate; pipeline/core/alignment.py, issue 61), one implementation
+    align: Literal["none", "weights"] = Field(
+        "none",
+        description="init interpolate and seed_interpolation: put the mixed actors' hidden units in correspondence "
+        "first (weights = Git Re-Basin's weight matching); as interpolate.align; not in the paper",
+    )
+    repair: bool = Field(
+        False,
+        description="init interpolate and seed_interpolation: REPAIR each mix on mix_states states (a child's: its "
+        "hybrid buffer's first rows; a seed's: the specialists' buffers); as interpolate.repair",
+    )
+    mix: Literal["linear", "regmean"] = Field(
+        "linear", description="init interpolate and seed_interpolation: linear or regmean mixing; as interpolate.mix"
+    )
+    regmean_alpha: float = Field(0.9, ge=0, le=1, description="mix regmean: as interpolate.regmean_alpha")
+    mix_states: int = Field(
+        4096, gt=0, description="repair or mix regmean: the states they measure on; as interpolate.states"
+    )
     stop_patience: int = Field(
         0,
         ge=0,
@@ -138,7 +157,15 @@ AWR_KEYS = ("epochs", "beta", "omega_max", "lr", "batch_size", "max_grad_norm", 
 # reads none of them either (variant_config sets them to their defaults), and a run whose keys are
 # at their defaults records none of them (`without_default_extensions`), so that its artifacts and
 # resume fingerprint are byte for byte those from before the keys existed.
-EXTENSION_KEYS = ("init", "warmup_after_interpolate", "seed_interpolation", "stop_patience", "stop_min_gain")
+MIXING_KEYS = ("align", "repair", "mix", "regmean_alpha", "mix_states")
+EXTENSION_KEYS = (
+    "init",
+    "warmup_after_interpolate",
+    "seed_interpolation",
+    "stop_patience",
+    "stop_min_gain",
+    *MIXING_KEYS,
+)
 WARMUP_ONLY_KEYS = tuple(k for k in ExtractParams.model_fields if k not in AWR_KEYS + EXTENSION_KEYS)
 
 
@@ -152,5 +179,6 @@ def without_default_extensions(dump: dict) -> dict:
     on = {
         k: dump.get(k, fields[k].default) != fields[k].default for k in ("init", "seed_interpolation", "stop_patience")
     }
-    keep = on | {"warmup_after_interpolate": on["init"], "stop_min_gain": on["stop_patience"]}
+    mixing = {k: dump.get(k, fields[k].default) != fields[k].default for k in MIXING_KEYS}
+    keep = on | mixing | {"warmup_after_interpolate": on["init"], "stop_min_gain": on["stop_patience"]}
     return {k: v for k, v in dump.items() if k not in EXTENSION_KEYS or keep[k]}

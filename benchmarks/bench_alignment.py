@@ -1,0 +1,91 @@
+"""Aligned interpolation on a workspace's specialists (issue 61): plain, aligned, aligned + REPAIR,
+RegMean and aligned RegMean + REPAIR, each made by stage interpolate, re-evaluated by stage
+evaluate and scored by stage score (the evaluator every method's front goes through), with the
+core-seconds of making it. Run by hand; prints a markdown table and writes it to --out.
+
+    python benchmarks/bench_alignment.py --workspace WS --seed 0 --out /tmp/align.md
+
+WS: a DVC workspace whose data/specialists/td3/seedSEED holds the specialists (with buffers) and
+whose params.yaml is the run's (a cell of presets/studies/compare64.yaml, say). Nothing in WS is
+written: every output goes under a temporary directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+MODES = {
+    "plain": {},
+    "aligned": {"align": "weights"},
+    "aligned + REPAIR": {"align": "weights", "repair": True},
+    "RegMean (unaligned)": {"mix": "regmean"},
+    "aligned RegMean + REPAIR": {"align": "weights", "mix": "regmean", "repair": True},
+}
+
+
+def mapex(*args: str, cwd: Path) -> None:
+    cmd = [sys.executable, "-m", "stages.cli", *args]
+    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(f"{' '.join(args[:1])} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workspace", type=Path, required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--modes", nargs="*", default=list(MODES))
+    ap.add_argument("--out", type=Path, default=None)
+    a = ap.parse_args()
+    ws = a.workspace.resolve()
+    spec = ws / "data" / "specialists" / "td3" / f"seed{a.seed}"
+    base = yaml.safe_load((ws / "params.yaml").read_text())
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in a.modes:
+            d = Path(tmp) / name.replace(" ", "_").replace("+", "p").replace("(", "").replace(")", "")
+            d.mkdir()
+            params = dict(base)
+            params["interpolate"] = {**(base.get("interpolate") or {}), **MODES[name]}
+            (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+            p = str(d / "params.yaml")
+            t0 = time.perf_counter()
+            mapex("interpolate", "--seed", str(a.seed), "--kind", "td3", "--specialists", str(spec),
+                  "--out", str(d / "front"), "--params", p, "--provenance", str(d / "prov.json"), cwd=ws)  # fmt: skip
+            wall = time.perf_counter() - t0
+            mapex("evaluate", "--seed", str(a.seed), "--population", str(d / "front" / "population.pt"),
+                  "--out", str(d / "eval"), "--params", p, cwd=ws)  # fmt: skip
+            mapex("score", "--population", str(d / "front" / "population.pt"), "--evaluated", str(d / "eval"),
+                  "--out", str(d / "score"), "--params", p, cwd=ws)  # fmt: skip
+            metrics = json.loads((d / "score" / "metrics.json").read_text())
+            cost = json.loads((d / "prov.json").read_text()).get("cost", {}).get("iterations", [])
+            core = sum(r.get("train_cpu_s", 0) + r.get("eval_cpu_s", 0) for r in cost)
+            mix = sum(r.get("train_cpu_s", 0) for r in cost)
+            rows.append((name, metrics["front"]["hypervolume"], core, mix, wall))
+            print(
+                f"{name}: HV {metrics['front']['hypervolume']:.4g}, core-s {core:.1f} (mixing {mix:.2f}), wall {wall:.1f}"
+            )
+    table = ["| interpolation | re-evaluated HV | vs plain | core-s making the front | of which mixing | wall s |",
+             "|---|---|---|---|---|---|"]  # fmt: skip
+    plain = rows[0][1] if rows and rows[0][0] == "plain" else None
+    for name, hv, core, mix, wall in rows:
+        rel = f"{(hv / plain - 1) * 100:+.1f}%" if plain else ""
+        table.append(f"| {name} | {hv:.4g} | {rel} | {core:.1f} | {mix:.2f} | {wall:.1f} |")
+    text = "\n".join(table)
+    print(text)
+    print(f"threads: torch {os.environ.get('OMP_NUM_THREADS', 'default')}; workspace {ws}; seed {a.seed}")
+    if a.out:
+        a.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
