@@ -33,8 +33,10 @@ MODES = {
 
 
 def mapex(*args: str, cwd: Path) -> None:
-    cmd = [sys.executable, "-m", "stages.cli", *args]
-    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
+    # this checkout's code, not the workspace's copy (-P: the working directory is not on sys.path)
+    cmd = [sys.executable, "-P", "-m", "stages.cli", *args]
+    env = os.environ | {"PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=env)
     if done.returncode != 0:
         sys.exit(f"{' '.join(args[:1])} failed:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}")
 

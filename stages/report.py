@@ -13,7 +13,7 @@ from pipeline.params import ParamsError
 from pipeline.params.report import ReportParams
 from pipeline.params.variants import parse_variants
 from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
-from pipeline.reporting.figures import cost_figure, front_caption, front_figure, history_figure
+from pipeline.reporting.figures import barrier_figure, cost_figure, front_caption, front_figure, history_figure
 from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.presentation import label, use_variants
 from pipeline.reporting.report import report_markdown
@@ -89,6 +89,15 @@ def report(
         "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
         "the method ran (solid) and the same members re-evaluated (dashed)."
     )
+    first = min(r.seed for r in runs)
+    if len(names) == 2 and (barrier := barrier_figure(runs, names, env_p.id, first, cfg.figure_width)) is not None:
+        figures["barrier"] = barrier
+        captions["barrier.png"] = (
+            f"Each objective's re-evaluated return along the interpolation path between seed {first}'s specialists "
+            "(mixing weight l from 0 to 1), one line per interpolation method of the run (plain; aligned, repaired "
+            "or RegMean where params variants set interpolate.align, repair or mix); the dotted line joins the "
+            "specialists' returns: where a method's line sags below it, mixing loses there (the barrier)."
+        )
     if any(method_core_seconds(r) is not None for r in runs):
         figures["cost"] = cost_figure(runs, env_p.id, cfg.figure_width)
         captions["cost.png"] = (

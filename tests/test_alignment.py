@@ -244,3 +244,44 @@ def test_stage_without_a_buffer_for_repair_names_the_slot_in_one_line(cli, tmp_p
     assert not (tmp_path / "out").exists()
     # aligning alone reads no buffer
     assert _stage(cli, tmp_path, spec, {"policies": 2, "align": "weights"}).exit_code == 0
+
+
+# ---------------------------------------------------------------- the barrier on the report
+
+
+def _run(method, origin, objective, returns):
+    from pipeline.reporting.runs import Run
+
+    n = len(origin)
+    return Run(
+        method=method,
+        seed=0,
+        metrics={},
+        returns=np.asarray(returns, float),
+        origin=np.asarray(origin),
+        iteration=np.zeros(n, int),
+        on_front=np.ones(n, bool),
+        history={},
+        objective=np.asarray(objective),
+    )
+
+
+def test_the_interpolation_path_runs_from_the_mixed_specialists_in_grid_order():
+    from pipeline.reporting.figures import barrier_figure, interpolation_path
+
+    # a PDERL-like set: two policies of objective 0 (the second is better on it), one of objective 1
+    r = _run(
+        "interpolate_td3",
+        ["specialist", "specialist", "specialist", "interpolated", "interpolated", "interpolated"],
+        [0, 0, 1, -1, -1, -1],
+        [[5, -9], [8, -9], [0, -1], [6, -7], [3, -5], [1, -2]],
+    )
+    lam, ret = interpolation_path(r)
+    np.testing.assert_allclose(lam, [0, 0.25, 0.5, 0.75, 1])
+    np.testing.assert_allclose(ret[:, 0], [8, 6, 3, 1, 0])
+    child = _run("mapex_td3", ["specialist", "specialist", "child"], [0, 1, -1], [[5, -9], [0, -1], [3, -3]])
+    assert interpolation_path(child) is None
+    assert barrier_figure([child], ["a", "b"], "env", 0, 8.0) is None
+    fig = barrier_figure([r, child], ["a", "b"], "env", 0, 8.0)
+    lines = [ln for ln in fig.axes[0].get_lines() if ln.get_label() != "straight line between the specialists"]
+    assert len(lines) == 1 and list(lines[0].get_ydata()) == [8, 6, 3, 1, 0]

@@ -439,3 +439,47 @@ def cost_figure(runs: list[Run], env_id: str, width: float) -> Figure:
         ax.legend(fontsize="small", loc="best")
     fig.suptitle(f"Hypervolume against compute as each front grows: {env_id}")
     return fig
+
+
+def interpolation_path(run: Run) -> tuple[np.ndarray, np.ndarray] | None:
+    """For a 2-objective interpolation run (every member not a starting policy of origin
+    "interpolated", in grid order, as stage interpolate writes them): the mixing weights l from
+    0 (objective 0's specialist) to 1 (objective 1's) and the re-evaluated returns (len(l), 2) along
+    them, the specialists (per objective its starting policy best on that objective, the one mixed)
+    at the ends. None for any other run."""
+    spec = run.origin == "specialist"
+    rest = run.origin[~spec]
+    if run.returns.shape[1] != 2 or not len(rest) or not np.all(rest == "interpolated") or run.objective is None:
+        return None
+    ends = []
+    for k in (0, 1):
+        mine = np.flatnonzero(spec & (run.objective == k))
+        if not len(mine):
+            return None
+        ends.append(mine[np.argmax(run.returns[mine, k])])
+    inner = run.returns[~spec]
+    lam = np.concatenate([[0.0], np.arange(1, len(inner) + 1) / (len(inner) + 1), [1.0]])
+    return lam, np.vstack([run.returns[ends[0]], inner, run.returns[ends[1]]])
+
+
+def barrier_figure(runs: list[Run], names: list[str], env_id: str, seed: int, width: float) -> Figure | None:
+    """Where interpolation loses: each objective's re-evaluated return along the interpolation
+    path of seed `seed`'s specialists, one line per interpolation method (plain, aligned, aligned
+    + REPAIR, RegMean: stage interpolate's variants), with the straight line between the
+    specialists' returns as the no-barrier reference. None without a 2-objective interpolation run."""
+    paths = {r.method: p for r in runs if r.seed == seed and (p := interpolation_path(r)) is not None}
+    if not paths:
+        return None
+    fig, _, axes = _panels(2, width, 0.7)
+    for k, ax in enumerate(axes):
+        for v in (m for m in methods_in(runs) if m in paths):
+            lam, ret = paths[v]
+            ax.plot(lam, ret[:, k], "-o", ms=2.5, color=colour(v), label=label(v))
+        lam, ret = next(iter(paths.values()))
+        ax.plot([0, 1], [ret[0, k], ret[-1, k]], ":", color="grey", label="straight line between the specialists")
+        ax.set_xlabel(f"mixing weight l (towards the {names[1]} specialist)")
+        ax.set_ylabel(f"re-evaluated return: {names[k]}")
+        ax.grid(alpha=0.3)
+    _shared_legend(fig, axes)
+    fig.suptitle(f"Interpolation path between seed {seed}'s specialists: {env_id}")
+    return fig
