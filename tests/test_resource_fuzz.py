@@ -19,6 +19,7 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 BUDGET_MB = 160  # memory growth allowed beyond the reader's imports (the files here are under 3 MB)
@@ -188,3 +189,36 @@ def test_an_sb3_entry_of_millions_of_opcodes_is_refused_without_listing_them(tmp
     flood = base64.b64encode(b"\x80\x04" + b"(" * 3_000_000 + b".").decode()  # 3M MARK opcodes, 3 MB
     hostile = sb3_zip(tmp_path / "h", edit=lambda doc: doc.__setitem__("policy_class", {":serialized:": flood}))
     assert_refused(read_limited("sb3", hostile), hostile, "opcodes")
+
+
+# ---------------------------------------------------------------- paths in params (item 4)
+
+
+def test_import_paths_outside_the_repository_are_refused_unless_the_user_says_so(tmp_path, monkeypatch):
+    import pydantic
+
+    from pipeline.params.import_specialists import ALLOW_OUTSIDE, ImportedPolicyEntry
+
+    repo = tmp_path / "repo"
+    (repo / "models").mkdir(parents=True)
+    (tmp_path / "elsewhere").mkdir()
+    (repo / "models" / "link").symlink_to(tmp_path / "elsewhere")
+    monkeypatch.chdir(repo)
+    monkeypatch.delenv(ALLOW_OUTSIDE, raising=False)
+    assert ImportedPolicyEntry(objective=0, file="models/a.zip", format="sb3").file == "models/a.zip"
+    assert ImportedPolicyEntry(objective=0, file=str(repo / "models/a.zip"), format="sb3")
+    outside = [
+        {"file": "/etc/passwd"},
+        {"file": "../elsewhere/a.zip"},
+        {"file": "models/link/a.zip"},  # a link inside that leads out
+        {"file": "models/a.zip", "buffer": "~/buffer.zarr"},
+        {"file": "models/a.zip", "normalize": "models/../../elsewhere/vecnormalize.pkl"},
+    ]
+    for entry in outside:
+        with pytest.raises(pydantic.ValidationError) as err:
+            ImportedPolicyEntry(objective=0, format="sb3", **entry)
+        text = str(err.value)
+        assert "outside the repository" in text and f"{ALLOW_OUTSIDE}=1" in text, entry
+    monkeypatch.setenv(ALLOW_OUTSIDE, "1")
+    for entry in outside:
+        ImportedPolicyEntry(objective=0, format="sb3", **entry)

@@ -15,6 +15,8 @@ train_specialist_imported), and their critics are fitted post hoc like the impor
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Literal, get_args
 
 from pydantic import Field, field_validator, model_validator
@@ -26,6 +28,27 @@ from pipeline.params.common import Strict
 ImportFormat = Literal["sb3", "cleanrl", "torchscript", "torch_export"]
 IMPORT_FORMATS: tuple[str, ...] = get_args(ImportFormat)
 NORMALIZABLE_FORMATS = ("sb3", "cleanrl")
+# A grid cell's params arrive through git, so a file they name outside the repository (an absolute
+# path, a `..` that climbs out, a link that leads out) is read only when the user running the
+# stage says so in this environment variable (issue 57, item 4; docs/trust.md).
+ALLOW_OUTSIDE = "MAPEX_ALLOW_OUTSIDE_PATHS"
+
+
+def outside_problem(key: str, value: str, root: Path | None = None) -> str | None:
+    """Why the path `value` of params key `key` is refused (None if it is inside the repository,
+    the working directory `root`, or MAPEX_ALLOW_OUTSIDE_PATHS=1 allows it)."""
+    if os.environ.get(ALLOW_OUTSIDE) == "1":
+        return None
+    root = (root or Path.cwd()).resolve()
+    path = Path(os.path.expanduser(value))
+    target = (path if path.is_absolute() else root / path).resolve()
+    if target == root or root in target.parents:
+        return None
+    return (
+        f"{key} = {value!r} is outside the repository ({root}): params can arrive through git (a grid cell's do), "
+        f"so mapex reads a file outside only when you say so: set {ALLOW_OUTSIDE}=1 where you run it, or copy the "
+        "file into the repository"
+    )
 
 
 class ImportedPolicyEntry(Strict):
@@ -62,6 +85,10 @@ class ImportedPolicyEntry(Strict):
             )
         if isinstance(self.normalize, str) and not self.normalize.strip():
             raise ValueError("normalize is an empty path; give the statistics file, or false for none")
+        for key in ("file", "buffer", "normalize"):
+            value = getattr(self, key)
+            if isinstance(value, str) and (problem := outside_problem(key, value)) is not None:
+                raise ValueError(problem)
         return self
 
 
