@@ -4,6 +4,11 @@ evaluate and scored by stage score (the evaluator every method's front goes thro
 core-seconds of making it. Run by hand; prints a markdown table and writes it to --out.
 
     python benchmarks/bench_alignment.py --workspace WS --seed 0 --out /tmp/align.md
+    python benchmarks/bench_alignment.py --workspace WS --seed 0 --hybrid hybrid_td3_e2 --modes plain aligned
+
+With --hybrid VARIANT (a named variant of mapex_td3 in WS's params, such as the study's
+hybrid_td3_e2): the hybrid extraction (stage extract) with each mode's options set under that
+variant's `extract` section (its interpolated starts and seed grid), instead of stage interpolate.
 
 WS: a DVC workspace whose data/specialists/td3/seedSEED holds the specialists (with buffers) and
 whose params.yaml is the run's (a cell of presets/studies/compare64.yaml, say). Nothing in WS is
@@ -47,6 +52,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--modes", nargs="*", default=list(MODES))
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--hybrid", default=None, help="a hybrid variant of mapex_td3 to extract with each mode")
     a = ap.parse_args()
     ws = a.workspace.resolve()
     spec = ws / "data" / "specialists" / "td3" / f"seed{a.seed}"
@@ -57,12 +63,23 @@ def main() -> None:
             d = Path(tmp) / name.replace(" ", "_").replace("+", "p").replace("(", "").replace(")", "")
             d.mkdir()
             params = dict(base)
-            params["interpolate"] = {**(base.get("interpolate") or {}), **MODES[name]}
+            if a.hybrid:
+                variants = dict(base["variants"])
+                variants[a.hybrid] = dict(variants[a.hybrid])
+                variants[a.hybrid]["extract"] = {**variants[a.hybrid].get("extract", {}), **MODES[name]}
+                params["variants"] = variants
+            else:
+                params["interpolate"] = {**(base.get("interpolate") or {}), **MODES[name]}
             (d / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
             p = str(d / "params.yaml")
             t0 = time.perf_counter()
-            mapex("interpolate", "--seed", str(a.seed), "--kind", "td3", "--specialists", str(spec),
-                  "--out", str(d / "front"), "--params", p, "--provenance", str(d / "prov.json"), cwd=ws)  # fmt: skip
+            if a.hybrid:
+                mapex("extract", "--seed", str(a.seed), "--variant", "mapex", "--kind", "td3", "--method", a.hybrid,
+                      "--specialists", str(spec), "--out", str(d / "front"), "--params", p,
+                      "--provenance", str(d / "prov.json"), "--resume-dir", str(d / "resume"), cwd=ws)  # fmt: skip
+            else:
+                mapex("interpolate", "--seed", str(a.seed), "--kind", "td3", "--specialists", str(spec),
+                      "--out", str(d / "front"), "--params", p, "--provenance", str(d / "prov.json"), cwd=ws)  # fmt: skip
             wall = time.perf_counter() - t0
             mapex("evaluate", "--seed", str(a.seed), "--population", str(d / "front" / "population.pt"),
                   "--out", str(d / "eval"), "--params", p, cwd=ws)  # fmt: skip
@@ -76,7 +93,7 @@ def main() -> None:
             print(
                 f"{name}: HV {metrics['front']['hypervolume']:.4g}, core-s {core:.1f} (mixing {mix:.2f}), wall {wall:.1f}"
             )
-    table = ["| interpolation | re-evaluated HV | vs plain | core-s making the front | of which mixing | wall s |",
+    table = [f"| {'hybrid ' + a.hybrid + ' with' if a.hybrid else 'interpolation'} | re-evaluated HV | vs plain | core-s making the front | of which mixing | wall s |",
              "|---|---|---|---|---|---|"]  # fmt: skip
     plain = rows[0][1] if rows and rows[0][0] == "plain" else None
     for name, hv, core, mix, wall in rows:
