@@ -47,6 +47,7 @@ try:
 except ArtifactError as exc:
     out = {{"ok": False, "error": str(exc)}}
 out["grow_mb"] = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+out["base_mb"] = before / 1024
 out["cpu_s"] = time.process_time() - t0
 print(json.dumps(out))
 """
@@ -64,7 +65,15 @@ def read_limited(kind: str, path: Path) -> dict:
     )
     assert r.returncode == 0, f"{kind} {path}: the reader died (rc {r.returncode}):\n{r.stderr[-2000:]}"
     assert "Traceback" not in r.stderr, r.stderr[-2000:]
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    if log := os.environ.get("MAPEX_FUZZ_LOG"):  # benchmarks/bench_trust.py collects the figures
+        with open(log, "a") as f:
+            f.write(json.dumps({"kind": kind, "case": path.name, "bytes": _size(path)} | out) + "\n")
+    return out
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
 
 
 def assert_refused(out: dict, path: Path, says: str) -> None:
