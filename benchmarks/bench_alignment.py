@@ -18,6 +18,7 @@ written: every output goes under a temporary directory.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import subprocess
@@ -27,6 +28,8 @@ import time
 from pathlib import Path
 
 import yaml
+
+from pipeline.reporting.runs import load_run
 
 MODES = {
     "plain": {},
@@ -52,12 +55,13 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--modes", nargs="*", default=list(MODES))
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--figure", type=Path, default=None, help="write the barrier figure of the modes here (PNG)")
     ap.add_argument("--hybrid", default=None, help="a hybrid variant of mapex_td3 to extract with each mode")
     a = ap.parse_args()
     ws = a.workspace.resolve()
     spec = ws / "data" / "specialists" / "td3" / f"seed{a.seed}"
     base = yaml.safe_load((ws / "params.yaml").read_text())
-    rows = []
+    rows, runs, labels = [], [], {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in a.modes:
             d = Path(tmp) / name.replace(" ", "_").replace("+", "p").replace("(", "").replace(")", "")
@@ -90,6 +94,8 @@ def main() -> None:
             core = sum(r.get("train_cpu_s", 0) + r.get("eval_cpu_s", 0) for r in cost)
             mix = sum(r.get("train_cpu_s", 0) for r in cost)
             rows.append((name, metrics["front"]["hypervolume"], core, mix, wall))
+            runs.append(load_run(d / "score", d / "eval", "interpolate_td3", a.seed))
+            labels[name] = runs[-1]
             print(
                 f"{name}: HV {metrics['front']['hypervolume']:.4g}, core-s {core:.1f} (mixing {mix:.2f}), wall {wall:.1f}"
             )
@@ -100,6 +106,19 @@ def main() -> None:
         rel = f"{(hv / plain - 1) * 100:+.1f}%" if plain else ""
         table.append(f"| {name} | {hv:.4g} | {rel} | {core:.1f} | {mix:.2f} | {wall:.1f} |")
     text = "\n".join(table)
+    if a.figure and not a.hybrid:
+        # one line per mode: each run gets its mode as its method name, drawn in the report's figure
+        from pipeline.params.variants import parse_variants
+        from pipeline.reporting.figures import barrier_figure
+        from pipeline.reporting.presentation import use_variants
+
+        keys = {n: f"interp_{i}" for i, n in enumerate(labels)}
+        use_variants(parse_variants({keys[n]: {"of": "interpolate_td3", "label": n} for n in labels}))
+        named = [dataclasses.replace(r, method=keys[n]) for n, r in labels.items()]
+        names = base["env"].get("objective_names") or ["objective 0", "objective 1"]
+        fig = barrier_figure(named, names, base["env"]["id"], a.seed, 11.0)
+        fig.savefig(a.figure, dpi=110)
+        print(f"figure: {a.figure}")
     print(text)
     print(f"threads: torch {os.environ.get('OMP_NUM_THREADS', 'default')}; workspace {ws}; seed {a.seed}")
     if a.out:
