@@ -97,9 +97,10 @@ def main() -> None:
             runs.append(load_run(d / "score", d / "eval", "interpolate_td3", a.seed))
             labels[name] = runs[-1]
             print(
-                f"{name}: HV {metrics['front']['hypervolume']:.4g}, core-s {core:.1f} (mixing {mix:.2f}), wall {wall:.1f}"
+                f"{name}: HV {metrics['front']['hypervolume']:.4g}, core-s {core:.1f} (mixing or training {mix:.2f}), wall {wall:.1f}"
             )
-    table = [f"| {'hybrid ' + a.hybrid + ' with' if a.hybrid else 'interpolation'} | re-evaluated HV | vs plain | core-s making the front | of which mixing | wall s |",
+    part = "of which training" if a.hybrid else "of which mixing"
+    table = [f"| {'hybrid ' + a.hybrid + ' with' if a.hybrid else 'interpolation'} | re-evaluated HV | vs plain | core-s making the front | {part} | wall s |",
              "|---|---|---|---|---|---|"]  # fmt: skip
     plain = rows[0][1] if rows and rows[0][0] == "plain" else None
     for name, hv, core, mix, wall in rows:
