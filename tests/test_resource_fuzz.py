@@ -33,6 +33,7 @@ from pipeline.core.artifacts import ArtifactError
 from pipeline.core.buffer import load_buffer
 from pipeline.core.tscheck import check_torchscript
 from pipeline.interop.readers import read_sb3
+from pipeline.interop.vecnorm import read_vecnormalize
 import torch  # noqa: F401  (its own arenas counted before the read)
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 t0 = time.process_time()
@@ -41,6 +42,11 @@ try:
         read_sb3(__import__("pathlib").Path(path))
     elif kind == "zarr":
         load_buffer(path)
+    elif kind == "stats":
+        read_vecnormalize(path)
+    elif kind == "cleanrl":  # a CleanRL checkpoint's load (the torch.save zip every torch-file import reads)
+        from pipeline.interop.readers import _weights_only
+        _weights_only(__import__("pathlib").Path(path), None, "the checkpoint")
     else:
         check_torchscript(open(path, "rb").read(), path)
     out = {{"ok": True}}
@@ -231,3 +237,55 @@ def test_import_paths_outside_the_repository_are_refused_unless_the_user_says_so
     monkeypatch.setenv(ALLOW_OUTSIDE, "1")
     for entry in outside:
         ImportedPolicyEntry(objective=0, format="sb3", **entry)
+
+
+# ------------------------------------------------------------------------- statistics files
+
+
+def test_a_statistics_file_of_colliding_keys_is_refused_before_any_insert(tmp_path):
+    """40,000 integer keys that all hash alike (80,000 opcodes: under the opcode cap, about 9 s of
+    quadratic inserts before), by SETITEMS and by the older DICT opcode: refused at the first
+    non-str key (a real VecNormalize file has only str keys), in well under a second."""
+    modulus = (1 << 61) - 1
+    keys = bytearray()
+    for k in range(1, 40_001):
+        key = (k * modulus).to_bytes(12, "little", signed=True)
+        keys += b"\x8a" + bytes([len(key)]) + key + b"N"  # LONG1 key, NONE
+    for name, body in (
+        ("setitems.pkl", b"\x80\x02}(" + bytes(keys) + b"u."),  # EMPTY_DICT, MARK, ..., SETITEMS
+        ("dict.pkl", b"\x80\x02(" + bytes(keys) + b"d."),  # MARK, ..., DICT
+    ):
+        path = tmp_path / name
+        path.write_bytes(body)
+        out = read_limited("stats", path)
+        assert_refused(out, path, "str keys")
+        assert out["cpu_s"] < 1, f"{path}: {out['cpu_s']:.1f} s of CPU"
+
+
+# ------------------------------------------------------------------ CleanRL (torch.save zips)
+
+
+def test_a_cleanrl_checkpoint_that_inflates_or_floods_is_refused_before_torch_load(tmp_path):
+    import torch
+
+    valid = tmp_path / "valid.cleanrl_model"
+    torch.save((torch.nn.Linear(3, 4).state_dict(), torch.nn.Linear(2, 1).state_dict()), valid)
+    assert read_limited("cleanrl", valid)["ok"]
+
+    inflating = _rewritten(
+        valid, tmp_path / "inflate.cleanrl_model", {"/data.pkl": b"\x00" * (64 << 20)}, zipfile.ZIP_DEFLATED
+    )
+    assert inflating.stat().st_size < 1 << 20
+    assert_refused(read_limited("cleanrl", inflating), inflating, "refused above")
+
+    # 40,000 colliding integer keys: torch.load's own unpickler would insert them all (quadratic)
+    modulus = (1 << 61) - 1
+    body = bytearray(b"\x80\x02}(")
+    for k in range(1, 40_001):
+        key = (k * modulus).to_bytes(12, "little", signed=True)
+        body += b"\x8a" + bytes([len(key)]) + key + b"N"
+    body += b"u."
+    flood = _rewritten(valid, tmp_path / "flood.cleanrl_model", {"/data.pkl": bytes(body)})
+    out = read_limited("cleanrl", flood)
+    assert out["cpu_s"] < 3, f"{flood}: {out['cpu_s']:.1f} s of CPU"
+    assert out["grow_mb"] < BUDGET_MB

@@ -151,6 +151,49 @@ class _Reader(pickle._Unpickler):  # pure Python: a dict memo, its opcode table 
         return _Storage(key, numel)
 
 
+def _str_key(key: Any) -> None:
+    # str keys (parameter names; salted hashes) or the small non-negative ints an optimizer's state
+    # is keyed by (parameter indices): distinct ints below 2**61 - 1 hash to themselves, so no two collide
+    if type(key) is str or (type(key) is int and 0 <= key < 1 << 31):
+        return
+    raise _Unfit(f"uses {_brief_key(key)} as a dict key (a state dict has only str keys, an optimizer's small ints)")
+
+
+def _brief_key(key: Any) -> str:
+    return f"the int {key}"[:60] if type(key) is int else f"a {type(key).__name__}"
+
+
+def _keyed_setitem(self: "_Reader") -> None:  # SETITEM of a torch.save pickle: a str key, then as ever
+    _str_key(self.stack[-2])
+    pickle._Unpickler.dispatch[pickle.SETITEM[0]](self)
+
+
+def _keyed_setitems(self: "_Reader") -> None:  # SETITEMS: every key a str, checked before any is set
+    for key in self.stack[::2]:  # the pure-Python unpickler's stack holds just the items since the MARK
+        _str_key(key)
+    pickle._Unpickler.dispatch[pickle.SETITEMS[0]](self)
+
+
+def _keyed_dict(self: "_Reader") -> None:  # DICT: the marked keys checked, the items dropped
+    items = self.pop_mark()
+    for key in items[::2]:
+        _str_key(key)
+    self.append(_Inert())
+
+
+class _StateDictReader(_Reader):
+    """The reader for a torch.save zip (a CleanRL checkpoint, an SB3 policy.pth or optimizer): a
+    state dict's keys are parameter names (an optimizer's, parameter indices), so any other dict
+    key is refused at once. Its dicts become
+    real ones in torch.load's own unpickler after this check, where keys crafted to collide would
+    cost quadratic inserts (issue 57: 40,000 such keys, 10.6 s); str hashes are salted per process,
+    so str keys cannot be made to collide."""
+
+    dispatch = dict(_Reader.dispatch)
+    for _op, _fn in ((pickle.SETITEM, _keyed_setitem), (pickle.SETITEMS, _keyed_setitems), (pickle.DICT, _keyed_dict)):
+        dispatch[_op[0]] = _counted(_fn)
+
+
 def _check_view(storage: Any, offset: Any, size: Any, stride: Any) -> None:
     """A tensor `size`/`stride` from `offset` stays inside its storage's elements."""
     if not isinstance(storage, _Storage):
@@ -164,31 +207,33 @@ def _check_view(storage: Any, offset: Any, size: Any, stride: Any) -> None:
         raise _Unfit(f"rebuilds a tensor of {len(size)} dims reaching past the {storage.numel} elements of its storage")
 
 
-def check_torchscript(data: bytes, path: Path | str) -> None:
+def check_torchscript(data: bytes, path: Path | str, what: str = "TorchScript") -> None:
     """Refuse (ArtifactError, one line naming `path`) a TorchScript archive `data` whose pickles
-    declare tensors that its records cannot hold; return None for one torch.jit.load may read."""
+    declare tensors that its records cannot hold; return None for one torch.jit.load may read.
+    A torch.save zip (a CleanRL checkpoint, an SB3 policy.pth) has the same layout, so its
+    reader runs this too before torch.load, with `what` naming its format in the messages."""
     try:
         zf = zipfile.ZipFile(io.BytesIO(data))
         sizes = {info.filename: info.file_size for info in zf.infolist()}
     except Exception as exc:  # a damaged central directory raises BadZipFile, ValueError, ...
-        raise ArtifactError(f"{path}: not a TorchScript archive (not a readable zip: {first_line(exc)})") from None
+        raise ArtifactError(f"{path}: not a {what} archive (not a readable zip: {first_line(exc)})") from None
     pickles = [name for name in sizes if name.count("/") == 1 and name.endswith(("/data.pkl", "/constants.pkl"))]
     if not any(name.endswith("/data.pkl") for name in pickles):
-        raise ArtifactError(f"{path}: not a TorchScript archive (no data.pkl)")
+        raise ArtifactError(f"{path}: not a {what} archive (no data.pkl)")
     for name in pickles:
         root, member = name.split("/")
         folder = f"{root}/{'data' if member == 'data.pkl' else 'constants'}"
         if sizes[name] > MAX_PICKLE_BYTES:  # declared size, before a byte is inflated
             raise ArtifactError(
-                f"{path}: TorchScript {member} declares {sizes[name]} bytes; refused above {MAX_PICKLE_BYTES}"
+                f"{path}: {what} {member} declares {sizes[name]} bytes; refused above {MAX_PICKLE_BYTES}"
             )
         try:
             with zf.open(name) as fh:
                 raw = fh.read(MAX_PICKLE_BYTES + 1)  # a header that lies about the size inflates no further
             if len(raw) > MAX_PICKLE_BYTES:
                 raise _Unfit(f"inflates past {MAX_PICKLE_BYTES} bytes")
-            _Reader(raw, sizes, folder).load()
+            (_Reader if what == "TorchScript" else _StateDictReader)(raw, sizes, folder).load()
         except _Unfit as exc:
-            raise ArtifactError(f"{path}: TorchScript {member} {exc}; refused before torch.jit.load reads it") from None
+            raise ArtifactError(f"{path}: {what} {member} {exc}; refused before torch reads it") from None
         except Exception as exc:  # damaged bytes: say so in one line (torch.jit.load would only fail later)
-            raise ArtifactError(f"{path}: TorchScript {member} is not a readable pickle ({first_line(exc)})") from None
+            raise ArtifactError(f"{path}: {what} {member} is not a readable pickle ({first_line(exc)})") from None

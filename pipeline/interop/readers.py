@@ -130,8 +130,13 @@ def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
     """torch.load(weights_only=True) of a file (or its bytes), unpickling refused with a clear line;
     so are tensors that span more bytes than the file holds (a size or stride the file chose: using
     them would allocate that much) and any other error of torch on damaged bytes."""
+    if data is None:
+        data = path.read_bytes()
+    # the pickle checked within a budget before torch's own unpickler builds it (issue 57): declared
+    # and inflated sizes, opcodes counted, dicts inert (torch.save writes TorchScript's zip layout)
+    check_torchscript(data, path, "torch.save")
     try:
-        obj = torch.load(io.BytesIO(data) if data is not None else path, map_location="cpu", weights_only=True)
+        obj = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
         raise ArtifactError(
             f"{path}: {what} holds Python objects that only unpickling their code could read ({first_line(exc)}); "
@@ -139,7 +144,7 @@ def _weights_only(path: Path, data: bytes | None, what: str) -> Any:
         ) from None
     except Exception as exc:  # damaged bytes make torch.load raise nearly any built-in error
         raise ArtifactError(f"{path}: {what} is not a readable torch file ({first_line(exc)})") from None
-    size = len(data) if data is not None else path.stat().st_size
+    size = len(data)
     spans = _tensor_bytes(obj)
     if spans > size:
         raise ArtifactError(

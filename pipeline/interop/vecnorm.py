@@ -206,9 +206,18 @@ def _load_appends(self: "_RestrictedUnpickler") -> None:
     _container(self, list, "APPENDS").extend(items)
 
 
+def _key(key: Any, opcode: str) -> Any:
+    """A dict key or set item as a real statistics file has them: a str (attribute and field
+    names). Anything else is refused before it is hashed, so keys crafted to collide (integers
+    whose hashes all agree; str hashes are salted per process) cost no quadratic inserts (issue 57)."""
+    if type(key) is not str:
+        raise _Unsafe(f"uses a {type(key).__name__} as a {opcode} key (a file of statistics has only str keys)")
+    return key
+
+
 def _load_setitem(self: "_RestrictedUnpickler") -> None:
     value, key = self.stack.pop(), self.stack.pop()
-    _container(self, dict, "SETITEM")[key] = value
+    _container(self, dict, "SETITEM")[_key(key, "SETITEM")] = value
 
 
 def _load_setitems(self: "_RestrictedUnpickler") -> None:
@@ -217,12 +226,23 @@ def _load_setitems(self: "_RestrictedUnpickler") -> None:
     if len(items) % 2:
         raise _Unsafe("gives SETITEMS an odd number of items")
     for i in range(0, len(items), 2):
-        target[items[i]] = items[i + 1]
+        target[_key(items[i], "SETITEMS")] = items[i + 1]
+
+
+def _load_dict(self: "_RestrictedUnpickler") -> None:
+    items = self.pop_mark()
+    if len(items) % 2:
+        raise _Unsafe("gives DICT an odd number of items")
+    self.append({_key(items[i], "DICT"): items[i + 1] for i in range(0, len(items), 2)})
+
+
+def _load_frozenset(self: "_RestrictedUnpickler") -> None:
+    self.append(frozenset(_key(x, "FROZENSET") for x in self.pop_mark()))
 
 
 def _load_additems(self: "_RestrictedUnpickler") -> None:
     items = self.pop_mark()
-    _container(self, set, "ADDITEMS").update(items)
+    _container(self, set, "ADDITEMS").update(_key(x, "ADDITEMS") for x in items)
 
 
 class _RestrictedUnpickler(pickle._Unpickler):  # the pure-Python unpickler: see the module's docstring
@@ -234,6 +254,8 @@ class _RestrictedUnpickler(pickle._Unpickler):  # the pure-Python unpickler: see
         (pickle.SETITEM, _load_setitem),
         (pickle.SETITEMS, _load_setitems),
         (pickle.ADDITEMS, _load_additems),
+        (pickle.DICT, _load_dict),
+        (pickle.FROZENSET, _load_frozenset),
     ):
         dispatch[_code[0]] = _counted(_op)
     del _code, _op
