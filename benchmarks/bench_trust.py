@@ -18,7 +18,13 @@ from collections import defaultdict
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-NAMES = {"sb3": "SB3 zip", "zarr": "Zarr buffer", "ts": "TorchScript"}
+NAMES = {
+    "sb3": "SB3 zip",
+    "zarr": "Zarr buffer",
+    "ts": "TorchScript",
+    "stats": "statistics file",
+    "cleanrl": "CleanRL (torch.save zip)",
+}
 
 
 def main() -> None:
