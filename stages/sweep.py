@@ -11,7 +11,7 @@ from typing import Optional
 
 import typer
 
-from pipeline.distributed.driver import run_sweep
+from pipeline.distributed.driver import SweepSettings, run_sweep
 from pipeline.distributed.errors import SweepError
 from stages.common import reports_errors
 
@@ -103,8 +103,7 @@ def sweep(
             raise typer.Exit(code=2)
         options[key.strip()] = value.strip()
     try:
-        results = run_sweep(
-            grid,
+        settings = SweepSettings(
             remote,
             repo=repo,
             workdir=workdir,
@@ -117,8 +116,8 @@ def sweep(
             remote_options=options,
             resume_root=resume_root,
             seeds=seed,
-            log=typer.echo,
         )
+        results = run_sweep(grid, settings, log=typer.echo)
     except SweepError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=exc.exit_code) from None

@@ -10,7 +10,7 @@ import typer
 
 from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
-from pipeline.core.envs import EnvSpec, objective_names
+from pipeline.core.envs import EnvSpec
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
@@ -19,7 +19,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.evaluation.preflight import preflight
+from pipeline.evaluation.preflight import specialists_to_train
 from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
@@ -77,18 +77,12 @@ def train_pderl(
     """
     raw, env_p, cfg, run_p = read_params(params, "train_pderl", TrainPderlParams)
     td3 = section(raw, "td3", TD3Params, params)
-    objectives = list(objective) if objective else run_p.objectives
     if td3.learning_starts >= cfg.total_frames:
         raise ParamsError(
             f"{params}: td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
             f"({cfg.total_frames}), or the RL agent is never trained"
         )
-    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
-    bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
-    if bad:
-        where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"
-        raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
-    names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
+    spec, objectives, names = specialists_to_train(env_p, params, objective, run_p.objectives)
     device = select_device(cfg.device)
     parts = split_evenly(objectives, cfg.processes)
     what = ", ".join(f"obj {k} ({names[k]})" for k in objectives)

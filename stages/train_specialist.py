@@ -10,7 +10,7 @@ import typer
 
 from pipeline.core.artifacts import csv_text, write_text_atomic
 from pipeline.core.drive import drive
-from pipeline.core.envs import make_env, objective_names
+from pipeline.core.envs import make_env
 from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
@@ -19,7 +19,7 @@ from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.evaluation.preflight import preflight
+from pipeline.evaluation.preflight import specialists_to_train
 from pipeline.params import EnvParams, ParamsError, section
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
@@ -113,13 +113,7 @@ def train_specialist(
         raise ParamsError(f"--kind {kind!r}: expected one of {', '.join(SLOT_SOURCES)}")
     if kind == "imported" and not objective:
         raise ParamsError("--kind imported: name the objectives to train (--objective), those without an import entry")
-    objectives = list(objective) if objective else run_p.objectives
-    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
-    bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
-    if bad:
-        where = f"--objective {bad[0]}" if objective else f"{params}: objectives = {objectives}"
-        raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
-    names = objective_names(env_p.id, spec.n_objectives, env_p.objective_names)
+    spec, objectives, names = specialists_to_train(env_p, params, objective, run_p.objectives)
     device = select_device(cfg.device)
     parts = plan(objectives, cfg)
     bar = progress(

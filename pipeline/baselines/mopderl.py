@@ -118,7 +118,14 @@ from pipeline.core.seeding import derive_seeds, torch_generator
 from pipeline.core.specialist import Slot
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.td3 import TD3Params
-from pipeline.specialists.pderl import EpisodeResult, StateRing, distillation_crossover, episode_seed, proximal_mutation
+from pipeline.specialists.pderl import (
+    EpisodeResult,
+    StateRing,
+    distillation_crossover,
+    episode_seed,
+    play_episode,
+    proximal_mutation,
+)
 from pipeline.specialists.td3 import stack_td3
 from pipeline.specialists.td3_learner import TD3Learner
 
@@ -364,39 +371,29 @@ class MopderlRun:
     ) -> EpisodeResult:
         """One episode of `actor` (plus exploration noise if `noise`); its transitions go into
         each of `agents`' buffers (and its states into `ring`). Counts its frames."""
-        obs, _ = env.reset(seed=episode_seed(self.seeds["episodes"], self.episodes))
-        obs = np.asarray(obs, np.float32)
-        scale = actor.scale.cpu().numpy()
-        low, high = (actor.centre - actor.scale).cpu().numpy(), (actor.centre + actor.scale).cpu().numpy()
-        returns = np.zeros(self.spec.n_objectives)
         ids = [ag.next_episode for ag in agents]
-        step = 0
-        while True:
-            a = actor(torch.as_tensor(obs, device=self.device).unsqueeze(0))[0].cpu().numpy()
-            if noise:
-                a = (
-                    a
-                    + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32)
-                    * scale
-                )
-                a = np.clip(a, low, high).astype(np.float32)
-            next_obs, reward, terminated, truncated, _ = env.step(a)
-            next_obs = np.asarray(next_obs, np.float32)
+
+        def add(obs, a, reward, next_obs, terminated, truncated, step):
             for ag, ep in zip(agents, ids):
-                ag.learner.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), ep, step)
-            if ring is not None:
-                ring.add(obs)
-            returns += reward
-            step += 1
-            obs = next_obs
-            if terminated or truncated:
-                break
+                ag.learner.add(obs, a, reward, next_obs, terminated, truncated, ep, step)
+
+        result = play_episode(
+            env,
+            actor,
+            episode_seed(self.seeds["episodes"], self.episodes),
+            add,
+            self.spec.n_objectives,
+            self.device,
+            ring,
+            self.noise_rng if noise else None,
+            self.td3_cfg.exploration_noise,
+        )
         for ag in agents:
             ag.next_episode += 1
-            ag.added += step
+            ag.added += result.length
         self.episodes += 1
-        self.frames += step
-        return EpisodeResult(step, returns)
+        self.frames += result.length
+        return result
 
     def evaluate(
         self, env: gym.Env, ind: Individual, on_episode: Callable[[EpisodeResult], None] | None = None

@@ -91,22 +91,28 @@ def _import_ray():
     return ray
 
 
+@dataclass(frozen=True)
+class SweepSettings:
+    """How a sweep runs, as `mapex sweep`'s options give it (one place: the command builds it, the
+    driver and the task submission read it). `remote` is a directory or a URL; `remote_options`
+    are extra DVC remote settings (KEY=VALUE, written to each workspace's config.local)."""
+
+    remote: str
+    repo: Path = Path(".")
+    workdir: Path | None = None
+    address: str | None = None
+    workers: int | None = None
+    max_retries: int = 3
+    git_url: str | None = None
+    scratch: str | None = None
+    dry_run: bool = False
+    remote_options: dict[str, str] = field(default_factory=dict)
+    resume_root: Path | None = None
+    seeds: list[int] | None = None
+
+
 def run_sweep(
-    grid_path: Path,
-    remote: str,
-    *,
-    repo: Path = Path("."),
-    workdir: Path | None = None,
-    address: str | None = None,
-    workers: int | None = None,
-    max_retries: int = 3,
-    git_url: str | None = None,
-    scratch: str | None = None,
-    dry_run: bool = False,
-    remote_options: dict[str, str] | None = None,
-    resume_root: Path | None = None,
-    seeds: list[int] | None = None,
-    log: Callable[[str], None] = lambda line: None,
+    grid_path: Path, settings: SweepSettings, log: Callable[[str], None] = lambda line: None
 ) -> list[CellResult]:
     """Run a grid: prepare one workspace per cell, run every stage item as a Ray task, write each
     completed cell's dvc.lock. Progress lines go to `log` (the command passes typer.echo).
@@ -114,23 +120,23 @@ def run_sweep(
     the other cells completed."""
     grid_path = Path(grid_path)
     grid = load_grid(grid_path)
-    if seeds:
-        grid = with_seeds(grid, grid_path, seeds)
-    options = _remote_settings(remote_options)
-    repo = _repo_root(Path(repo).resolve())
+    if settings.seeds:
+        grid = with_seeds(grid, grid_path, settings.seeds)
+    options = _remote_settings(settings.remote_options)
+    repo = _repo_root(Path(settings.repo).resolve())
     commit = _git(repo, "rev-parse", "HEAD").strip()
     _check_clean(repo, commit)
     cells = plan_cells(grid, grid_path, repo, commit)
-    source = git_url or str(repo)
-    remote = _remote_location(remote)
-    workdir = (Path(workdir) if workdir is not None else repo / "sweeps" / grid_path.stem).resolve()
+    source = settings.git_url or str(repo)
+    remote = _remote_location(settings.remote)
+    workdir = (Path(settings.workdir) if settings.workdir is not None else repo / "sweeps" / grid_path.stem).resolve()
     log(
         f"sweep {grid_path.name}: {len(cells)} cell(s), code commit {commit[:12]}, remote {remote}, workspaces in {workdir}"
     )
 
     plans, results = _plan_workspaces(grid, grid_path, cells, workdir, source, commit, log)
     todo = [p for p in plans if not p.up_to_date]
-    if dry_run:
+    if settings.dry_run:
         _log_plan(todo, results, log)
         return list(results.values())
     if not todo:
@@ -138,7 +144,7 @@ def run_sweep(
         return list(results.values())
 
     ray = _import_ray()
-    started = _start_ray(ray, address, workers)
+    started = _start_ray(ray, settings.address, settings.workers)
     try:
         cluster = ray.cluster_resources()
         log(f"ray: {cluster.get('CPU', 0):g} CPU, {cluster.get('GPU', 0):g} GPU, {len(ray.nodes())} node(s)")
@@ -147,13 +153,11 @@ def run_sweep(
             todo,
             grid,
             cluster.get("GPU", 0),
+            settings,
             source=source,
             commit=commit,
             remote=remote,
-            scratch=scratch,
             options=options,
-            resume_root=resume_root,
-            max_retries=max_retries,
         )
         _collect_results(ray, pending, results, log)
     finally:
@@ -256,17 +260,18 @@ def _submit_tasks(
     todo: list[CellPlan],
     grid: Grid,
     cluster_gpus: float,
+    settings: SweepSettings,
     *,
     source: str,
     commit: str,
     remote: str,
-    scratch: str | None,
     options: tuple[tuple[str, str], ...],
-    resume_root: Path | None,
-    max_retries: int,
 ) -> dict[Any, list[tuple[str, StageItem]]]:
     """Submit the stage items of every cell to run as Ray tasks, each after its upstream's;
-    returns each task's ref -> the (cell, item) pairs it computes."""
+    returns each task's ref -> the (cell, item) pairs it computes. `source`, `commit`, `remote`
+    and `options` are the settings as run_sweep resolved them (clone URL, HEAD, absolute remote,
+    checked remote options)."""
+    resume_root = str(Path(settings.resume_root).resolve()) if settings.resume_root else None
     remote_fn = ray.remote(run_stage_task)
     # one task per distinct computation: an item whose signature another cell already has
     # shares that cell's task (DVC would give both the same run-cache key)
@@ -291,15 +296,15 @@ def _submit_tasks(
                     it.pull,
                     threads,
                     gpus,
-                    scratch,
+                    settings.scratch,
                     options,
-                    str(Path(resume_root).resolve()) if resume_root else None,
+                    resume_root,
                     it.sources,
                 )
                 ref = remote_fn.options(
                     num_cpus=cpus,
                     num_gpus=gpus,
-                    max_retries=max_retries,
+                    max_retries=settings.max_retries,
                     retry_exceptions=False,
                     name=f"{p.cell.name}:{it.name}",
                 ).remote(task, *[refs[u] for u in it.upstream])

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from pipeline.core.envs import EnvError, EnvSpec, env_spec, make_env, objective_names
 from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
+from pipeline.params import ParamsError
 
 
 def preflight(env_p, params: Path, reference: bool = True, table: Path = TABLE) -> EnvSpec:
@@ -34,3 +35,20 @@ def preflight(env_p, params: Path, reference: bool = True, table: Path = TABLE) 
     if reference:
         resolve_reference_point(env_p.reference_point, env_p.id, spec.n_objectives, params, table)
     return spec
+
+
+def specialists_to_train(
+    env_p, params: Path, chosen: list[int] | None, listed: list[int]
+) -> tuple[EnvSpec, list[int], list[str]]:
+    """The preamble of the stages that train specialists (train_specialist, train_pderl): the env
+    checked (`preflight`, no reference point), the objectives to train (`chosen`, the stage's
+    --objective options, else `listed`, params' objectives), each checked against the env's
+    (one line naming the option or the key), and every objective's name. Returns (spec,
+    objectives, names)."""
+    objectives = list(chosen) if chosen else list(listed)
+    spec = preflight(env_p, params, reference=False)  # the env builds and fits, in one line if not
+    bad = [k for k in objectives if not 0 <= k < spec.n_objectives]
+    if bad:
+        where = f"--objective {bad[0]}" if chosen else f"{params}: objectives = {objectives}"
+        raise ParamsError(f"{where}: env {env_p.id} has objectives 0..{spec.n_objectives - 1}")
+    return spec, objectives, objective_names(env_p.id, spec.n_objectives, env_p.objective_names)

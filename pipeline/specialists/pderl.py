@@ -90,6 +90,46 @@ def episode_seed(base: int, episode: int) -> int:
     return derive_seeds(base, episode, n=1)[0]
 
 
+def play_episode(
+    env: gym.Env,
+    actor: Actor,
+    reset_seed: int,
+    add: Callable[..., None],
+    n_objectives: int,
+    device: torch.device | str,
+    ring: "StateRing | None" = None,
+    noise_rng: np.random.Generator | None = None,
+    noise_std: float = 0.0,
+) -> "EpisodeResult":
+    """One episode of `actor` from `env.reset(seed=reset_seed)`: each transition goes to
+    `add(obs, action, reward, next_obs, terminated, truncated, step)` and each state into `ring`;
+    with `noise_rng`, Gaussian noise of `noise_std` times the action scale is added to every
+    action, clipped to the bounds (TD3's exploration noise). The one episode loop of PDERL and
+    MOPDERL (whose `add` feeds several agents' buffers)."""
+    obs, _ = env.reset(seed=reset_seed)
+    obs = np.asarray(obs, np.float32)
+    scale = actor.scale.cpu().numpy()
+    low, high = (actor.centre - actor.scale).cpu().numpy(), (actor.centre + actor.scale).cpu().numpy()
+    returns = np.zeros(n_objectives)
+    step = 0
+    while True:
+        a = actor(torch.as_tensor(obs, device=device).unsqueeze(0))[0].cpu().numpy()
+        if noise_rng is not None:
+            a = a + noise_rng.normal(0.0, noise_std, size=a.shape).astype(np.float32) * scale
+            a = np.clip(a, low, high).astype(np.float32)
+        next_obs, reward, terminated, truncated, _ = env.step(a)
+        next_obs = np.asarray(next_obs, np.float32)
+        add(obs, a, reward, next_obs, bool(terminated), bool(truncated), step)
+        if ring is not None:
+            ring.add(obs)
+        returns += reward
+        step += 1
+        obs = next_obs
+        if terminated or truncated:
+            break
+    return EpisodeResult(step, returns)
+
+
 # ----------------------------------------------------------------------------- mini buffer
 
 
@@ -476,34 +516,25 @@ class PderlRun:
     def run_episode(self, env: gym.Env, actor: Actor, noise: bool, ring: StateRing | None) -> EpisodeResult:
         """One episode of `actor` (plus exploration noise if `noise`) into the shared buffer
         (and its states into `ring`); counts its frames."""
-        obs, _ = env.reset(seed=episode_seed(self.seeds["episodes"], self.episodes))
-        obs = np.asarray(obs, np.float32)
-        scale = actor.scale.cpu().numpy()
-        low, high = (actor.centre - actor.scale).cpu().numpy(), (actor.centre + actor.scale).cpu().numpy()
-        returns = np.zeros(self.spec.n_objectives)
-        step = 0
-        while True:
-            a = actor(torch.as_tensor(obs, device=self.device).unsqueeze(0))[0].cpu().numpy()
-            if noise:
-                a = (
-                    a
-                    + self.noise_rng.normal(0.0, self.td3_cfg.exploration_noise, size=a.shape).astype(np.float32)
-                    * scale
-                )
-                a = np.clip(a, low, high).astype(np.float32)
-            next_obs, reward, terminated, truncated, _ = env.step(a)
-            next_obs = np.asarray(next_obs, np.float32)
-            self.agent.add(obs, a, reward, next_obs, bool(terminated), bool(truncated), self.episodes, step)
-            if ring is not None:
-                ring.add(obs)
-            returns += reward
-            step += 1
-            obs = next_obs
-            if terminated or truncated:
-                break
+        episode = self.episodes
+
+        def add(obs, a, reward, next_obs, terminated, truncated, step):
+            self.agent.add(obs, a, reward, next_obs, terminated, truncated, episode, step)
+
+        result = play_episode(
+            env,
+            actor,
+            episode_seed(self.seeds["episodes"], episode),
+            add,
+            self.spec.n_objectives,
+            self.device,
+            ring,
+            self.noise_rng if noise else None,
+            self.td3_cfg.exploration_noise,
+        )
         self.episodes += 1
-        self.frames += step
-        return EpisodeResult(step, returns)
+        self.frames += result.length
+        return result
 
     def evaluate(self, env: gym.Env, actor: Actor, ring: StateRing | None, on_episode=None) -> float:
         """Mean return of the run's objective over `eval_episodes` deterministic episodes."""
