@@ -116,18 +116,29 @@ def train_specialist(
     spec, objectives, names = specialists_to_train(env_p, params, objective, run_p.objectives)
     device = select_device(cfg.device)
     parts = plan(objectives, cfg)
+    weights = prefix_weights(td3, spec.n_objectives, params)
+    shared = td3.shared_prefix_steps
     bar = progress(
-        cfg.total_steps * len(objectives),
+        shared + (cfg.total_steps - shared) * len(objectives),
         f"specialists seed {seed}" + (f" ({len(parts)} processes)" if len(parts) > 1 else ""),
     )
     with bar:
+        if weights is not None:  # the shared prefix first, here; every part forks from its final state
+            run_parts(
+                train_prefix,
+                [(out, seed, spec, env_p, td3, cfg, device, weights)],
+                bar,
+                lambda i: f"prefix seed {seed}",
+            )
         run_parts(
             train_part,
-            [(out, part, seed, spec, env_p, td3, cfg, device, names, SLOT_SOURCES[kind]) for part in parts],
+            [(out, part, seed, spec, env_p, td3, cfg, device, names, SLOT_SOURCES[kind], weights) for part in parts],
             bar,
             lambda i: f"specialists seed {seed}, " + ", ".join(f"obj {k}" for group in parts[i] for k in group),
         )
     remove_stale_checkpoints(out, objectives)
+    if weights is not None:
+        prefix_checkpoint(out, seed, env_p, td3, cfg, device, weights).clear()
     write_provenance(provenance, "train_specialist", device, resolve(cfg.precision, device, max(td3.hidden_sizes)))
 
 
@@ -150,17 +161,126 @@ def train_part(
     device,
     names: Sequence[str],
     source: dict | None,
+    weights: list[float] | None,
     threads: int,
     *,
     send,
 ) -> None:
     """Train and save the specialists (seed, k) of `groups`, one group after another (one part
     of `plan`: in this process, or a worker's whole job with `threads` torch threads); `source`:
-    what their policy.pt records as their source (SLOT_SOURCES), None for nothing."""
+    what their policy.pt records as their source (SLOT_SOURCES), None for nothing; `weights`:
+    the shared prefix's mixed reward (`prefix_weights`), None without one."""
     torch.set_num_threads(threads)
     with sigterm_deferred():  # SIGTERM: checkpoint after the current step and stop
         for group in groups:
-            train_group(out, group, seed, spec, env_p, td3, cfg, device, names, send, source)
+            train_group(out, group, seed, spec, env_p, td3, cfg, device, names, send, source, weights)
+
+
+def prefix_weights(td3: TD3Params, n_objectives: int, params: Path) -> list[float] | None:
+    """The weights of the shared prefix's mixed reward (td3.shared_prefix_weights, default equal),
+    None when td3.shared_prefix_steps is 0; ParamsError for a wrong count or an all-zero mix."""
+    if not td3.shared_prefix_steps:
+        return None
+    weights = td3.shared_prefix_weights or [1.0 / n_objectives] * n_objectives
+    if len(weights) != n_objectives or not any(weights):
+        raise ParamsError(
+            f"{params}: td3.shared_prefix_weights = {td3.shared_prefix_weights}: expected {n_objectives} "
+            "non-negative weights, one per objective, not all zero"
+        )
+    return [float(w) for w in weights]
+
+
+def prefix_config(seed: int, env_p: EnvParams, td3: TD3Params, cfg: TrainSpecialistParams) -> dict[str, Any]:
+    """What a seed's shared prefix depends on besides code, device and threads: the env, the td3
+    section (its length and weights included), the run settings a prefix reads and the seed."""
+    return {
+        "env": env_p.model_dump(exclude={"objective_names", "reference_point"}),
+        "td3": td3.model_dump(),
+        "train_specialist": cfg.model_dump(
+            exclude={
+                "checkpoint_every",
+                "device",
+                "batched",
+                "processes",
+                "total_steps",
+                "keep_best_every",
+                "keep_best_episodes",
+            }
+        ),
+        "seed": seed,
+        "prefix": "mixed",
+    }
+
+
+def prefix_checkpoint(
+    out: Path, seed: int, env_p: EnvParams, td3: TD3Params, cfg: TrainSpecialistParams, device, weights, send=None
+) -> Checkpoint:
+    """Where the finished shared prefix of the seed is kept (beside the specialists' checkpoints)
+    until every specialist of the stage has been written: a killed stage forks again from it."""
+    precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
+    fp = run_fingerprint(
+        "train_specialist", prefix_config(seed, env_p, td3, cfg) | {"weights": weights}, device, precision=precision
+    )
+    say = (lambda line: send("say", line)) if send is not None else (lambda line: None)
+    return Checkpoint(checkpoint_dir(out, inside=False) / "specialist_prefix.pt", fp, say)
+
+
+def prefix_run(spec, env_p: EnvParams, td3: TD3Params, cfg: TrainSpecialistParams, seed: int, device, weights):
+    """A fresh shared-prefix run: one TD3 on the mixed reward (objective n of the run's n + 1),
+    td3.shared_prefix_steps long, without keep-best."""
+    short = cfg.model_copy(update={"total_steps": td3.shared_prefix_steps, "keep_best_every": 0})
+    env = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
+    return SpecialistsRun([env], spec, td3, short, [(seed, spec.n_objectives)], device, mix=weights)
+
+
+def train_prefix(
+    out: Path,
+    seed: int,
+    spec,
+    env_p: EnvParams,
+    td3: TD3Params,
+    cfg: TrainSpecialistParams,
+    device,
+    weights,
+    threads,
+    *,
+    send,
+) -> None:
+    """Train the seed's shared prefix (td3.shared_prefix_steps), unless a finished one of these
+    params is kept already, checkpointing as the specialists do; its final state is kept by
+    `prefix_checkpoint` for the specialists to fork from."""
+    torch.set_num_threads(threads)
+    done = prefix_checkpoint(out, seed, env_p, td3, cfg, device, weights, send)
+    if done.load() is not None:
+        send("say", f"seed {seed}: forking from the shared prefix kept in {done.path}")
+        send("steps", td3.shared_prefix_steps)
+        return
+    probe = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
+    problem = env_checkpoint_problem(probe)
+    probe.close()
+    if problem is not None:
+        raise ParamsError(
+            f"td3.shared_prefix_steps: env {env_p.id} cannot be forked mid-episode ({problem}); set it to 0"
+        )
+    precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
+    fp = run_fingerprint(
+        "train_specialist", prefix_config(seed, env_p, td3, cfg) | {"weights": weights}, device, precision=precision
+    )
+    ckpt = Checkpoint(
+        checkpoint_dir(out, inside=False) / (CHECKPOINT_PREFIX + "prefix.pt"), fp, lambda line: send("say", line)
+    )
+    with sigterm_deferred():
+        drive(
+            lambda: prefix_run(spec, env_p, td3, cfg, seed, device, weights),
+            ckpt,
+            who=f"train_specialist seed {seed}, shared prefix",
+            stage="train_specialist",
+            resumed=lambda run: f"shared prefix: resuming from step {run.t} of {ckpt.path}",
+            save=lambda run: done.save(run.state_dict()),
+            send=send,
+            periodic=cfg.checkpoint_every > 0,
+            every=PROGRESS_EVERY,
+        )
 
 
 def checkpoint_path(out: Path, group: Sequence[int]) -> Path:
@@ -209,6 +329,7 @@ def train_group(
     names: Sequence[str],
     send,
     source: dict | None = None,
+    weights: list[float] | None = None,
 ) -> None:
     """Train and save the specialists (seed, k), k in `group`, together: from their checkpoint
     if one fits, checkpointing every cfg.checkpoint_every steps (pipeline.core.drive). Progress
@@ -230,6 +351,17 @@ def train_group(
             if result.keep_best is not None:
                 send("say", f"seed {seed}, obj {result.objective} ({names[result.objective]}): " + kept_line(result))
 
+    # with a shared prefix, a fresh run forks from the prefix's final state (its `start`)
+    fork = None
+    if weights is not None:
+        kept = prefix_checkpoint(out, seed, env_p, td3, cfg, device, weights, send)
+
+        def fork() -> dict[str, Any]:
+            state = kept.load()
+            if state is None:
+                raise RuntimeError(f"the shared prefix of seed {seed} is not in {kept.path}; rerun the stage")
+            return state
+
     drive(
         lambda: SpecialistsRun(
             [make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms) for _ in jobs],
@@ -238,6 +370,7 @@ def train_group(
             cfg,
             jobs,
             device,
+            fork_from=fork,
         ),
         ckpt,
         who=f"train_specialist seed {seed}, {what}",

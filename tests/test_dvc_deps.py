@@ -245,7 +245,7 @@ def test_stages_list_exactly_the_section_keys_they_read():
 
     for stage in ("train_pderl", "mopderl"):
         assert _listed(stage, "td3") == list(AGENT_KEYS), stage
-        assert "shared_init" not in AGENT_KEYS
+        assert not {"shared_init", "shared_prefix_steps", "shared_prefix_weights"} & set(AGENT_KEYS)
     for stage in ("train_specialist", "train_specialist_imported", "train_specialist_variant"):
         assert _listed(stage, "td3") == ["*"], stage  # shared_init is theirs
     assert _listed("warmup_only", "extract") == list(WARMUP_ONLY_KEYS)

@@ -11,7 +11,8 @@ Defaults are the paper's table. Which stage reads which key: every key is read b
 `train_specialist` and `train_pderl`; `mopderl` reads all but `learning_starts`,
 `hidden_sizes` and `secondary_critics` (its agents start from PDERL's filled buffers and
 networks), which cannot change without PDERL's specialists, its inputs, changing too.
-`shared_init` (not in the paper) is read by `train_specialist` only.
+`shared_init` and `shared_prefix_steps` / `shared_prefix_weights` (not in the paper) are read by
+`train_specialist` only.
 """
 
 from __future__ import annotations
@@ -44,19 +45,50 @@ class TD3Params(Strict):
         "PDERL's and MOPDERL's agents ignore it",
     )
 
+    shared_prefix_steps: int = Field(
+        0,
+        ge=0,
+        description="the TD3 specialists of a seed fork from one TD3 trained this many env steps on a mixed reward "
+        "(shared_prefix_weights), each then training on its own objective to train_specialist.total_steps: "
+        "its networks, critics, optimizer moments and replay rows are every specialist's first steps (a seed "
+        "takes shared_prefix_steps + n x (total_steps - shared_prefix_steps) env frames); for weight-space "
+        "interpolation (Frankle et al. 2020: networks that share early training are linearly connected); "
+        "needs secondary_critics; 0: independent specialists, as in the paper. train_specialist only",
+    )
+    shared_prefix_weights: list[float] | None = Field(
+        None,
+        description="weights of the shared prefix's mixed reward, one per objective, applied to the env's rewards "
+        "as they are (default: equal, 1/n each)",
+    )
+
     @model_serializer(mode="wrap")
     def _dump(self, handler):
-        # shared_init off (the default) is left out of the dump: the specialists' metadata and run
-        # fingerprints record the section as it was before the key existed, so their bits stay the same
+        # shared_init off and no shared prefix (the defaults) are left out of the dump: the
+        # specialists' metadata and run fingerprints record the section as it was before the keys
+        # existed, so their bits stay the same
         out = handler(self)
-        if isinstance(out, dict) and not self.shared_init:
-            out.pop("shared_init", None)
+        if isinstance(out, dict):
+            if not self.shared_init:
+                out.pop("shared_init", None)
+            if not self.shared_prefix_steps:
+                out.pop("shared_prefix_steps", None)
+            if self.shared_prefix_weights is None:
+                out.pop("shared_prefix_weights", None)
         return out
 
     @model_validator(mode="after")
     def _consistent(self) -> "TD3Params":
         if any(h <= 0 for h in self.hidden_sizes):
             raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
+        if self.shared_prefix_steps and not self.secondary_critics:
+            raise ValueError(
+                f"shared_prefix_steps ({self.shared_prefix_steps}) needs secondary_critics: true (each specialist "
+                "takes the prefix's critic of its own objective)"
+            )
+        if self.shared_prefix_weights is not None and (
+            not self.shared_prefix_weights or any(w < 0 for w in self.shared_prefix_weights)
+        ):
+            raise ValueError(f"shared_prefix_weights must be non-negative weights, got {self.shared_prefix_weights}")
         if self.learning_starts < self.batch_size:
             raise ValueError(f"learning_starts ({self.learning_starts}) must be >= batch_size ({self.batch_size})")
         return self
@@ -67,4 +99,5 @@ class TD3Params(Strict):
 # these one by one (tests/test_dvc_deps.py checks it), so switching shared_init reruns the TD3
 # specialists and nothing of PDERL or MOPDERL; `mapex sync-params` names them in params.yaml
 # (DVC refuses a listed key that is missing from the file).
-AGENT_KEYS = tuple(k for k in TD3Params.model_fields if k != "shared_init")
+SPECIALIST_ONLY_KEYS = ("shared_init", "shared_prefix_steps", "shared_prefix_weights")
+AGENT_KEYS = tuple(k for k in TD3Params.model_fields if k not in SPECIALIST_ONLY_KEYS)

@@ -70,6 +70,11 @@ class TrainSpecialistParams(Strict):
 
 def check_against_td3(cfg: TrainSpecialistParams, td3: TD3Params) -> None:
     """The checks across the two sections a specialist run reads; ValueError naming both keys."""
+    if td3.shared_prefix_steps >= cfg.total_steps:
+        raise ValueError(
+            f"td3.shared_prefix_steps ({td3.shared_prefix_steps}) must be < train_specialist.total_steps "
+            f"({cfg.total_steps}): the specialists fork from the prefix and train their own objective after it"
+        )
     if td3.learning_starts >= cfg.total_steps:
         raise ValueError(
             f"td3.learning_starts ({td3.learning_starts}) must be < train_specialist.total_steps ({cfg.total_steps})"

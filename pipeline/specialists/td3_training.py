@@ -32,6 +32,7 @@ they are checkpointed with it.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -124,7 +125,22 @@ class SpecialistsRun:
         cfg: TrainSpecialistParams,
         jobs: Sequence[tuple[int, int]],
         device: torch.device,
+        mix: Sequence[float] | None = None,
+        fork_from: Callable[[], dict[str, Any]] | None = None,
     ):
+        # `mix`: the run trains on the env's rewards plus one more, their weighted sum (the shared
+        # prefix, td3.shared_prefix_steps): its buffer, critics and returns have n + 1 objectives,
+        # objective n being the mixed one, which is what its jobs train
+        self.mix = None if mix is None else np.asarray(mix, np.float64)
+        if self.mix is not None:
+            if self.mix.shape != (spec.n_objectives,):
+                raise ValueError(
+                    f"mix: {len(self.mix)} weights for the {spec.n_objectives} objectives of {spec.env_id}"
+                )
+            spec = dataclasses.replace(spec, n_objectives=spec.n_objectives + 1)
+        # `fork_from`: the specialists start (in `start`) from that shared-prefix run's final
+        # state (a `state_dict` of a run with `mix`), forked by `fork_state`
+        self.fork_from = fork_from
         for seed, objective in jobs:
             if not 0 <= objective < spec.n_objectives:
                 raise ValueError(
@@ -156,6 +172,7 @@ class SpecialistsRun:
         self._terminated = np.zeros(n, bool)
         self._truncated = np.zeros(n, bool)
         self.t = 0  # env steps taken by each specialist
+        self.start_step = 0  # the step it started from: a forked run's shared prefix (its steps are not its own)
         self.full_check_at = -1  # the step of the last full finiteness check that passed
         self.n_updates = 0
         # keep-best: every check's (step, score) and the best snapshot ({step, score, actor,
@@ -182,7 +199,10 @@ class SpecialistsRun:
         next_obs, reward, terminated, truncated = self._next_obs, self._reward, self._terminated, self._truncated
         for s, env in enumerate(envs):
             o, r, terminated[s], truncated[s], _ = env.step(actions[s])
-            next_obs[s], reward[s] = o, r
+            if self.mix is None:
+                next_obs[s], reward[s] = o, r
+            else:  # the shared prefix: the env's rewards, then their weighted sum
+                next_obs[s], reward[s, :-1], reward[s, -1] = o, r, float(np.dot(self.mix, r))
         self.buffer.add(self.obs, actions, reward, next_obs, terminated, truncated, self.episode, self.ep_step)
         self.ep_return += reward
         self.ep_step += 1
@@ -211,7 +231,10 @@ class SpecialistsRun:
     # -- the verbs of pipeline.core.drive.Run ---------------------------------------------
 
     def start(self) -> None:
-        """Nothing before the first step."""
+        """Before the first step of a fresh run: a run with `fork_from` takes the shared prefix's
+        state (`fork_state`); any other, nothing."""
+        if self.fork_from is not None:
+            self.load_state_dict(fork_state(self.fork_from(), self.state_dict(), self.spec))
 
     def finish(self) -> None:
         """The final `check_finite(full=True)`: no result holds a diverged state."""
@@ -220,7 +243,7 @@ class SpecialistsRun:
     def progress(self) -> tuple[int, str]:
         """Env steps of all specialists; the returns of the episodes the last step ended ("" if none)."""
         ended = [f"obj {k} {fmt_vec(r.returns)}" for (_, k), r in zip(self.jobs, self.last) if r is not None]
-        return self.t * len(self.jobs), "; ".join(ended)
+        return (self.t - self.start_step) * len(self.jobs), "; ".join(ended)
 
     def checkpoint_due(self) -> bool:
         """After every train_specialist.checkpoint_every-th env step but the last (none when it is 0)."""
@@ -273,7 +296,9 @@ class SpecialistsRun:
         state, n = self.state, len(self.jobs)
         e = state.critic.n_members // n
         out = []
-        missing = keep_best_steps(self.cfg, self.td3.learning_starts)[len(self.checks[0]) :] if n else []
+        # a forked run makes the checks after its shared prefix only (the prefix made none)
+        due_steps = [t for t in keep_best_steps(self.cfg, self.td3.learning_starts) if t > self.start_step]
+        missing = due_steps[len(self.checks[0]) :] if n else []
         if missing and missing[0] <= self.t:
             raise RuntimeError(
                 f"keep-best is on (train_specialist.keep_best_every = {self.cfg.keep_best_every}) but no check ran "
@@ -320,7 +345,7 @@ class SpecialistsRun:
             "format": STATE_FORMAT,
             "format_version": STATE_VERSION,
             "jobs": [list(j) for j in self.jobs],
-            "counters": {"t": self.t, "n_updates": self.n_updates},
+            "counters": {"t": self.t, "n_updates": self.n_updates, "start": self.start_step},
             "nets": nets_state(self.state),
             "buffer": buffer_state(self.buffer),
             "loop": {
@@ -415,7 +440,7 @@ class SpecialistsRun:
                 f"state holds the episodes of {len(self.episodes)} specialists, the run trains {len(self.jobs)}"
             )
         c = state["counters"]
-        self.t, self.n_updates = int(c["t"]), int(c["n_updates"])
+        self.t, self.n_updates, self.start_step = int(c["t"]), int(c["n_updates"]), int(c.get("start", 0))
 
     def _load_keep_best(self, saved: list[dict[str, Any]]) -> None:
         """Restore the keep-best checks and snapshots of `state_dict` (each snapshot tried on an
@@ -440,6 +465,67 @@ class SpecialistsRun:
                 }
             best.append(b)
         self.checks, self.best = checks, best
+
+
+def fork_state(prefix: dict[str, Any], fresh: dict[str, Any], spec: EnvSpec) -> dict[str, Any]:
+    """The state of S specialists forked from a shared prefix (td3.shared_prefix_steps).
+
+    `prefix`: the final `state_dict` of a run with `mix` (one job: the mixed reward, objective
+    n of n + 1); `fresh`: the `state_dict` of the fresh run of S specialists to start (its jobs,
+    RNG streams and empty keep-best records are kept: each specialist explores with its own
+    noise from the fork on). Every specialist gets the prefix's actor, its critics of the n env
+    objectives (the mixed objective's pair is dropped; needs td3.secondary_critics, so that the
+    prefix has a critic for each), target networks, the optimizers' moments of those
+    parameters, the replay buffer with the env's reward columns, the env mid-episode, the step
+    and update counters and the episode history: exactly where the prefix stopped, as if each
+    specialist had trained those steps itself. It then ascends its own objective's critic."""
+    S, m = len(fresh["jobs"]), spec.n_objectives
+    e = 2 * m  # critic members of one specialist: a pair per objective, in objective order
+
+    def copies(t: torch.Tensor) -> torch.Tensor:  # a (1, ...) stacked tensor -> (S, ...)
+        return t.repeat(S, *([1] * (t.dim() - 1)))
+
+    def critic_part(t: torch.Tensor) -> torch.Tensor:  # (2(m + 1), ...) members -> (S * 2m, ...)
+        return t[:e].repeat(S, *([1] * (t.dim() - 1)))
+
+    def opt_state(saved: dict[str, Any], part: Callable[[torch.Tensor], torch.Tensor]) -> dict[str, Any]:
+        state = {
+            i: {k: (part(v) if torch.is_tensor(v) and v.dim() > 0 else v.clone()) for k, v in moments.items()}
+            for i, moments in saved["state"].items()
+        }
+        return {"state": state, "param_groups": copy.deepcopy(saved["param_groups"])}
+
+    nets = prefix["nets"]
+    buf = prefix["buffer"]
+    col = spec.obs_dim + spec.act_dim + m  # the mixed reward's column of a packed row
+    rows = torch.cat([buf["rows"][..., :col], buf["rows"][..., col + 1 :]], dim=-1)
+    loop = prefix["loop"]
+    history = prefix["episodes"][0]
+    return {
+        **fresh,
+        "counters": {**prefix["counters"], "start": int(prefix["counters"]["t"])},
+        "nets": {
+            "actor": {k: copies(v) for k, v in nets["actor"].items()},
+            "actor_target": {k: copies(v) for k, v in nets["actor_target"].items()},
+            "critic": {k: critic_part(v) for k, v in nets["critic"].items()},
+            "critic_target": {k: critic_part(v) for k, v in nets["critic_target"].items()},
+            "actor_opt": opt_state(nets["actor_opt"], copies),
+            "critic_opt": opt_state(nets["critic_opt"], critic_part),
+        },
+        "buffer": {
+            **{k: buf[k] for k in ("capacity", "ptr", "size")},
+            "rows": copies(rows),
+            **{k: copies(buf[k]) for k in ("truncated", "episode", "episode_step")},
+        },
+        "loop": {
+            "obs": copies(loop["obs"]),
+            "episode": copies(loop["episode"]),
+            "ep_step": copies(loop["ep_step"]),
+            "ep_return": copies(loop["ep_return"][:, :m]),
+        },
+        "episodes": [{**history, "returns": history["returns"][:, :m].clone()} for _ in range(S)],
+        "envs": [copy.deepcopy(prefix["envs"][0]) for _ in range(S)],
+    }
 
 
 def train_specialists(
