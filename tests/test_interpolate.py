@@ -29,7 +29,8 @@ from pipeline.core.specialist import StartingPolicy
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.extraction import run as extraction_run
 from pipeline.params import RunParams, section
-from pipeline.params.methods import METHODS, derived_lists
+from pipeline.params.methods import METHODS
+from pipeline.params.runlists import derived_lists
 from pipeline.params.sync import run_lists, synced_text
 from pipeline.params.td3 import TD3Params
 from pipeline.reporting.presentation import colour, label

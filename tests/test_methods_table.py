@@ -16,8 +16,9 @@ import yaml
 
 from pipeline.core.codedeps import ROOT, stage_module
 from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
-from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, derived_lists, method_name
+from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, method_name
 from pipeline.params.registry import section_models
+from pipeline.params.runlists import derived_lists
 from pipeline.reporting.presentation import LOOKS
 from stages.cli import COMMANDS
 

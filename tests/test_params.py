@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from pipeline.params import MOVED_KEYS, EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
-from pipeline.params.methods import derived_lists
+from pipeline.params.runlists import derived_lists
 from pipeline.params.sync import generated_path, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3

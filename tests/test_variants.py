@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.params import ParamsError, RunParams, section
 from pipeline.params.extract import ExtractParams
-from pipeline.params.methods import derived_lists
+from pipeline.params.runlists import derived_lists
 from pipeline.params.variants import parse_variants, with_overrides
 from pipeline.reporting.presentation import VARIANT_METHODS, label, specialist_kind, use_variants
 from pipeline.reporting.runs import Run, methods_in

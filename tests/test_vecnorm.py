@@ -21,7 +21,8 @@ from pipeline.core.population import Member, member_actor
 from pipeline.core.precision import frozen
 from pipeline.interop.vecnorm import read_vecnormalize, restricted_loads
 from pipeline.params.import_specialists import ImportedPolicyEntry
-from pipeline.params.methods import derived_lists, normalize_file, statistics_beside
+from pipeline.params.methods import normalize_file, statistics_beside
+from pipeline.params.runlists import derived_lists
 
 OBS, ACT = 5, 2
 

@@ -6,7 +6,8 @@ from typing import Any, Literal, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, create_model, field_validator, model_validator
 
-from pipeline.params.methods import RUN_LISTS, derived_lists
+from pipeline.params.methods import RUN_LISTS
+from pipeline.params.runlists import derived_lists
 
 
 def _element(annotation: Any) -> Any:
@@ -123,7 +124,7 @@ USER_RUN_KEYS = ("seeds", "objectives", "methods", "variants")
 class _RunParams(Strict):
     """The top-level lists: what to run (`seeds`, `objectives`, `methods`, written by hand) and
     the run lists dvc.yaml fans its producing stages out over, derived from `methods` and
-    `seeds` (pipeline.params.methods.derived_lists) and written into the generated file beside
+    `seeds` (pipeline.params.runlists.derived_lists) and written into the generated file beside
     params.yaml (params.gen.yaml) by `mapex sync-params`; `pipeline.params.load_params` merges
     them in. DVC cannot filter a matrix, hence the derived lists; lists that disagree with
     `methods` (a stale generated file) are an error naming the list and the command that fixes
@@ -194,7 +195,7 @@ class _RunParams(Strict):
 
 
 # The class: the user's keys above and one field per derived run list (RUN_LISTS, beside
-# derived_lists in pipeline/params/methods.py), in that order.
+# derived_lists in pipeline/params/runlists.py), in that order.
 RunParams = create_model("RunParams", __base__=_RunParams, __module__=__name__, **RUN_LISTS)
 RunParams.__doc__ = _RunParams.__doc__
 

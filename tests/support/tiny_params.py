@@ -26,7 +26,7 @@ from pipeline.params.common import DERIVED_KEYS
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
 from pipeline.params.generated import write_params_files
 from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
-from pipeline.params.methods import derived_lists
+from pipeline.params.runlists import derived_lists
 from pipeline.params.td3 import AGENT_KEYS, TD3Params
 
 # HalfCheetah never terminates, so with a 100-step cap every episode is cut by the cap: 350 steps
