@@ -15,7 +15,7 @@ from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.specialist import load_slots, slot_sources
+from pipeline.core.specialist import load_slots, slot_sources, training_frames
 from pipeline.extraction.run import ExtractionRun, history_csv, variant_config
 from pipeline.params import ParamsError
 from pipeline.params.extract import ExtractParams, without_default_extensions
@@ -185,6 +185,8 @@ def extract(
                 "params": config,
                 # env frames spent collecting imported specialists' buffers (their sample cost; 0 otherwise)
                 "collection_frames": sum(int(s.buffer_attrs.get("collection_frames", 0)) for s in slots),
+                # env frames the specialists trained on (None: an imported one's are not known here)
+                "specialist_frames": training_frames([s.policy_meta for s in slots]),
                 # imported slots beside slots trained here: where each came from (the report says it)
                 **({"specialist_sources": sources} if sources else {}),
                 # the extensions that ran: fallbacks, seeds, the early stop ({} for a paper run)

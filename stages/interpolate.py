@@ -16,7 +16,7 @@ from pipeline.core.envs import EnvError, env_spec, make_env, spec_meta
 from pipeline.core.policyset import load_policy_set
 from pipeline.core.population import save_population
 from pipeline.core.provenance import write_provenance
-from pipeline.core.specialist import StartingPolicy, check_slot, kind_from_meta, policies_path
+from pipeline.core.specialist import StartingPolicy, check_slot, kind_from_meta, policies_path, training_frames
 from pipeline.params import ParamsError, section
 from pipeline.params.extract import ExtractParams
 from pipeline.params.interpolate import InterpolateParams
@@ -33,11 +33,14 @@ from stages.common import (
 )
 
 
-def load_starts(specialists: Path, n_objectives: int, seed: int, meta: dict, kind: str) -> list[StartingPolicy]:
+def load_starts(
+    specialists: Path, n_objectives: int, seed: int, meta: dict, kind: str
+) -> tuple[list[StartingPolicy], int | None]:
     """Every policy of every objective's policy set (SPECIALISTS/obj{K}/policies.pt, else
     policy.pt), checked to be of objective K, run seed `seed`, the env of `meta` and `kind`
-    where its metadata says. No buffer or critic is read: interpolation needs neither."""
-    starts = []
+    where its metadata says, and the env frames the specialists trained on (`training_frames`).
+    No buffer or critic is read: interpolation needs neither."""
+    starts, metas = [], []
     for k in range(n_objectives):
         path = policies_path(specialists / f"obj{k}")
         pset = load_policy_set(path)
@@ -47,7 +50,8 @@ def load_starts(specialists: Path, n_objectives: int, seed: int, meta: dict, kin
         check_slot(k, seed, meta, [(path, pset.meta, "objective")])
         hidden = list(pset.meta["hidden_sizes"])
         starts += [StartingPolicy(k, name, actor, hidden) for name, actor in zip(pset.names, pset.actors)]
-    return starts
+        metas.append(pset.meta)
+    return starts, training_frames(metas)
 
 
 def load_states(specialists: Path, n_objectives: int, count: int, seed: int):
@@ -131,7 +135,7 @@ def interpolate(
         objectives = run_p.objectives
         require_every_objective(objectives, spec.n_objectives, env_p.id, params, "interpolation")
         meta = spec_meta(spec)
-        starts = load_starts(specialists, spec.n_objectives, seed, meta, kind)
+        starts, specialist_frames = load_starts(specialists, spec.n_objectives, seed, meta, kind)
         problem = starts_problem(starts)
         if problem is not None:  # e.g. imported specialists of different nets
             raise ArtifactError(f"{specialists}: cannot interpolate: {problem}")
@@ -177,7 +181,7 @@ def interpolate(
         "seed": seed,
         "kind": kind,
     }
-    run_meta = meta | {"seed": seed, "method": method or base, "params": config}
+    run_meta = meta | {"seed": seed, "method": method or base, "params": config, "specialist_frames": specialist_frames}
     if not options.plain:
         run_meta["mixing"] = options.describe()
     if fallback:

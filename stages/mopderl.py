@@ -16,7 +16,7 @@ from pipeline.core.precision import resolve, without_fp32
 from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, resume_root, run_fingerprint
 from pipeline.core.seeding import select_device
-from pipeline.core.specialist import load_slots
+from pipeline.core.specialist import load_slots, training_frames
 from pipeline.params import section
 from pipeline.params.mopderl import MopderlParams
 from pipeline.params.td3 import TD3Params
@@ -115,6 +115,7 @@ def mopderl(
         slots = load_slots(specialists, spec.n_objectives, seed=seed, spec_meta=meta, kind="pderl")
         population, agents = starts_from_slots(slots, specialists)
         files = [f for s in slots for f in s.files]
+        specialist_frames = training_frames([s.policy_meta for s in slots])
         del slots
         device = select_device(cfg.device)
         precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
@@ -133,7 +134,12 @@ def mopderl(
         )
 
         def save(run: MopderlRun) -> None:
-            run_meta = meta | {"seed": seed, "method": "mopderl", "params": config}
+            run_meta = meta | {
+                "seed": seed,
+                "method": "mopderl",
+                "params": config,
+                "specialist_frames": specialist_frames,
+            }
             save_population(out / "population.pt", run.members, run_meta)
             write_text_atomic(out / "history.csv", history_csv(run.history))
 

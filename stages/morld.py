@@ -110,7 +110,7 @@ def morld(
             err=True,
         )
         members, extra = export_members(run, cfg.eval_episodes)
-        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config}
+        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config, "specialist_frames": 0}
         save_population(out / "population.pt", members, meta | extra)
         write_text_atomic(out / "history.csv", history_csv(run.history))
         best = max(members, key=lambda m: m.returns[0])

@@ -13,7 +13,14 @@ from pipeline.params import ParamsError
 from pipeline.params.report import ReportParams
 from pipeline.params.variants import parse_variants
 from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
-from pipeline.reporting.figures import barrier_figure, cost_figure, front_caption, front_figure, history_figure
+from pipeline.reporting.figures import (
+    barrier_figure,
+    cost_figure,
+    front_caption,
+    front_figure,
+    history_figure,
+    total_frames_figure,
+)
 from pipeline.reporting.gallery import gallery_markdown
 from pipeline.reporting.presentation import label, use_variants
 from pipeline.reporting.report import report_markdown
@@ -89,6 +96,16 @@ def report(
         "of phase 2; MORL/D: all its frames, it has no specialists): returns measured while "
         "the method ran (solid) and the same members re-evaluated (dashed)."
     )
+    if (total := total_frames_figure(runs, env_p.id, cfg.figure_width)) is not None:
+        figures["total_frames"] = total
+        left_out = sorted({label(r.method) for r in runs if "env_samples_specialists" not in r.metrics}, key=str)
+        captions["total_frames.png"] = (
+            "Re-evaluated hypervolume of the population against total env frames: the specialists' training "
+            "(TD3: train_specialist.total_steps each, a shared prefix once; PDERL: its frames per objective; "
+            "MORL/D: none) plus the method's own frames, so each curve starts where its specialists' training "
+            "ends; mean ± SEM over seeds. The comparison at a fixed sample budget."
+            + (f" Not drawn (their specialists' frames are not recorded): {', '.join(left_out)}." if left_out else "")
+        )
     first = min(r.seed for r in runs)
     if len(names) == 2 and (barrier := barrier_figure(runs, names, env_p.id, first, cfg.figure_width)) is not None:
         figures["barrier"] = barrier

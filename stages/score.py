@@ -110,6 +110,12 @@ def score(
         "env_samples_evaluation": record["env_samples_evaluation"],
         # imported specialists: env frames spent collecting their buffers (stage import_specialist)
         "env_samples_collection": int(meta.get("collection_frames", 0)),
+        # env frames of the specialists' training (0 for MORL/D; absent where not known: imported ones)
+        **(
+            {"env_samples_specialists": int(meta["specialist_frames"])}
+            if meta.get("specialist_frames") is not None
+            else {}
+        ),
         # imported slots beside slots trained here (stage train_specialist_imported): where each came from
         **({"specialist_sources": meta["specialist_sources"]} if "specialist_sources" in meta else {}),
         # the extensions of extraction that ran (not in the paper; absent from a paper run's metrics):

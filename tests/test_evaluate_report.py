@@ -1330,3 +1330,34 @@ def test_cost_table_shows_an_early_stop_and_the_fallbacks_only_where_a_run_has_t
     assert "of which interpolated seeds" not in header  # no run seeded
     assert "| 5, not stopped |" in row and "| 2 of 6 |" in row
     assert spec.startswith("| TD3 specialists") and "| 12.0 |" in spec
+
+
+def test_training_frames_counts_each_specialist_and_a_shared_prefix_once():
+    from pipeline.core.specialist import training_frames
+
+    td3 = {"params": {"train_specialist": {"total_steps": 1000}, "td3": {}}}
+    forked = {"params": {"train_specialist": {"total_steps": 1000}, "td3": {"shared_prefix_steps": 400}}}
+    assert training_frames([td3, td3]) == 2000
+    assert training_frames([forked, forked]) == 400 + 2 * 600  # the prefix once, then each its own
+    assert training_frames([{"env_frames": 700}, {"env_frames": 800}]) == 1500  # PDERL
+    assert training_frames([td3, {"source": {"imported": {"file": "x.zip"}}}]) is None  # trained elsewhere
+
+
+def test_total_frames_figure_shifts_each_curve_by_its_specialists_frames():
+    from pipeline.reporting.figures import total_frames_figure
+
+    def run(method: str, seed: int, specialists: int | None) -> Run:
+        r = _run(method, seed, 3.0)
+        r.history = {"env_samples": np.array([0.0, 100.0]), "hypervolume": np.array([1.0, 3.0])}
+        if specialists is not None:
+            r.metrics["env_samples_specialists"] = specialists
+        return r
+
+    runs = [run("mapex_td3", s, 5000) for s in (0, 1)] + [run("morld", 0, 0), run("warmup_only_td3", 0, None)]
+    fig = total_frames_figure(runs, ENV_ID, 8.0)
+    lines = {ln.get_label(): np.asarray(ln.get_xdata()) for ln in fig.axes[0].get_lines()}
+    mapex = next(x for name, x in lines.items() if name.startswith("MAPEX-TD3"))
+    morld = next(x for name, x in lines.items() if name.startswith("MORL/D"))
+    assert list(mapex) == [5000.0, 5100.0] and list(morld) == [0.0, 100.0]
+    assert not any(name.startswith("warm-up") for name in lines), "a method without its specialists' frames is drawn"
+    assert total_frames_figure([run("warmup_only_td3", 0, None)], ENV_ID, 8.0) is None

@@ -82,6 +82,27 @@ def kind_from_meta(meta: dict) -> str | None:
     return "pderl" if "train_pderl" in params else "td3" if "train_specialist" in params else None
 
 
+def training_frames(metas: list[dict]) -> int | None:
+    """Env frames one seed's specialists trained on, from their artifacts' metadata (policy.pt's
+    or policies.pt's, one per objective): a PDERL specialist's `env_frames`; a TD3 specialist's
+    train_specialist.total_steps, its shared prefix (td3.shared_prefix_steps) counted once for the
+    seed, not once per specialist. None when any records neither: an imported specialist trained
+    elsewhere, whose frames are not known here (its buffer collection is counted apart)."""
+    own, shared = 0, 0
+    for meta in metas:
+        if meta.get("env_frames") is not None:
+            own += int(meta["env_frames"])
+            continue
+        params = meta.get("params") if isinstance(meta.get("params"), dict) else {}
+        steps = (params.get("train_specialist") or {}).get("total_steps")
+        if steps is None:
+            return None
+        prefix = int((params.get("td3") or {}).get("shared_prefix_steps") or 0)
+        own += int(steps) - prefix
+        shared = max(shared, prefix)
+    return own + shared
+
+
 def slot_sources(slots: list["Slot"]) -> list[dict] | None:
     """Where each slot of one seed's imported kind came from, in objective order, when some were
     trained here (stage train_specialist_imported) beside the imported ones; None when none was

@@ -391,6 +391,36 @@ def history_figure(runs: list[Run], env_id: str, width: float) -> Figure:
     return fig
 
 
+def total_frames_figure(runs: list[Run], env_id: str, width: float) -> Figure | None:
+    """Re-evaluated hypervolume of the population against *total* env frames, the specialists'
+    training included (score's `env_samples_specialists`; MORL/D: 0), per method: the comparison a
+    fixed-sample-budget claim rests on. Each curve starts where its specialists' training ends
+    (their front, the population before any child) and grows with the method's own frames;
+    mean ± SEM over seeds on the union of their frame counts. A method whose runs do not all
+    record their specialists' frames (imported specialists trained elsewhere, or artifacts made
+    before the count was recorded) is left out; None when no method can be drawn."""
+    drawn = [v for v in methods_in(runs) if all("env_samples_specialists" in r.metrics for r in runs if r.method == v)]
+    if not drawn:
+        return None
+    fig = _figure(width, width * 0.45)
+    ax = fig.subplots()
+    for v in drawn:
+        rs = [r for r in runs if r.method == v]
+        xs = [r.history["env_samples"] + r.metrics["env_samples_specialists"] for r in rs]
+        # from the point every seed has reached on (seeds' specialists may differ in frames)
+        start = max(float(x[0]) for x in xs)
+        grid = np.unique(np.concatenate(xs))
+        grid = grid[grid >= start]
+        ys = np.stack([step_values(x, r.history["hypervolume"], grid) for x, r in zip(xs, rs)])
+        _band(ax, grid, ys, colour(v), label(v), len(rs))
+    ax.set_xlabel("total env frames (the specialists' training included)")
+    ax.set_ylabel("re-evaluated hypervolume")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", loc="best")
+    fig.suptitle(f"Hypervolume against every env frame spent: {env_id}")
+    return fig
+
+
 def _sem(a: np.ndarray) -> float:
     return float(a.std(ddof=1) / np.sqrt(len(a))) if len(a) > 1 else 0.0
 
