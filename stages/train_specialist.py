@@ -262,12 +262,9 @@ def train_prefix(
         raise ParamsError(
             f"td3.shared_prefix_steps: env {env_p.id} cannot be forked mid-episode ({problem}); set it to 0"
         )
-    precision = resolve(cfg.precision, device, max(td3.hidden_sizes))
-    fp = run_fingerprint(
-        "train_specialist", prefix_config(seed, env_p, td3, cfg) | {"weights": weights}, device, precision=precision
-    )
+    # the run in progress has the finished prefix's fingerprint: the same params, code and device
     ckpt = Checkpoint(
-        checkpoint_dir(out, inside=False) / (CHECKPOINT_PREFIX + "prefix.pt"), fp, lambda line: send("say", line)
+        checkpoint_dir(out, inside=False) / (CHECKPOINT_PREFIX + "prefix.pt"), done.fp, lambda line: send("say", line)
     )
     with sigterm_deferred():
         drive(
