@@ -1,5 +1,5 @@
 # Two entry points for a fresh machine (see README):
-#   make repro   install into .venv, write params.gen.yaml's run lists, then run the whole pipeline
+#   make repro   install into .venv, plan dvc.yaml from params.yaml (mapex plan), then run the whole pipeline
 #                (mapex repro: dvc repro with independent stage items side by side, one per core)
 #   make test    install into .venv, then run the test suite
 # and `make lint` (ruff: lint and format check, configured in pyproject.toml), which CI runs first.
@@ -42,11 +42,11 @@ install: $(BIN)/python
 	$(BIN)/pip install -q "$(TORCH_SPEC)" -e . > $(VENV)/install.log 2>&1 \
 	  || { cat $(VENV)/install.log; echo "install failed (log: $(VENV)/install.log)"; exit 1; }
 
-# The run lists dvc.yaml fans out over are derived from `methods` and `seeds`: synced first, so
-# editing those two is all a user does before `make repro` (plain `dvc repro` needs
-# `mapex sync-params` after such an edit; every stage names it when the lists are stale).
+# dvc.yaml is planned from params.yaml's methods, variants, seeds and objectives: planned first,
+# so editing params.yaml is all a user does before `make repro` (plain `dvc repro` needs
+# `mapex plan` after such an edit; every stage names it when the plan is stale).
 repro: install
-	PATH="$(CURDIR)/$(BIN):$$PATH" mapex sync-params
+	PATH="$(CURDIR)/$(BIN):$$PATH" mapex plan
 	@# `dvc repro` runs one stage item at a time; `mapex repro` runs each item's `dvc repro
 	@# --single-item` once its upstream is done, one per core (JOBS=1: plain dvc repro), so the
 	@# two seeds' extractions, evaluations and scores share the cores (docs/manual.md, "Running")

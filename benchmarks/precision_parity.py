@@ -48,7 +48,7 @@ from pipeline.core.checkpoint import load_policy  # noqa: E402
 from pipeline.core.envs import make_env  # noqa: E402
 from pipeline.evaluation.episodes import eval_seeds, evaluate_policy  # noqa: E402
 from pipeline.params import RunParams  # noqa: E402
-from pipeline.params.sync import synced_text  # noqa: E402
+from pipeline.params.tracked import tidied_text  # noqa: E402
 
 EVAL_STREAM = 7  # fresh episodes: neither extraction's stream 0 nor evaluate's 1
 
@@ -143,14 +143,14 @@ def main() -> None:
     base = merge(base, TINY) if args.tiny else base
     base = merge(base, dotted(args.set))
     base |= {"seeds": sorted(set(args.seeds)), "methods": ["mapex_td3"]}
-    for key in RunParams.model_fields:  # the derived lists: synced_text writes them
+    for key in RunParams.model_fields:  # the derived lists: derived again where read
         if key not in ("seeds", "objectives", "methods"):
             base.pop(key, None)
     files = {}
     for p in args.precisions:
         params = merge(base, {"train_specialist": {"precision": p}, "extract": {"precision": p}})
         files[p] = work / f"params_{p}.yaml"
-        files[p].write_text(synced_text(yaml.safe_dump(params, sort_keys=False), str(files[p])))
+        files[p].write_text(tidied_text(yaml.safe_dump(params, sort_keys=False), str(files[p])))
     objectives = list(base.get("objectives", [0, 1]))
     env_id, cap = base["env"]["id"], base["env"]["max_episode_steps"]
     print(

@@ -17,15 +17,28 @@ work=${2:-$(mktemp -d /tmp/tiny-repro.XXXXXX)}
 rm -rf "$work" && mkdir -p "$work"
 # the per-env facts the stages read (a DVC dep): presets/envs.yaml, or before it presets/reference_points.yaml
 table=$(git -C "$here" ls-tree --name-only "$ref" presets/envs.yaml presets/reference_points.yaml)
-git -C "$here" archive "$ref" pipeline stages dvc.yaml $table | tar -x -C "$work"
-python - "$work/params.yaml" "$work/pipeline/params/td3.py" <<PY
-import os, sys, yaml
+git -C "$here" archive "$ref" pipeline stages $(git -C "$here" ls-tree --name-only "$ref" dvc.yaml) $table | tar -x -C "$work"
+# the tiny preset, from this checkout's tests (its own code), then written in REF's layout by REF's code
+python - > "$work/tiny.json" <<PY
+import json, sys
 sys.path.insert(0, "$here/tests")
 from support.tiny_params import TINY_ALL
-params = dict(TINY_ALL)
-if not os.path.exists(sys.argv[2]):  # REF predates the td3 section: its keys were train_specialist's
+print(json.dumps(TINY_ALL))
+PY
+cd "$work" && PYTHONPATH="$work" python - "$work/params.yaml" "$work/tiny.json" <<'PY'
+import json, os, sys, yaml
+params = json.load(open(sys.argv[2]))
+work = os.path.dirname(sys.argv[1])
+if not os.path.exists(os.path.join(work, "pipeline", "params", "td3.py")):  # REF predates the td3 section
     params["train_specialist"] = {**params.pop("td3", {}), **params.get("train_specialist", {})}
-if "params.gen.yaml" in open(os.path.join(os.path.dirname(sys.argv[1]), "dvc.yaml")).read():
+if os.path.exists(os.path.join(work, "pipeline", "params", "plan.py")):
+    # REF plans dvc.yaml from params.yaml (`mapex plan`): the user's keys there, then the plan
+    from pipeline.params.plan import write_plan
+    from pipeline.params.planned import without_derived
+    from pipeline.params.tracked import tidied_text
+    open(sys.argv[1], "w").write(tidied_text(yaml.safe_dump(without_derived(params), sort_keys=False)))
+    write_plan(yaml.safe_load(open(sys.argv[1])), sys.argv[1])
+elif "params.gen.yaml" in open(os.path.join(work, "dvc.yaml")).read():
     # REF keeps the derived run lists in a generated file: write both as `mapex sync-params` would
     from pipeline.params.generated import write_params_files
     write_params_files(sys.argv[1], params, sort_keys=False)
@@ -34,6 +47,7 @@ else:  # REF keeps them inline in params.yaml, and knows only the lists of its t
                 "run_objectives", "run_methods", "variant_labels"):
         params.pop(key, None)
     open(sys.argv[1], "w").write(yaml.safe_dump(params, sort_keys=False))
+os.remove(sys.argv[2])
 PY
 cd "$work"
 printf '/data/\n__pycache__/\nMUJOCO_LOG.TXT\n' > .gitignore

@@ -7,7 +7,7 @@ by the one-hot vector e_k), with episodes capped like the pipeline's (750 steps 
 The saved zips are what `presets/imported.yaml` imports:
 
     python examples/train_sb3_specialists.py --steps 100000 --out models
-    mapex sync-params --from presets/imported.yaml && dvc repro
+    mapex plan --from presets/imported.yaml && dvc repro
 
 The objectives train side by side, one process and one torch thread each. Needs
 stable-baselines3 (pip install -e ".[dev]" or ".[bench]"); the pipeline itself never imports it.

@@ -43,7 +43,7 @@ def _write_params(directory: Path, overrides: dict[str, Any] | None = None, name
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     path = directory / name
-    save_params(path, merge(TINY, overrides), sort_keys=False)  # derived lists go to params.gen.yaml
+    save_params(path, merge(TINY, overrides), sort_keys=False)  # without derived lists
     return path
 
 

@@ -1,11 +1,12 @@
-"""dvc.yaml's code deps cannot drift: each stage lists exactly the project files its module runs.
+"""The plan's stages (every one of the catalogue, planned for tests/support EVERY_STAGE) and the
+committed dvc.yaml: each stage lists exactly the project files its module runs.
 
-A stage's code deps must equal the transitive in-project import closure of its module
-(stages/<stage>.py, or the one codedeps.STAGE_MODULES names; computed by pipeline.core.codedeps,
-the same function extract's resume fingerprint uses) plus stages/cli.py (the `mapex` entry point, which sets the torch thread
-count and so the results' last bits). An import added without its dep (an edit that would
-change results without a rerun) or a stale dep (a rerun for nothing) fails here;
-`python -m pipeline.core.codedeps` rewrites them.
+A stage's code deps must equal the transitive in-project import closure of the module its
+`mapex` command runs (computed by pipeline.core.codedeps, the same function extract's resume
+fingerprint uses) plus stages/cli.py (the `mapex` entry point, which sets the torch thread count
+and so the results' last bits). The plan writes them; the committed dvc.yaml must be what
+`mapex plan` writes for params.yaml today, so an import added without its dep (an edit that would
+change results without a rerun) or a stale dep (a rerun for nothing) fails here.
 """
 
 from __future__ import annotations
@@ -15,10 +16,24 @@ from pathlib import Path
 
 import pytest
 import yaml
+from support.tiny_params import EVERY_STAGE
 
-from pipeline.core.codedeps import ROOT, module_closure, stage_module
+from pipeline.core.codedeps import ROOT, module_closure
+from pipeline.params import load_params
+from pipeline.params.plan import catalogue_modules, plan_text
 
-STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+STAGES = yaml.safe_load(plan_text(EVERY_STAGE))["stages"]
+MODULES = catalogue_modules()
+
+
+def stage_module(name: str) -> str:
+    return MODULES[name]
+
+
+def test_the_committed_dvc_yaml_is_the_plan_of_params_yaml():
+    """dvc.yaml is what `mapex plan` writes for params.yaml, byte for byte (fix: `mapex plan`)."""
+    text = (ROOT / "dvc.yaml").read_text()
+    assert text == plan_text(load_params(ROOT / "params.yaml")), "dvc.yaml is not params.yaml's plan: run `mapex plan`"
 
 
 def code_deps(stage: dict) -> set[str]:
@@ -29,12 +44,8 @@ def code_deps(stage: dict) -> set[str]:
 def test_stage_code_deps_are_its_import_closure(name):
     expected = set(module_closure(stage_module(name))) | {"stages/cli.py"}
     got = code_deps(STAGES[name])
-    assert not expected - got, (
-        f"dvc.yaml stage {name} misses deps {sorted(expected - got)} (fix: python -m pipeline.core.codedeps)"
-    )
-    assert not got - expected, (
-        f"dvc.yaml stage {name} lists deps it does not import {sorted(got - expected)} (fix: python -m pipeline.core.codedeps)"
-    )
+    assert not expected - got, f"planned stage {name} misses deps {sorted(expected - got)}"
+    assert not got - expected, f"planned stage {name} lists deps it does not import {sorted(got - expected)}"
 
 
 def test_every_stage_has_its_module():
@@ -49,7 +60,7 @@ def test_every_stage_has_its_module():
         )
 
 
-def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
+def test_closure_follows_from_imports_and_package_inits(tmp_path):
     """codedeps on a toy project: `from a import b` pulls module a.b and a's __init__, relative
     imports resolve against the package, and imports of other projects are ignored."""
     import pipeline.core.codedeps as cd
@@ -61,17 +72,12 @@ def test_closure_follows_from_imports_and_package_inits(tmp_path, monkeypatch):
     (pkg / "sub" / "leaf.py").write_text("import numpy\n")
     (pkg / "top.py").write_text("from pipeline.sub import thing\nimport os\n")
     (pkg / "unused.py").write_text("")
-    monkeypatch.setattr(cd, "ROOT", Path(tmp_path))
-    cd.module_closure.cache_clear()
-    try:
-        assert cd.module_closure("pipeline.top") == (
-            "pipeline/__init__.py",
-            "pipeline/sub/__init__.py",
-            "pipeline/sub/leaf.py",
-            "pipeline/top.py",
-        )
-    finally:
-        cd.module_closure.cache_clear()
+    assert cd.module_closure("pipeline.top", Path(tmp_path)) == (  # a project root of its own
+        "pipeline/__init__.py",
+        "pipeline/sub/__init__.py",
+        "pipeline/sub/leaf.py",
+        "pipeline/top.py",
+    )
 
 
 # The shell's one rule: a stage module imports the library and the shared stage helpers, never
@@ -182,46 +188,20 @@ def test_provenance_check_sees_a_record_read_downstream():
     )
 
 
-def test_sync_puts_each_stages_deps_last_and_keeps_what_follows_the_stages(tmp_path):
+def test_the_plan_puts_each_stages_deps_last_and_keeps_what_follows_the_stages():
     """dvc.yaml for readers: matrix, cmd, params and outs first, then deps (data deps, then the
-    generated code deps); a top-level key after `stages:` (plots:) stays where it is."""
-    from pipeline.core.codedeps import CODE_MARKER, sync_dvc_yaml
+    planned code deps); the top-level key after `stages:` (plots:) stays where it is."""
+    from pipeline.params.plan import CODE_MARKER
 
-    text = (
-        "stages:\n"
-        "  score:\n"
-        "    cmd: mapex score\n"
-        "    deps:\n"
-        "      - data/evaluate\n"
-        "      - pipeline/stale.py\n"
-        "    params:\n"
-        "      - score\n"
-        "    outs:\n"
-        "      - data/score\n"
-        "\n"
-        "  report:\n"
-        "    cmd: mapex report\n"
-        "    deps:\n"
-        "      - data/score\n"
-        "    outs:\n"
-        "      - data/report\n"
-        "plots:\n"
-        "  - data/render/fronts.csv:\n"
-        "      x: obj0\n"
-    )
-    path = tmp_path / "dvc.yaml"
-    path.write_text(text)
-    assert sorted(sync_dvc_yaml(path)) == ["report", "score"]
-    synced = yaml.safe_load(path.read_text())
-    assert list(synced) == ["stages", "plots"] and synced["plots"] == [{"data/render/fronts.csv": {"x": "obj0"}}]
-    for name, data in (("score", "data/evaluate"), ("report", "data/score")):
-        stage = synced["stages"][name]
-        assert list(stage)[-1] == "deps"
-        assert stage["deps"][0] == data and "pipeline/stale.py" not in stage["deps"]
-        assert stage["deps"][1:] == sorted(set(module_closure(f"stages.{name}")) | {"stages/cli.py"})
-    assert path.read_text().count(CODE_MARKER) == 2
-    before = path.read_text()
-    assert sync_dvc_yaml(path) == [] and path.read_text() == before  # idempotent
+    text = plan_text(EVERY_STAGE)
+    planned = yaml.safe_load(text)
+    assert list(planned) == ["stages", "plots"]
+    for name, stage in planned["stages"].items():
+        assert list(stage)[-1] == "deps", name
+        code = [d for d in stage["deps"] if d.startswith(("pipeline/", "stages/"))]
+        assert stage["deps"][-len(code) :] == code == sorted(code), name  # data deps first, code sorted
+    assert text.count(CODE_MARKER) == len(planned["stages"])
+    assert plan_text(EVERY_STAGE) == text  # the same params give the same plan
 
 
 def _listed(stage: str, section: str) -> list[str]:

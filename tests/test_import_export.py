@@ -609,7 +609,6 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     repo = tmp_path / "repo"
     for name in ("pipeline", "stages"):
         shutil.copytree(root / name, repo / name, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(root / "dvc.yaml", repo / "dvc.yaml")
     (repo / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
     shutil.copy(root / "presets" / "envs.yaml", repo / "presets" / "envs.yaml")
     (repo / "models").mkdir()
@@ -631,6 +630,11 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
         }
     )
     save_params(repo / "params.yaml", params, sort_keys=False)
+    from pipeline.params.plan import write_plan
+
+    write_plan(
+        params, repo / "params.yaml", repo / "pipeline" / "params" / "stage_catalogue.yaml", repo
+    )  # `mapex plan`
     (repo / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(repo)}
 
@@ -675,6 +679,9 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     params = with_lists(params)
     assert params["import_train"] == [1] and params["td3_seeds"] == []
     save_params(repo / "params.yaml", params, sort_keys=False)
+    write_plan(
+        params, repo / "params.yaml", repo / "pipeline" / "params" / "stage_catalogue.yaml", repo
+    )  # `mapex plan`
     again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
     assert {
         "train_specialist_imported@0-1",

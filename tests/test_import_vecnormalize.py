@@ -255,14 +255,14 @@ def test_the_stage_bakes_the_statistics_in_and_the_exports_take_raw_observations
 @pytest.mark.slow  # a dvc repro of two imports: slow keeps `make test` within 8 min
 def test_dvc_tracks_the_statistics_named_or_found_in_rl_zoo3_layout(trained, tmp_path):
     """Objective 0 names its statistics; objective 1's model sits in an rl-zoo3 run folder with
-    its statistics where rl-zoo3 saves them. `mapex sync-params` finds them, both imports bake
+    its statistics where rl-zoo3 saves them. `mapex plan` finds them, both imports bake
     them in, and a change to one statistics file reruns that import alone."""
     import shutil
 
     from support.dvc_repo import DVC, make_repo, ran, run
     from support.tiny_params import TINY_CHAIN
 
-    from pipeline.params.sync import DERIVED_KEYS
+    from pipeline.params.common import DERIVED_KEYS
 
     repo = tmp_path / "repo"
     (repo / "models").mkdir(parents=True)
@@ -276,16 +276,17 @@ def test_dvc_tracks_the_statistics_named_or_found_in_rl_zoo3_layout(trained, tmp
         {"objective": 0, "file": "models/speed.zip", "format": "sb3", "normalize": "models/speed_vecnormalize.pkl"},
         {"objective": 1, "file": "logs/td3/mo-halfcheetah-v5_1/mo-halfcheetah-v5.zip", "format": "sb3"},
     ]
-    params = {k: v for k, v in TINY_CHAIN.items() if k not in DERIVED_KEYS}  # sync-params writes them
+    params = {k: v for k, v in TINY_CHAIN.items() if k not in DERIVED_KEYS}  # the plan derives them
     params |= {"methods": ["mapex_posthoc_imported"]}
     params["import_specialists"] = {"policies": policies, "collect_rows": 40, "exploration_noise": 0.1}
     make_repo(repo, params)
-    run([str(Path(sys.executable).parent / "mapex"), "sync-params"], repo)  # paths from the repository root
+    run([str(Path(sys.executable).parent / "mapex"), "plan"], repo)  # paths from the repository root
     found = "logs/td3/mo-halfcheetah-v5_1/mo-halfcheetah-v5/vecnormalize.pkl"
-    synced = yaml.safe_load((repo / "params.gen.yaml").read_text())["import_collect"]  # the generated run lists
+    planned = yaml.safe_load((repo / "dvc.yaml").read_text())["stages"]["import_specialist"]["matrix"]
+    synced = planned["policy"]  # the run list, as the plan writes it into the matrix
     assert [p["normalize"] for p in synced] == ["models/speed_vecnormalize.pkl", found]
     run(["git", "add", "-A"], repo)
-    run(["git", "commit", "-qm", "synced"], repo)
+    run(["git", "commit", "-qm", "planned"], repo)
     out = run([DVC, "repro", "import_specialist"], repo)
     assert ran(out) == {"import_specialist"} and out.count("observation statistics of") == 2
     for k, stats in ((0, "models/speed_vecnormalize.pkl"), (1, found)):

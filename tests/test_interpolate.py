@@ -30,9 +30,10 @@ from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.extraction import run as extraction_run
 from pipeline.params import RunParams, section
 from pipeline.params.methods import METHODS
+from pipeline.params.planned import run_lists
 from pipeline.params.runlists import derived_lists
-from pipeline.params.sync import run_lists, synced_text
 from pipeline.params.td3 import TD3Params
+from pipeline.params.tracked import tidied_text as synced_text
 from pipeline.reporting.presentation import colour, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.verdicts import VERDICT_PAIRS, verdicts
@@ -228,7 +229,7 @@ def test_interpolation_is_a_method_of_every_kind_with_its_own_stage_and_verdict(
     )
 
 
-def test_interpolate_from_is_derived_and_sync_params_names_its_params():
+def test_interpolate_from_is_derived_and_the_plan_names_its_params():
     lists = derived_lists(["mapex_td3", "interpolate_td3", "interpolate_pderl"], [0, 1])
     assert lists["interpolate_from"] == ["td3", "pderl"]
     assert lists["td3_seeds"] == [0, 1] and lists["pderl_seeds"] == [0, 1]

@@ -14,15 +14,16 @@ import re
 import pytest
 import yaml
 
-from pipeline.core.codedeps import ROOT, stage_module
+from pipeline.core.codedeps import ROOT
 from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
 from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, method_name
+from pipeline.params.plan import CATALOGUE, catalogue_modules, code_deps
 from pipeline.params.registry import section_models
 from pipeline.params.runlists import derived_lists
 from pipeline.reporting.presentation import LOOKS
 from stages.cli import COMMANDS
 
-STAGES = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+STAGES = yaml.safe_load(CATALOGUE.read_text())["stages"]  # every stage, matrices over named lists
 PARAMS = yaml.safe_load((ROOT / "params.yaml").read_text())
 MANUAL = (ROOT / "docs" / "manual.md").read_text()
 TESTS = "".join(p.read_text() for p in sorted((ROOT / "tests").glob("test_*.py")))
@@ -47,7 +48,7 @@ def test_a_method_is_wired_into_every_place(name):
     assert m.stage in STAGES, f"{name}: no dvc.yaml stage {m.stage!r}"
     stage = STAGES[m.stage]
     assert "data/fronts/" in " ".join(map(str, stage["outs"])), f"{name}: stage {m.stage} writes no front"
-    module = stage_module(m.stage)
+    module = catalogue_modules()[m.stage]
     command = re.match(r"mapex ([\w-]+)", stage["cmd"]).group(1)
     assert COMMANDS.get(command) == module, f"{name}: stage {m.stage} runs `mapex {command}`, not {module}"
     assert (ROOT / (module.replace(".", "/") + ".py")).is_file(), f"{name}: no {module}"
@@ -88,8 +89,8 @@ def test_a_method_is_wired_into_every_place(name):
 
 
 def stage_closure(stage: str) -> list[str]:
-    """The code deps codedeps writes for a dvc.yaml stage (its import closure, as paths)."""
-    return [d for d in STAGES[stage].get("deps", []) if isinstance(d, str) and d.endswith(".py")]
+    """The code deps the plan writes for a stage (its import closure, as paths)."""
+    return list(code_deps(catalogue_modules()[stage]))
 
 
 def test_developing_md_lists_six_places_to_add_a_method():

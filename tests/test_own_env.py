@@ -78,7 +78,7 @@ def test_a_function_term_and_a_module_env_id(tmp_path, monkeypatch):
 
 def test_bad_env_params_are_refused_in_one_line_before_any_work(tmp_path):
     """Each of what a later stage would refuse is said when the run is planned (preflight, which
-    `mapex sync-params` runs), in one line naming the key."""
+    `mapex plan` runs), in one line naming the key."""
     cases = [
         ({**RUNNER_ENV, "reward_terms": [{"info": "reward_forward"}, {"info": "speed"}]}, "info key 'speed'"),
         ({**RUNNER_ENV, "reward_terms": None}, "env.reward_terms"),
@@ -111,12 +111,12 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 
 
 def test_a_bad_objective_key_stops_planning_and_training_in_one_line(tmp_path):
-    """sync-params (what `make repro` runs first) and the training stage both stop in one line
+    """`mapex plan` (what `make repro` runs first) and the training stage both stop in one line
     on an info key the env does not return, and nothing is trained."""
     shutil.copytree(ROOT / "examples", tmp_path / "examples", ignore=shutil.ignore_patterns("__pycache__"))
     params = merge(TINY_CHAIN, {"env": {**RUNNER_ENV, "reward_terms": [{"info": "reward_forward"}, {"info": "nope"}]}})
     save_params(tmp_path / "params.yaml", params)
-    for args in (["sync-params"], ["train-specialist", "--seed", "0", "--out", "data/specialists/td3/seed0"]):
+    for args in (["plan"], ["train-specialist", "--seed", "0", "--out", "data/specialists/td3/seed0"]):
         r = _cli(*args, cwd=tmp_path)
         assert r.returncode == 2, (args, r.stdout, r.stderr)
         lines = [line for line in r.stderr.splitlines() if line.strip()]

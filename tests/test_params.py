@@ -12,9 +12,10 @@ from hypothesis import strategies as st
 from pipeline.params import MOVED_KEYS, EnvParams, ParamsError, RunParams, load_params, section
 from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
+from pipeline.params.planned import run_lists
 from pipeline.params.runlists import derived_lists
-from pipeline.params.sync import generated_path, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
+from pipeline.params.tracked import tidied_text as synced_text
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 
 REPO = Path(__file__).resolve().parents[1]
@@ -281,7 +282,7 @@ def test_run_lists_are_derived_from_methods_and_checked():
     }
     # a derived list that disagrees with methods names the list and the command that fixes it
     with pytest.raises(
-        ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: run `mapex sync-params`"
+        ParamsError, match=r"posthoc_from = \['pderl'\], but methods .* make it \['td3'\]: they are derived"
     ):
         section({**ok, "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_td3"]}, "", RunParams)
     with pytest.raises(ParamsError, match=r"pderl_seeds = \[\], but .* make it \[0, 1\]"):
@@ -348,9 +349,9 @@ def test_imports_may_leave_objectives_to_be_trained_here():
     # the validated section: the list follows `objectives`, and a stale one names the command that fixes it
     ok = {"seeds": [0], "objectives": [0, 1], "methods": methods, **derived_lists(methods, [0], speed)}
     assert RunParams.model_validate(ok, context={"imports": speed}).import_train == [1]
-    with pytest.raises(ValueError, match=r"import_train = \[1\], but .* make it \[1, 2\]: run `mapex sync-params`"):
+    with pytest.raises(ValueError, match=r"import_train = \[1\], but .* make it \[1, 2\]: they are derived"):
         RunParams.model_validate({**ok, "objectives": [0, 1, 2]}, context={"imports": speed})
-    # sync-params writes it from the file's own objectives
+    # the plan derives it from the file's own objectives
     text = yaml.safe_dump(
         {
             "seeds": [0],
@@ -365,7 +366,7 @@ def test_imports_may_leave_objectives_to_be_trained_here():
         synced_text(text.replace("- 0\n- 1\n", "- 1\n- 2\n", 1))
 
 
-def test_sync_params_keeps_the_users_file_and_drops_an_old_generated_block():
+def test_plan_keeps_the_users_file_and_drops_derived_lists_and_an_old_generated_block():
     text = (
         "# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
         "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n"
@@ -392,31 +393,64 @@ def test_sync_params_keeps_the_users_file_and_drops_an_old_generated_block():
         synced_text("methods: [nope]\n", "f.yaml")
 
 
-def test_the_generated_file_is_written_beside_and_a_stale_one_is_one_line(tmp_path, cli):
-    """`mapex sync-params` writes params.gen.yaml beside params.yaml; load_params merges its lists
-    in, and a generated file that no longer matches the params file (edited after the last sync,
-    as `dvc exp run -S methods=...` leaves it) is one line naming the list and the command."""
+def test_the_plan_is_written_beside_and_a_stale_one_is_one_line(tmp_path, cli):
+    """`mapex plan` writes dvc.yaml beside params.yaml with only the stages that run; load_params
+    merges the derived lists in, and a plan that no longer matches the params file (edited after
+    the last plan, as `dvc exp run -S seeds=...` leaves it) is one line naming the key and the
+    command. A derived list written into the user's file is refused, naming it."""
     params = tmp_path / "params.yaml"
     params.write_text("seeds: [0, 1]\nmethods: [mapex_td3, warmup_only_td3]\n")
-    result = cli("sync-params", "--params", str(params))
+    result = cli("plan", "--params", str(params))
     assert result.exit_code == 0, result.stderr
-    gen = tmp_path / "params.gen.yaml"
-    assert generated_path(params) == gen and yaml.safe_load(gen.read_text())["td3_seeds"] == [0, 1]
+    dvc = tmp_path / "dvc.yaml"
+    stages = yaml.safe_load(dvc.read_text())["stages"]
+    assert sorted(stages) == [
+        "critic_fidelity",
+        "evaluate",
+        "extract",
+        "render",
+        "report",
+        "score",
+        "train_specialist",
+        "warmup_only",
+    ]
+    assert stages["train_specialist"]["matrix"] == {"seed": [0, 1]}
+    assert "planned 8 stages" in result.stderr
     assert load_params(params)["warmup_from"] == ["td3"]
     params.write_text("seeds: [0, 1, 2]\nmethods: [mapex_td3, warmup_only_td3]\n")
     with pytest.raises(ParamsError) as err:
         load_params(params)
     assert str(err.value) == (
-        f"{gen}: stale: td3_seeds = [0, 1], but params.yaml's methods, variants and seeds make it [0, 1, 2]: "
-        "run `mapex sync-params`"
+        f"{dvc}: stale: planned for td3_seeds = [0, 1], but params make it [0, 1, 2]: run `mapex plan`"
     )
-    # a derived list written into the user's file beside the generated one is refused, naming where it lives
+    assert load_params(params, check_plan=False)["td3_seeds"] == [0, 1, 2]
+    # a file named otherwise is not checked against the dvc.yaml beside it (it is not what DVC reads)
+    other = tmp_path / "other.yaml"
+    other.write_text(params.read_text())
+    assert load_params(other)["run_seeds"] == [0, 1, 2]
+    # a derived list written into the user's file beside a plan is refused, naming it
     params.write_text("seeds: [0]\nmethods: [mapex_td3, warmup_only_td3]\ntd3_seeds: [0]\n")
-    with pytest.raises(ParamsError, match=r"td3_seeds is derived from methods and seeds and lives in the generated"):
+    with pytest.raises(ParamsError, match=r"td3_seeds is derived from methods, variants and seeds: delete it"):
         load_params(params)
-    # without a generated file (a file built by hand for one stage run) inline lists are checked as before
-    gen.unlink()
+    # without a plan beside (a file built by hand for one stage run) inline lists are checked by RunParams
+    assert load_params(other)["td3_seeds"] == [0, 1, 2]
+    other.write_text("seeds: [0]\nmethods: [mapex_td3, warmup_only_td3]\ntd3_seeds: [5]\n")
+    with pytest.raises(ParamsError, match=r"td3_seeds = \[5\], but .* make it \[0\]: they are derived"):
+        section(load_params(other), "", RunParams, other)
+    # a dvc.yaml from before the plan (it loads params.gen.yaml) is named, and one of the user's own is left alone
+    params.write_text("seeds: [0]\nmethods: [mapex_td3, warmup_only_td3]\n")
+    dvc.write_text("vars:\n  - params.gen.yaml\nstages: {}\n")
+    with pytest.raises(ParamsError, match=r"written before `mapex plan` .*: run `mapex plan`"):
+        load_params(params)
+    dvc.write_text("stages:\n  mine:\n    cmd: echo\n")
     assert load_params(params)["td3_seeds"] == [0]
+    # replanning after the edit brings it back; a failed plan leaves the old dvc.yaml in place
+    assert cli("plan", "--params", str(params)).exit_code == 0
+    assert yaml.safe_load(dvc.read_text())["stages"]["train_specialist"]["matrix"] == {"seed": [0]}
+    before = dvc.read_text()
+    params.write_text("seeds: [0]\nmethods: [nope]\n")
+    result = cli("plan", "--params", str(params))
+    assert result.exit_code != 0 and "unknown methods" in result.stderr and dvc.read_text() == before
 
 
 def test_every_preset_syncs_to_a_valid_params_file():

@@ -4,7 +4,6 @@ dvc.yaml and match the paper."""
 from __future__ import annotations
 
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -16,9 +15,10 @@ from pipeline.evaluation.reference_points import TABLE, resolve_reference_point
 from pipeline.params import KNOWN_SECTIONS, RUN_KEYS, EnvParams, load_params, section
 from pipeline.params.env_facts import paper_extract, paper_extract_envs, reference_points
 from pipeline.params.extract import ExtractParams
+from pipeline.params.plan import plan_text
 from pipeline.params.registry import section_models
-from pipeline.params.sync import generated_text, run_lists, synced_text
 from pipeline.params.td3 import TD3Params
+from pipeline.params.tracked import tidied_text
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 
@@ -41,12 +41,12 @@ ALL_PARAMS = [ROOT / "params.yaml"] + [
 
 @pytest.mark.parametrize("path", ALL_PARAMS, ids=lambda p: f"{p.parent.name}/{p.name}")
 def test_params_file_validates(path, tmp_path):
-    """params.yaml as it is; a preset as `mapex sync-params --from` writes it (presets list
+    """params.yaml as it is; a preset as `mapex plan --from` writes it (presets list
     what runs once, in `methods`). Every section validates with its model (no key left where
     it moved from: load_params refuses that), and so does the check across td3 and
     train_specialist that stage train_specialist makes."""
     if path != ROOT / "params.yaml":
-        (tmp_path / "params.yaml").write_text(synced_text(path.read_text(), str(path)))
+        (tmp_path / "params.yaml").write_text(tidied_text(path.read_text(), str(path)))
         path = tmp_path / "params.yaml"
     raw = load_params(path)
     env = section(raw, "env", EnvParams, path)
@@ -152,31 +152,34 @@ def test_three_objective_presets():
 )
 def test_every_section_a_running_stage_reads_is_in_the_file(path, tmp_path):
     """DVC refuses to run a stage whose params section is missing from params.yaml (it does not
-    fall back to the defaults the stage itself would take): every section listed in dvc.yaml by
-    a stage with at least one item under this file's run lists must be in it."""
-    text = synced_text(path.read_text(), str(path))
+    fall back to the defaults the stage itself would take): every params key a stage of this
+    file's plan lists must be in it."""
+    text = tidied_text(path.read_text(), str(path))
     raw = yaml.safe_load(text)
-    generated = run_lists(raw)  # params.gen.yaml, as `mapex sync-params` writes it
-    stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
+    stages = yaml.safe_load(plan_text(raw))["stages"]  # only the stages that run here
     missing = {}
     for name, stage in stages.items():
-        lists = [v[2:-1] for v in (stage.get("matrix") or {}).values() if isinstance(v, str) and v.startswith("${")]
-        if any(not (raw | generated).get(key) for key in lists):
-            continue  # an empty run list: the stage has no item here
         for dep in stage.get("params", []):
-            if isinstance(dep, dict):  # {params.gen.yaml: [keys]}: keys of the generated file
+            if isinstance(dep, dict):
                 (file, keys), *_ = dep.items()
-                if file == "presets/envs.yaml":  # the per-env facts: one file for every params file
-                    facts = yaml.safe_load((ROOT / file).read_text())
-                    missing_keys = [f"{file}:{k}" for k in keys if k not in facts]
-                else:
-                    assert file == "params.gen.yaml", dep
-                    missing_keys = [k for k in keys if k not in generated]
+                assert file == "presets/envs.yaml", dep  # the per-env facts: one file for every params file
+                facts = yaml.safe_load((ROOT / file).read_text())
+                missing_keys = [f"{file}:{k}" for k in keys if k not in facts]
             else:
-                missing_keys = [dep] if dep.split(".")[0] not in raw else []
+                missing_keys = [dep] if not _has_key(raw, dep) and "${" not in dep else []
             if missing_keys:
                 missing.setdefault(name, []).extend(missing_keys)
     assert not missing, f"{path}: stages whose params are missing: {missing}"
+
+
+def _has_key(raw: dict, dotted: str) -> bool:
+    """Whether params `raw` holds key path `dotted` (`extract.beta`): what DVC requires of a listed param."""
+    node = raw
+    for part in dotted.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False
+        node = node[part]
+    return True
 
 
 def test_payoff_preset_is_the_issue_settings():
@@ -202,10 +205,9 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
     dvc = Path(sys.executable).parent / "dvc"
     if not dvc.is_file():
         pytest.fail(f"dvc is not installed next to {sys.executable}")
-    shutil.copy(ROOT / "dvc.yaml", tmp_path / "dvc.yaml")
-    # as `mapex sync-params --from` writes them: the params file and its generated file
-    (tmp_path / "params.yaml").write_text(synced_text(path.read_text(), str(path)))
-    (tmp_path / "params.gen.yaml").write_text(generated_text(run_lists(load_params(tmp_path / "params.yaml"))))
+    # as `mapex plan --from` writes them: the params file and the dvc.yaml planned for it
+    (tmp_path / "params.yaml").write_text(tidied_text(path.read_text(), str(path)))
+    (tmp_path / "dvc.yaml").write_text(plan_text(load_params(tmp_path / "params.yaml")))
     subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
     subprocess.run([str(dvc), "init", "-q"], cwd=tmp_path, check=True)
     r = subprocess.run([str(dvc), "stage", "list", "--name-only"], cwd=tmp_path, capture_output=True, text=True)

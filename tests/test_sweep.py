@@ -30,6 +30,7 @@ from pipeline.distributed.errors import GridError
 from pipeline.distributed.grid import Grid, load_grid, plan_cells
 from pipeline.distributed.task import DIE_ONCE_ENV, StageTask, task_resume_dir
 from pipeline.distributed.workspace import checkout_cell, stage_items
+from pipeline.params.plan import write_plan
 from stages.sweep import sweep
 
 # Sweeps through Ray and DVC in a temporary repository: `make test-fast` leaves this file out.
@@ -187,7 +188,8 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     ws = tmp_path / "work" / "mo-hopper-2obj-v5"
     # the workspace is a checkout of HEAD's code with the cell's params.yaml (and no dvc.lock)
     assert git(ws, "rev-parse", "HEAD") == git(source, "rev-parse", "HEAD")
-    assert git(ws, "status", "--porcelain", "--untracked-files=no") == "M params.yaml"
+    # (and the dvc.yaml planned for them: only the stages the cell runs)
+    assert git(ws, "status", "--porcelain", "--untracked-files=no") == "M dvc.yaml\n M params.yaml"
     assert yaml.safe_load((ws / "params.yaml").read_text())["env"]["id"] == "mo-hopper-2obj-v5"
     assert not (ws / "dvc.lock").exists()
 
@@ -237,8 +239,9 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
 
     # with post-hoc critics on, MAPEX-PostHoc depends on their fits and the joint-critic
     # extraction still does not, so a post-hoc refit never reruns it
-    params.update(posthoc_from=["td3"], methods=[*params["methods"], "mapex_posthoc_td3"])
+    params.update(methods=[*params["methods"], "mapex_posthoc_td3"])
     save_params(ws / "params.yaml", params, sort_keys=False)
+    write_plan(params, ws / "params.yaml", ws / "pipeline" / "params" / "stage_catalogue.yaml", ws)  # `mapex plan`
     assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == [
         "extract@0-td3-mapex",
         "train_specialist@0",

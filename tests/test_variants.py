@@ -47,7 +47,7 @@ def test_variants_add_their_own_run_lists():
     # validated with the top-level lists: a stale derived list names the command that fixes it
     ok = {"seeds": [0], "methods": methods, "variants": VARIANTS, **derived_lists(methods, [0], variants=VARIANTS)}
     assert section(ok, "", RunParams).variants == VARIANTS
-    with pytest.raises(ParamsError, match=r"extract_variant_runs = \[\], but .*mapex sync-params"):
+    with pytest.raises(ParamsError, match=r"extract_variant_runs = \[\], but .*they are derived"):
         section({**ok, "extract_variant_runs": []}, "", RunParams)
 
 

@@ -231,13 +231,15 @@ def _log_plan(todo: list[CellPlan], results: dict[str, CellResult], log: Callabl
 
 
 def _stage_names(ws: Path) -> set[str]:
-    """Every stage dvc.yaml defines in workspace `ws`, those with no item in this cell included."""
-    try:
-        import yaml
+    """Every stage the pipeline knows in workspace `ws` (its stage catalogue), those the cell's
+    plan leaves out included."""
+    from pipeline.params.plan import stage_blocks
 
-        return set((yaml.safe_load((ws / "dvc.yaml").read_text()) or {}).get("stages") or {})
+    try:
+        _, blocks, _ = stage_blocks((ws / "pipeline" / "params" / "stage_catalogue.yaml").read_text())
     except (OSError, ValueError):
         return set()
+    return {name for name, _ in blocks}
 
 
 def _start_ray(ray, address: str | None, workers: int | None) -> bool:

@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from pipeline.distributed.errors import GridError
 from pipeline.params import KNOWN_SECTIONS, ParamsError
-from pipeline.params.generated import with_tracked_env
+from pipeline.params.planned import with_tracked_env, without_derived
 
 NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -185,14 +185,15 @@ def validate_params(params: dict[str, Any], where: str) -> None:
 
 
 def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
-    """`params` checked to derive run lists dvc.yaml can run (a GridError naming `where`
-    otherwise); the cell's workspace gets them as its generated file (workspace.checkout_cell),
+    """`params` checked to derive run lists the plan can run (a GridError naming `where`
+    otherwise); the cell's workspace gets its dvc.yaml planned from them (workspace.checkout_cell),
     so a cell lists what it runs once, like a preset. Derived keys a base or preset still
-    carries are dropped (they live in the generated file now)."""
-    from pipeline.params.generated import split_generated
+    carries are dropped (they are derived again)."""
+    from pipeline.params.planned import run_lists
 
+    user = without_derived(params)
     try:
-        user, _ = split_generated(params)
+        run_lists(user)
     except ValueError as exc:
         raise GridError(f"{where}: {exc}") from None
     return user

@@ -20,7 +20,6 @@ import yaml
 
 from pipeline.distributed.errors import SweepError
 from pipeline.distributed.grid import Cell
-from pipeline.params.generated import generated_text, run_lists
 
 CELL_KEY = "mapex.sweepcell"  # git config key marking a directory as a sweep cell workspace
 
@@ -33,12 +32,20 @@ def _git(cwd: Path | str, *args: str, env: dict[str, str] | None = None, input: 
 
 
 def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
-    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml and its
-    generated file (params.gen.yaml, the run lists dvc.yaml loads), no dvc.lock."""
+    """Make `clone` the cell's checkout: `commit` (detached), the cell's params.yaml and the
+    dvc.yaml planned for it (from the commit's stage catalogue, its code deps the commit's; a
+    commit without a catalogue keeps its own dvc.yaml), no dvc.lock."""
+    from pipeline.params.plan import write_plan
+
     _git(clone, "checkout", "--quiet", "--force", "--detach", commit)
     (clone / "params.yaml").write_text(params_text)
-    lists = run_lists(yaml.safe_load(params_text) or {})
-    (clone / "params.gen.yaml").write_text(generated_text(lists))
+    catalogue = clone / "pipeline" / "params" / "stage_catalogue.yaml"
+    dvc = clone / "dvc.yaml"
+    if catalogue.is_file():
+        write_plan(yaml.safe_load(params_text) or {}, clone / "params.yaml", catalogue, clone)
+    elif dvc.is_file() and "params.gen.yaml" in dvc.read_text():
+        raise SweepError(f"{clone}: commit {commit[:12]} predates `mapex plan` (its dvc.yaml loads params.gen.yaml)")
+    # else: a pipeline of the project's own dvc.yaml, not planned (kept as committed)
     (clone / "dvc.lock").unlink(missing_ok=True)
 
 

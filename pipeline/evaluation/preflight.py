@@ -1,7 +1,7 @@
 """Checks of the env params that fail a run before its work, not after it.
 
 Everything a later stage would refuse for an env is checked where the run is planned (`mapex
-sync-params`, which `make repro` runs first) and, but for the reference point, by the stages that
+plan`, which `make repro` runs first) and, but for the reference point, by the stages that
 start a run (the specialists' training, an import, MORL/D): the id builds (an MO-Gymnasium or
 Gymnasium id, or `module:EnvId`), its actions are a continuous Box, its reward is a vector or
 env.reward_terms names its objectives (each term probed with one step: a key the info dict lacks

@@ -14,6 +14,7 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from pipeline.params.common import DERIVED_KEYS, EnvParams, RunParams
+from pipeline.params.planned import context_lists
 
 __all__ = ["ParamsError", "load_params", "section", "EnvParams", "RunParams", "KNOWN_SECTIONS"]
 
@@ -76,50 +77,38 @@ class ParamsError(ValueError):
     """params.yaml is missing, unreadable or fails validation; the message says where and why."""
 
 
-def load_params(path: str | Path) -> dict[str, Any]:
+def load_params(path: str | Path, check_plan: bool = True) -> dict[str, Any]:
     """Read params.yaml into a dict, rejecting unknown top-level keys, with the derived run
-    lists of its generated file (params.gen.yaml beside it, pipeline/params/sync.py) merged in
-    where that file exists: a generated file that disagrees with the params file is one line
-    naming the list and `mapex sync-params`. A derived list written in the params file itself
-    beside a generated file is an error too (DVC would refuse the two definitions); a params
-    file without a generated file (one built by hand for a single stage run, outside DVC) may
-    carry its lists inline, and RunParams checks them as it checks the generated ones."""
+    lists (pipeline.params.planned.run_lists) merged in. Where a dvc.yaml planned by `mapex plan`
+    sits beside it, its recorded plan inputs must still be what the params make them: a stale
+    plan is one line naming the key and `mapex plan` (pipeline/params/planned.py). A derived list
+    written in the params file itself (a file built by hand for one stage run, outside DVC) is
+    kept, and RunParams checks it against what the params make it; beside a planned dvc.yaml it
+    is an error (`mapex plan` removes it).
+    `check_plan=False` skips the plan's check (`mapex plan`, about to replace it)."""
     path = Path(path)
     raw = _read_mapping(path)
-    from pipeline.params.generated import generated_path, run_lists
+    from pipeline.params.planned import dvc_yaml_beside, run_lists, stale_input
 
-    gen = generated_path(path)
-    if not gen.is_file():
-        return raw
-    written = [k for k in DERIVED_KEYS if k in raw]
-    if written:
-        raise ParamsError(
-            f"{path}: {written[0]} is derived from methods and seeds and lives in the generated file "
-            f"{gen.name}: delete it here, or run `mapex sync-params`, which does"
-        )
-    lists = _read_mapping(gen)
-    try:
-        want = run_lists(raw)
-    except ValueError:  # bad methods or variants: RunParams' validation names them
-        return raw | {k: v for k, v in lists.items() if k in DERIVED_KEYS}
-    for key in DERIVED_KEYS:
-        if key not in lists or _differ(lists[key], want[key]):
+    dvc = dvc_yaml_beside(path)
+    if check_plan and path.name == "params.yaml" and dvc.is_file():
+        written = [k for k in DERIVED_KEYS if k in raw]
+        if written:
             raise ParamsError(
-                f"{gen}: stale: {key} = {lists.get(key)!r}, but {path.name}'s methods, variants and seeds make it "
-                f"{want[key]!r}: run `mapex sync-params`"
+                f"{path}: {written[0]} is derived from methods, variants and seeds: delete it "
+                "(`mapex plan` does, and writes what DVC needs of it into dvc.yaml)"
             )
-    return raw | {k: lists[k] for k in DERIVED_KEYS}
-
-
-def _differ(given: Any, want: Any) -> bool:
-    """Whether a generated list (or mapping) differs from what the params make it, order aside."""
-    if isinstance(want, dict) or not isinstance(given, list):
-        return given != want
-    return sorted(given, key=repr) != sorted(want, key=repr)
+        why = stale_input(raw, dvc.read_text())
+        if why:
+            raise ParamsError(f"{dvc}: {why}")
+    try:
+        return run_lists(raw) | raw  # lists written inline are kept: RunParams checks them
+    except ValueError:  # bad methods or variants: RunParams' validation names them
+        return raw
 
 
 def _read_mapping(path: Path) -> dict[str, Any]:
-    """A params file (or its generated file) read and checked to be a mapping of known keys."""
+    """A params file read and checked to be a mapping of known keys."""
     if not path.is_file():
         raise ParamsError(f"{path}: params file not found")
     try:
@@ -138,16 +127,6 @@ def _read_mapping(path: Path) -> dict[str, Any]:
             where = ", ".join(f"{old}.{k} -> {new}.{k}" for k in moved)
             raise ParamsError(f"{path}: key(s) moved to section `{new}` (read by every stage that uses them): {where}")
     return raw
-
-
-def context_lists(raw: dict[str, Any]) -> dict[str, list]:
-    """What the derived run lists read besides methods and seeds: import_specialists.policies
-    (as "imports") and export.methods (as "export"), [] where absent."""
-    imports, export = raw.get("import_specialists") or {}, raw.get("export") or {}
-    return {
-        "imports": list(imports.get("policies") or []) if isinstance(imports, dict) else [],
-        "export": list(export.get("methods") or []) if isinstance(export, dict) else [],
-    }
 
 
 def _describe(err: dict[str, Any], prefix: str) -> str:

@@ -113,8 +113,8 @@ class EnvParams(Strict):
         return self
 
 
-# The generated block older params files held (`mapex sync-params` removes it: the lists now live
-# in the generated file beside, pipeline/params/sync.py).
+# The generated block older params files held (`mapex plan` removes it: the plan in dvc.yaml
+# holds what DVC needs of the lists now, pipeline/params/plan.py).
 GENERATED_BEGIN = "# --- generated from `methods` and `seeds` by `mapex sync-params`: do not edit ---"
 GENERATED_END = "# --- end of generated lists ---"
 # The keys a user writes among the top-level lists; RunParams' others are derived.
@@ -122,14 +122,12 @@ USER_RUN_KEYS = ("seeds", "objectives", "methods", "variants")
 
 
 class _RunParams(Strict):
-    """The top-level lists: what to run (`seeds`, `objectives`, `methods`, written by hand) and
-    the run lists dvc.yaml fans its producing stages out over, derived from `methods` and
-    `seeds` (pipeline.params.runlists.derived_lists) and written into the generated file beside
-    params.yaml (params.gen.yaml) by `mapex sync-params`; `pipeline.params.load_params` merges
-    them in. DVC cannot filter a matrix, hence the derived lists; lists that disagree with
-    `methods` (a stale generated file) are an error naming the list and the command that fixes
-    it. Lists left out are not checked (a params dict without its generated file). The derived
-    lists' fields are declared in RUN_LISTS (pipeline/params/methods.py) and added below.
+    """The top-level lists: what to run (`seeds`, `objectives`, `methods`, `variants`, written by
+    hand) and the run lists derived from them (pipeline.params.runlists.derived_lists), which
+    `pipeline.params.load_params` merges in and `mapex plan` writes into dvc.yaml's matrices (DVC
+    cannot filter a matrix). Lists that disagree with `methods` are an error naming the list; lists
+    left out are not checked. The derived lists' fields are declared in RUN_LISTS
+    (pipeline/params/methods.py) and added below.
     """
 
     seeds: list[int] = Field(
@@ -189,7 +187,7 @@ class _RunParams(Strict):
             if not same:
                 raise ValueError(
                     f"{key} = {given}, but methods {self.methods} and seeds {self.seeds} make it {value}: "
-                    "run `mapex sync-params` (it rewrites the generated file, params.gen.yaml)"
+                    "they are derived: delete them (`mapex plan` writes the plan into dvc.yaml)"
                 )
         return self
 

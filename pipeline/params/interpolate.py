@@ -14,7 +14,7 @@ from pydantic import Field
 
 from pipeline.params.common import Strict
 
-# The extract keys stage interpolate reads (dvc.yaml lists each; `mapex sync-params` fills them in).
+# The extract keys stage interpolate reads (dvc.yaml lists each; `mapex plan` fills them in).
 INTERPOLATE_EXTRACT_KEYS = ("iterations", "children_per_iteration", "eval_episodes")
 
 

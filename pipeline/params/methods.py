@@ -1,5 +1,5 @@
 """The methods this pipeline can run and compare: one table that params validation, the
-derived run lists of params.gen.yaml (`mapex sync-params`) and the report all read.
+derived run lists of the plan (`mapex plan`) and the report all read.
 
 A method is what `methods` in params.yaml lists and what data/fronts/<method>/ holds: an
 extraction variant run from one kind of specialists (`mapex_td3` is variant `mapex` from TD3

@@ -1,6 +1,6 @@
 """The run lists dvc.yaml fans its producing stages out over (`derived_lists`), computed from
-params.yaml's `methods`, `seeds`, `variants` and imports; `mapex sync-params` writes them to
-params.gen.yaml and every stage checks they are current (pipeline/params/common.py).
+params.yaml's `methods`, `seeds`, `variants` and imports; `mapex plan` writes them into
+dvc.yaml's matrices and every stage checks they are current (pipeline/params/planned.py).
 
 Kept apart from the methods table (pipeline/params/methods.py) because it reads both that
 table and the named variants (pipeline/params/variants.py), which read the table themselves:

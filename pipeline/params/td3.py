@@ -97,7 +97,7 @@ class TD3Params(Strict):
 # The keys the TD3 agents of PDERL (train_pderl) and MOPDERL (mopderl) read: every key but
 # shared_init, which only the TD3 specialists (train_specialist) read. Their dvc.yaml stages list
 # these one by one (tests/test_dvc_deps.py checks it), so switching shared_init reruns the TD3
-# specialists and nothing of PDERL or MOPDERL; `mapex sync-params` names them in params.yaml
+# specialists and nothing of PDERL or MOPDERL; `mapex plan` names them in params.yaml
 # (DVC refuses a listed key that is missing from the file).
 SPECIALIST_ONLY_KEYS = ("shared_init", "shared_prefix_steps", "shared_prefix_weights")
 AGENT_KEYS = tuple(k for k in TD3Params.model_fields if k not in SPECIALIST_ONLY_KEYS)

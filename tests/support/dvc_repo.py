@@ -13,7 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.params.generated import write_params_files
+from pipeline.params.plan import write_plan
+from pipeline.params.planned import with_tracked_env
+from support.tiny_params import save_params
 
 ROOT = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -33,16 +35,17 @@ def ran(output: str) -> set[str]:
 
 
 def make_repo(root: Path, params: dict) -> Path:
-    """`root` as a git + DVC repository holding pipeline/, stages/, dvc.yaml,
-    presets/envs.yaml and `params`."""
+    """`root` as a git + DVC repository holding pipeline/, stages/, presets/envs.yaml, `params`
+    and the dvc.yaml planned for them."""
     if shutil.which("dvc", path=str(BIN)) is None:
         pytest.fail(f"dvc is not installed next to {sys.executable}")
     for name in ("pipeline", "stages"):
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
     (root / "presets").mkdir()  # the score stage's table of reference points (a DVC dep)
     shutil.copy(ROOT / "presets" / "envs.yaml", root / "presets" / "envs.yaml")
-    write_params_files(root / "params.yaml", params)  # and params.gen.yaml, as `mapex sync-params` leaves them
+    save_params(root / "params.yaml", with_tracked_env(params))  # env.reward_terms: every stage lists it
+    # the plan for these params, as `mapex plan` writes it: from the copied catalogue, code deps of the copy
+    write_plan(params, root / "params.yaml", root / "pipeline" / "params" / "stage_catalogue.yaml", root)
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     for cmd in (
         ["git", "init", "-q"],

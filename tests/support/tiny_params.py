@@ -7,7 +7,7 @@
 - `TINY_CHAIN`: TINY with the overrides of the tests that run real stage chains (DVC, sweeps, the
   payoff scripts, `dvc repro` from imported specialists): every stage's section at toy size
   (40-step episodes, 16-unit networks, 300-step specialists, 2 children) and the run lists
-  derived as `mapex sync-params` writes them (`with_lists`).
+  derived (`with_lists`: what `mapex plan` plans from).
 - `PDERL_TINY`, `MOPDERL_TINY`, `MORLD_TINY`: those methods' sections at toy size, and `TINY_ALL`:
   TINY_CHAIN with every method of the pipeline at once.
 
@@ -24,8 +24,8 @@ import yaml
 
 from pipeline.params.common import DERIVED_KEYS
 from pipeline.params.extract import WARMUP_ONLY_KEYS, ExtractParams
-from pipeline.params.generated import write_params_files
 from pipeline.params.interpolate import INTERPOLATE_EXTRACT_KEYS
+from pipeline.params.planned import with_tracked_env, without_derived
 from pipeline.params.runlists import derived_lists
 from pipeline.params.td3 import AGENT_KEYS, TD3Params
 
@@ -65,7 +65,7 @@ def merge(base: dict[str, Any], overrides: dict[str, Any] | None) -> dict[str, A
 def with_lists(params: dict) -> dict:
     """`params` with the run lists derived from its methods, seeds, imports and export methods,
     a render section where none, the extract keys stages warmup_only and interpolate track at their defaults where
-    missing and an interpolate section where one is needed (as `mapex sync-params` writes them: DVC refuses a listed
+    missing and an interpolate section where one is needed (as `mapex plan` fills them in: DVC refuses a listed
     param that is not in the file)."""
     imports = (params.get("import_specialists") or {}).get("policies", [])
     export = (params.get("export") or {}).get("methods", [])
@@ -190,10 +190,48 @@ TINY_ALL = with_lists(TINY_ALL)
 
 
 def save_params(path: Path, params: dict[str, Any], **dump: Any) -> Path:
-    """Write `params` at `path` as the tests' params file. With derived run lists in it (a dict of
-    `with_lists`), as `mapex sync-params` leaves a repository: the user's keys there, the lists
-    (derived again) in the generated file beside (params.gen.yaml); otherwise as it is."""
+    """Write `params` at `path` as the tests' params file. A dict of `with_lists` (it carries the
+    derived run lists) is written as `mapex plan` leaves a repository: without the lists (derived
+    again wherever the file is read or planned) and with env.reward_terms present (every planned
+    stage tracks it); any other dict as it is."""
     if any(k in params for k in DERIVED_KEYS):
-        return write_params_files(path, params, **dump)
+        params = with_tracked_env(without_derived(params))
     path.write_text(yaml.safe_dump(params, **dump))
     return path
+
+
+# Params that plan every stage of the catalogue (pipeline/params/stage_catalogue.yaml): TINY_ALL's
+# methods, the interpolation baseline, a specialists variant, method variants of MAPEX and of the
+# interpolation (one with a label), two imported objectives (one collects its buffer, one brings
+# it; the third objective is trained here) and an export. For the plan only: nothing runs them.
+EVERY_STAGE = with_lists(
+    merge(
+        TINY_ALL,
+        {
+            "objectives": [0, 1, 2],
+            "methods": [
+                *TINY_ALL["methods"],
+                "interpolate_td3",
+                "mapex_posthoc_imported",
+                "mapex_td3_wide",
+                "interpolate_td3_halfway",
+            ],
+            "variants": {
+                "td3_wide": {"of": "td3", "td3": {"hidden_sizes": [24, 24]}},
+                "mapex_td3_wide": {"of": "mapex_td3", "specialists": "td3_wide"},
+                "interpolate_td3_halfway": {
+                    "of": "interpolate_td3",
+                    "label": "halfway",
+                    "interpolate": {"policies": 3},
+                },
+            },
+            "import_specialists": {
+                "policies": [
+                    {"objective": 0, "file": "models/obj0.zip", "format": "sb3"},
+                    {"objective": 1, "file": "models/obj1.zip", "format": "sb3", "buffer": "models/obj1.zarr"},
+                ]
+            },
+            "export": {"methods": ["mapex_td3"]},
+        },
+    )
+)

@@ -1,7 +1,6 @@
-"""The params file's side of `mapex sync-params`: an older generated block removed, and the
-keys a listed stage tracks filled in at their defaults (DVC refuses a listed param missing from
-the file). The derived run lists go to the generated file beside it (pipeline/params/generated.py,
-re-exported here).
+"""The params file's side of `mapex plan`: an older generated block and derived lists removed,
+and the keys a planned stage tracks filled in at their defaults (DVC refuses a listed param
+missing from the file). The plan itself goes to dvc.yaml (pipeline/params/plan.py).
 """
 
 from __future__ import annotations
@@ -12,20 +11,14 @@ import re
 import yaml
 
 from pipeline.params.common import DERIVED_KEYS, GENERATED_BEGIN, GENERATED_END, EnvParams
-from pipeline.params.generated import (  # noqa: F401  (re-exported: the writers of params files)
-    generated_path,
-    generated_text,
-    run_lists,
-    split_generated,
-    write_params_files,
-)
+from pipeline.params.planned import run_lists
 
 
-def synced_text(text: str, where: str = "params.yaml") -> str:
-    """`text` (a params file) without a generated block or derived keys (they live in the
-    generated file now) and with the extract keys stage warmup_only tracks filled in
+def tidied_text(text: str, where: str = "params.yaml") -> str:
+    """`text` (a params file) without a generated block or derived keys (the plan in dvc.yaml
+    holds what DVC needs of them now) and with the extract keys stage warmup_only tracks filled in
     (`with_tracked_keys`). Raises ValueError naming `where` if the file is not a mapping, lists an
-    unknown method or a set of methods that dvc.yaml's matrices cannot run, or writes a derived key
+    unknown method or a set of methods the plan cannot run, or writes a derived key
     over several lines (which this rewrite cannot remove safely)."""
     raw = yaml.safe_load(text)
     if not isinstance(raw, dict):
@@ -57,15 +50,15 @@ def synced_text(text: str, where: str = "params.yaml") -> str:
 
 
 TRACKED_NOTE = (
-    "  # named for DVC by `mapex sync-params` (stages warmup_only, interpolate, train_pderl, mopderl track these "
+    "  # named for DVC by `mapex plan` (stages warmup_only, interpolate, train_pderl, mopderl track these "
     "keys); edit freely\n"
 )
 
 
-RENDER_NOTE = "# named for DVC by `mapex sync-params` (stage render tracks the section): no clips\n"
+RENDER_NOTE = "# named for DVC by `mapex plan` (stage render tracks the section): no clips\n"
 
 
-INTERPOLATE_NOTE = "# named for DVC by `mapex sync-params` (stage interpolate tracks the section): null = as extract\n"
+INTERPOLATE_NOTE = "# named for DVC by `mapex plan` (stage interpolate tracks the section): null = as extract\n"
 
 
 def with_tracked_keys(text: str) -> str:
