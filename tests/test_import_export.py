@@ -632,9 +632,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     save_params(repo / "params.yaml", params, sort_keys=False)
     from pipeline.params.plan import write_plan
 
-    write_plan(
-        params, repo / "params.yaml", repo / "pipeline" / "params" / "stage_catalogue.yaml", repo
-    )  # `mapex plan`
+    write_plan(params, repo / "params.yaml", repo)  # `mapex plan`
     (repo / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(repo)}
 
@@ -679,9 +677,7 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     params = with_lists(params)
     assert params["import_train"] == [1] and params["td3_seeds"] == []
     save_params(repo / "params.yaml", params, sort_keys=False)
-    write_plan(
-        params, repo / "params.yaml", repo / "pipeline" / "params" / "stage_catalogue.yaml", repo
-    )  # `mapex plan`
+    write_plan(params, repo / "params.yaml", repo)  # `mapex plan`
     again = set(re.findall(r"Running stage '([^']+)'", run(str(bin_dir / "dvc"), "repro")))
     assert {
         "train_specialist_imported@0-1",

@@ -241,7 +241,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     # extraction still does not, so a post-hoc refit never reruns it
     params.update(methods=[*params["methods"], "mapex_posthoc_td3"])
     save_params(ws / "params.yaml", params, sort_keys=False)
-    write_plan(params, ws / "params.yaml", ws / "pipeline" / "params" / "stage_catalogue.yaml", ws)  # `mapex plan`
+    write_plan(params, ws / "params.yaml", ws)  # `mapex plan`
     assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == [
         "extract@0-td3-mapex",
         "train_specialist@0",

@@ -42,7 +42,7 @@ def checkout_cell(clone: Path, commit: str, params_text: str) -> None:
     catalogue = clone / "pipeline" / "params" / "stage_catalogue.yaml"
     dvc = clone / "dvc.yaml"
     if catalogue.is_file():
-        write_plan(yaml.safe_load(params_text) or {}, clone / "params.yaml", catalogue, clone)
+        write_plan(yaml.safe_load(params_text) or {}, clone / "params.yaml", clone)
     elif dvc.is_file() and "params.gen.yaml" in dvc.read_text():
         raise SweepError(f"{clone}: commit {commit[:12]} predates `mapex plan` (its dvc.yaml loads params.gen.yaml)")
     # else: a pipeline of the project's own dvc.yaml, not planned (kept as committed)

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.codedeps import ROOT, module_closure
-from pipeline.params.planned import input_lines, plan_inputs
+from pipeline.params.planned import dvc_yaml_beside, input_lines, plan_inputs
 
 CATALOGUE = Path(__file__).with_name("stage_catalogue.yaml")
 # The line above each stage's code deps in dvc.yaml: the plan writes them, not a person.
@@ -72,11 +72,12 @@ def code_deps(module: str, root: Path = ROOT) -> list[str]:
     return sorted(set(module_closure(module, root)) | {"stages/cli.py"})
 
 
-def plan_text(raw: dict[str, Any], source: str = "params.yaml", catalogue: Path = CATALOGUE, root: Path = ROOT) -> str:
-    """The dvc.yaml planned for loaded params `raw` (from file `source`) from `catalogue`, with
-    code deps found under `root`. ValueError (one line) on methods or variants that cannot run."""
+def plan_text(raw: dict[str, Any], source: str = "params.yaml", root: Path = ROOT) -> str:
+    """The dvc.yaml planned for loaded params `raw` (from file `source`) from the catalogue of the
+    checkout at `root` (this one by default), with code deps found there. ValueError (one line)
+    on methods or variants that cannot run."""
     inputs = plan_inputs(raw)
-    _, blocks, tail = stage_blocks(catalogue.read_text())
+    _, blocks, tail = stage_blocks((root / CATALOGUE.relative_to(ROOT)).read_text())
     out = [HEADER.format(source=source), input_lines(inputs), "stages:\n"]
     for _, block in blocks:
         planned = _planned_block(block, inputs, root)
@@ -112,12 +113,11 @@ def _planned_block(block: list[str], inputs: dict[str, Any], root: Path) -> list
     return out + code + tail
 
 
-def write_plan(raw: dict[str, Any], params: Path, catalogue: Path = CATALOGUE, root: Path = ROOT) -> Path:
+def write_plan(raw: dict[str, Any], params: Path, root: Path = ROOT) -> Path:
     """Write the plan for params file `params` (loaded as `raw`) to the dvc.yaml beside it,
     atomically. Returns that path."""
     from pipeline.core.artifacts import write_text_atomic
-    from pipeline.params.planned import dvc_yaml_beside
 
     path = dvc_yaml_beside(params)
-    write_text_atomic(path, plan_text(raw, Path(params).name, catalogue, root))
+    write_text_atomic(path, plan_text(raw, Path(params).name, root))
     return path

@@ -45,7 +45,7 @@ def make_repo(root: Path, params: dict) -> Path:
     shutil.copy(ROOT / "presets" / "envs.yaml", root / "presets" / "envs.yaml")
     save_params(root / "params.yaml", with_tracked_env(params))  # env.reward_terms: every stage lists it
     # the plan for these params, as `mapex plan` writes it: from the copied catalogue, code deps of the copy
-    write_plan(params, root / "params.yaml", root / "pipeline" / "params" / "stage_catalogue.yaml", root)
+    write_plan(params, root / "params.yaml", root)
     (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n")
     for cmd in (
         ["git", "init", "-q"],
