@@ -85,7 +85,6 @@ def main() -> None:
             "env": {"id": ENV, "max_episode_steps": STEPS},
             "seeds": [0],
             "methods": ["mapex_td3"],
-            "extract_variants": ["mapex"],
             "export_methods": [],
             "render": render,
         }

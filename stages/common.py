@@ -163,6 +163,28 @@ def read_params(path: Path, name: str, model: type[M], variant: str | None = Non
     return StageParams(raw, section(raw, "env", EnvParams, path), section(raw, name, model, path), run)
 
 
+def method_option(base: str, sections: str) -> Any:
+    """The --method option of a stage that makes fronts of method `base` (a name or a pattern
+    such as 'interpolate_KIND'): run as a named variant of it, whose overrides of `sections` apply."""
+    return typer.Option(
+        None,
+        "--method",
+        help=f"run as this named variant of method {base} (params `variants`: its overrides of {sections} "
+        f"apply, and the front is this method's); default: method {base} itself",
+    )
+
+
+def require_variant_of(raw: dict[str, Any], method: str | None, base: str, path: Path) -> str:
+    """The method a run makes: `base`, or `method` where given, which must be a named variant of
+    `base` (a one-line ParamsError otherwise)."""
+    if method is None:
+        return base
+    of = named_variant(raw, method, path).of
+    if of != base:
+        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
+    return method
+
+
 def named_variant(raw: dict[str, Any], name: str, path: Path) -> Variant:
     """Variant `name` of the loaded params' `variants`; a one-line ParamsError if there is none."""
     try:

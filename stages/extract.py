@@ -23,11 +23,12 @@ from pipeline.params.methods import EXTRACT_VARIANTS, SPECIALIST_KINDS, TRAINED_
 from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
-    named_variant,
+    method_option,
     progress_send,
     read_params,
     reports_errors,
     require_every_objective,
+    require_variant_of,
 )
 
 
@@ -68,11 +69,7 @@ def extract(
     posthoc: Path = typer.Option(
         None, help="directory with obj{K}/critics.pt fitted post hoc (read by --variant mapex_posthoc)"
     ),
-    method: Optional[str] = typer.Option(
-        None,
-        help="run as this named variant of method VARIANT_KIND (params `variants`: its overrides of section "
-        "extract apply, and the front is this method's); default: method VARIANT_KIND itself",
-    ),
+    method: Optional[str] = method_option("VARIANT_KIND", "section extract"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
     resume_dir: Path = typer.Option(
         None,
@@ -118,8 +115,7 @@ def extract(
     """
     raw, env_p, cfg, run_p = read_params(params, "extract", ExtractParams, method)
     base = method_name(variant, kind)
-    if method is not None and (of := named_variant(raw, method, params).of) != base:
-        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
+    require_variant_of(raw, method, base, params)
     cfg = variant_params(cfg, env_p.id, variant, kind, posthoc, params)
     envs = [
         make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)

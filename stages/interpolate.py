@@ -25,11 +25,12 @@ from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
     fmt_vec,
-    named_variant,
+    method_option,
     progress,
     read_params,
     reports_errors,
     require_every_objective,
+    require_variant_of,
 )
 
 
@@ -82,11 +83,7 @@ def interpolate(
         ..., help="directory with, per objective K, obj{K}/policies.pt (a policy set) or obj{K}/policy.pt"
     ),
     out: Path = typer.Option(..., help="output directory: population.pt"),
-    method: Optional[str] = typer.Option(
-        None,
-        help="run as this named variant of method interpolate_KIND (params `variants`: its overrides of sections "
-        "interpolate and extract apply, and the front is this method's); default: interpolate_KIND itself",
-    ),
+    method: Optional[str] = method_option("interpolate_KIND", "sections interpolate and extract"),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
@@ -122,8 +119,7 @@ def interpolate(
         raise ParamsError(f"--kind {kind!r}: expected one of {list(SPECIALIST_KINDS)}")
     raw, env_p, cfg, run_p = read_params(params, "interpolate", InterpolateParams, method)
     base = method_name("interpolate", kind)
-    if method is not None and (of := named_variant(raw, method, params).of) != base:
-        raise ParamsError(f"--method {method}: variants.{method}.of is {of!r}, but this run is {base!r}")
+    require_variant_of(raw, method, base, params)
     ext = section(raw, "extract", ExtractParams, params)
     policies = cfg.policies if cfg.policies is not None else ext.iterations * ext.children_per_iteration
     episodes = cfg.eval_episodes or ext.eval_episodes

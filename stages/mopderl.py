@@ -23,10 +23,12 @@ from pipeline.params.td3 import TD3Params
 from stages.common import (
     PARAMS_OPTION,
     PROVENANCE_OPTION,
+    method_option,
     progress_send,
     read_params,
     reports_errors,
     require_every_objective,
+    require_variant_of,
 )
 
 HISTORY_FIELDS = ["generation", "env_frames", "new_individuals", "archive_size", "front_size", "archive_hv_norm"]
@@ -57,9 +59,10 @@ def mopderl(
         "and buffer.zarr (the RL replay buffer)",
     ),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
+    method: Optional[str] = method_option("mopderl", "section mopderl"),
     resume_dir: Path = typer.Option(
         None,
-        help="where progress is checkpointed (RESUME_DIR/mopderl/seedS); default "
+        help="where progress is checkpointed (RESUME_DIR/METHOD/seedS, METHOD mopderl or --method); default "
         "$MAPEX_RESUME_ROOT if set (a sweep's shared storage), else data/resume",
     ),
     params: Path = PARAMS_OPTION,
@@ -82,8 +85,11 @@ def mopderl(
     mopderl.total_frames; the last generation runs to its end. The specialists' policies,
     critics and buffer must agree on objective, seed and env.
 
+    With --method NAME (a named variant of mopderl in params `variants`) its overrides of section
+    mopderl apply and the front is method NAME's.
+
     Progress is checkpointed every mopderl.checkpoint_every generations under
-    RESUME_DIR/mopderl/seedS; killed and rerun with the same params, inputs, code, device and
+    RESUME_DIR/METHOD/seedS; killed and rerun with the same params, inputs, code, device and
     thread count, the stage resumes and ends with the same artifacts. Anything else starts over.
     On SIGTERM it stops after the current generation, its checkpoint written, with exit code 143.
 
@@ -104,7 +110,8 @@ def mopderl(
     exit code 3; nothing is written and the last good checkpoint stays (docs/manual.md,
     "When training diverges").
     """
-    raw, env_p, cfg, run_p = read_params(params, "mopderl", MopderlParams)
+    raw, env_p, cfg, run_p = read_params(params, "mopderl", MopderlParams, method)
+    method = require_variant_of(raw, method, "mopderl", params)
     td3 = section(raw, "td3", TD3Params, params)
     cfg = cfg.resolved(env_p.id)
     env = make_env(env_p.id, env_p.max_episode_steps, env_p.reward_terms)
@@ -128,7 +135,7 @@ def mopderl(
             "seed": seed,
         }
         ckpt = Checkpoint(
-            (resume_dir or resume_root("data/resume")) / "mopderl" / f"seed{seed}" / "state.pt",
+            (resume_dir or resume_root("data/resume")) / method / f"seed{seed}" / "state.pt",
             run_fingerprint("mopderl", config, device, files, precision),
             lambda line: typer.echo(line, err=True),
         )
@@ -136,7 +143,7 @@ def mopderl(
         def save(run: MopderlRun) -> None:
             run_meta = meta | {
                 "seed": seed,
-                "method": "mopderl",
+                "method": method,
                 "params": config,
                 "specialist_frames": specialist_frames,
             }

@@ -25,7 +25,16 @@ from pipeline.core.seeding import select_device
 from pipeline.evaluation.preflight import preflight
 from pipeline.params import ParamsError
 from pipeline.params.morld import MorldParams
-from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, fmt_vec, progress_send, read_params, reports_errors
+from stages.common import (
+    PARAMS_OPTION,
+    PROVENANCE_OPTION,
+    fmt_vec,
+    method_option,
+    progress_send,
+    read_params,
+    reports_errors,
+    require_variant_of,
+)
 
 CHECKPOINT = "morld_state.pt"
 HISTORY_COLUMNS = ("exchange", "frames", "front_eval_frames", "trained_policy", "archive_size")
@@ -35,12 +44,16 @@ HISTORY_COLUMNS = ("exchange", "frames", "front_eval_frames", "trained_policy", 
 def morld(
     seed: int = typer.Option(0, help="run seed; with the params it fixes every random draw"),
     out: Path = typer.Option(..., help="output directory: population.pt, history.csv"),
+    method: Optional[str] = method_option("morld", "section morld"),
     params: Path = PARAMS_OPTION,
     provenance: Optional[Path] = PROVENANCE_OPTION,
 ) -> None:
     """Run the MORL/D baseline of one seed and export its policies as a population.
 
     Needs the optional extra: pip install -e ".[baselines]" (morl-baselines 1.3.0).
+
+    With --method NAME (a named variant of morld in params `variants`) its overrides of section
+    morld apply and the front is method NAME's.
 
     Params: sections `env` (id, max_episode_steps: every training and evaluation episode is
     capped there) and `morld`. Runs morl-baselines' MORLD with MOSAC agents (the paper's
@@ -69,7 +82,8 @@ def morld(
     stage with one line naming the seed, exchange and what went bad, and exit code 3; nothing
     is written and the last good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    _, env_p, cfg, _ = read_params(params, "morld", MorldParams)
+    raw, env_p, cfg, _ = read_params(params, "morld", MorldParams, method)
+    method = require_variant_of(raw, method, "morld", params)
     try:
         require_morl_baselines()
     except BaselinesMissing as exc:
@@ -110,7 +124,7 @@ def morld(
             err=True,
         )
         members, extra = export_members(run, cfg.eval_episodes)
-        meta = {**spec_meta(spec), "seed": seed, "method": "morld", "params": config, "specialist_frames": 0}
+        meta = {**spec_meta(spec), "seed": seed, "method": method, "params": config, "specialist_frames": 0}
         save_population(out / "population.pt", members, meta | extra)
         write_text_atomic(out / "history.csv", history_csv(run.history))
         best = max(members, key=lambda m: m.returns[0])

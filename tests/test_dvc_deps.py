@@ -20,14 +20,14 @@ from support.tiny_params import EVERY_STAGE
 
 from pipeline.core.codedeps import ROOT, module_closure
 from pipeline.params import load_params
-from pipeline.params.plan import catalogue_modules, plan_text
+from pipeline.params.plan import plan_text
 
 STAGES = yaml.safe_load(plan_text(EVERY_STAGE))["stages"]
-MODULES = catalogue_modules()
 
 
 def stage_module(name: str) -> str:
-    return MODULES[name]
+    """The module planned stage `name` runs, from its cmd's `mapex <command>`."""
+    return "stages." + re.match(r"mapex ([\w-]+)", STAGES[name]["cmd"]).group(1).replace("-", "_")
 
 
 def test_the_committed_dvc_yaml_is_the_plan_of_params_yaml():
@@ -228,9 +228,11 @@ def test_stages_list_exactly_the_section_keys_they_read():
         assert not {"shared_init", "shared_prefix_steps", "shared_prefix_weights"} & set(AGENT_KEYS)
     for stage in ("train_specialist", "train_specialist_imported", "train_specialist_variant"):
         assert _listed(stage, "td3") == ["*"], stage  # shared_init is theirs
-    assert _listed("warmup_only", "extract") == list(WARMUP_ONLY_KEYS)
-    for stage in ("interpolate", "interpolate_variant"):
+    assert _listed("warmup_only_td3", "extract") == list(WARMUP_ONLY_KEYS)
+    for stage in ("interpolate_td3", "interpolate_td3_halfway"):
         assert _listed(stage, "extract") == list(INTERPOLATE_EXTRACT_KEYS), stage
     # a variant's stage tracks its own overrides, by its name (pipeline/params/variants.py)
-    assert "variants.${item.run.name}" in STAGES["extract_variant"]["params"]
+    assert "variants.mapex_td3_wide" in STAGES["mapex_td3_wide"]["params"]
+    assert "variants.interpolate_td3_halfway" in STAGES["interpolate_td3_halfway"]["params"]
+    assert not any(str(p).startswith("variants.") for p in STAGES["mapex_td3"]["params"])
     assert "variants.${item.spec}" in STAGES["train_specialist_variant"]["params"]

@@ -32,9 +32,12 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
         baselines = ["mopderl"]
     methods = ["mapex_td3", "mapex_posthoc_td3", "mapex_pderl", "mapex_posthoc_pderl", *baselines]
     methods += ["warmup_only_td3", "warmup_only_pderl", "interpolate_td3", "interpolate_pderl"]
+    # a variant of MAPEX-PostHoc, added by params alone: the plan writes it a stage of its own
+    methods += ["posthoc_gentle"]
     params = {
         **TINY,
         "methods": methods,
+        "variants": {"posthoc_gentle": {"of": "mapex_posthoc_td3", "extract": {"beta": 0.5}}},
         "td3": {**TINY["td3"], "buffer_size": 2000},
         "train_pderl": PDERL_TINY,
         "mopderl": MOPDERL_TINY,
@@ -45,7 +48,7 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     params = with_lists(params)
     root = make_repo(tmp_path_factory.mktemp("methods"), params)
     out = run([str(BIN / "dvc"), "repro"], root)
-    assert {"train_pderl", "mopderl", "extract", "evaluate", "score", "report"} <= ran(out)
+    assert {"train_pderl", "mopderl", "mapex_td3", "posthoc_gentle", "evaluate", "score", "report"} <= ran(out)
     for m in methods:
         metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
         assert metrics["method"] == m and metrics["front"]["cardinality"] >= 1
@@ -88,8 +91,16 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     with open(root / "pipeline" / "extraction" / "mapex.py", "a") as fh:
         fh.write("\n# an edit\n")
     stale = stale_stages(root)
-    assert "extract" in stale and "extract_posthoc" in stale and "warmup_only" in stale
-    untouched = {"train_specialist", "train_pderl", "fit_critics", "mopderl", "morld", "critic_fidelity", "interpolate"}
+    assert {"mapex_td3", "mapex_posthoc_pderl", "warmup_only_td3", "posthoc_gentle"} <= stale, stale
+    untouched = {
+        "train_specialist",
+        "train_pderl",
+        "fit_critics",
+        "mopderl",
+        "morld",
+        "critic_fidelity",
+        "interpolate_td3",
+    }
     assert not stale & untouched, stale
 
     # DVC params are exact: the specialists' run length and keep-best schedule are
@@ -104,8 +115,15 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     }
     save_params(root / "params.yaml", edited)
     stale = stale_stages(root)
-    assert {"train_specialist", "extract"} <= stale, stale
-    assert not stale & {"train_pderl", "mopderl", "warmup_only", "morld", "interpolate"}, stale
+    assert {"train_specialist", "mapex_td3", "mapex_pderl"} <= stale, stale
+    assert not stale & {
+        "train_pderl",
+        "mopderl",
+        "warmup_only_td3",
+        "warmup_only_pderl",
+        "morld",
+        "interpolate_pderl",
+    }, stale
 
 
 def stale_stages(root) -> set[str]:

@@ -1,7 +1,7 @@
 """The whole DVC pipeline on a tiny preset, in a temporary git + DVC copy of the repository.
 
 Checks the caching users rely on: a second `dvc repro` runs nothing; changing an extraction
-param reruns extract, evaluate, score and report but not the specialists; changing it back
+param reruns MAPEX (stage mapex_td3), evaluate, score and report but not the specialists; changing it back
 restores the earlier outputs from DVC's run-cache without recomputation; a scoring setting or
 the reference point reruns only score and report; a fidelity setting only critic_fidelity.
 An edit to training code that changes no number reruns the training stage only: what produced
@@ -50,8 +50,8 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     assert ran(first) == {
         "train_specialist",
         "critic_fidelity",
-        "extract",
-        "warmup_only",
+        "mapex_td3",
+        "warmup_only_td3",
         "evaluate",
         "score",
         "render",
@@ -67,7 +67,7 @@ def test_repro_caches_and_reruns_only_what_a_param_change_touches(repo):
     # rerun; the specialists do not, nor the warm-up-only ablation, which does not read beta
     set_beta(repo, 0.5)
     changed = run([dvc, "repro"], repo)
-    assert ran(changed) == {"extract", "evaluate", "score", "render", "report"}
+    assert ran(changed) == {"mapex_td3", "evaluate", "score", "render", "report"}
     items = set(re.findall(r"Running stage '([^']+)'", changed))
     assert {"evaluate@0-mapex_td3", "score@0-mapex_td3"} <= items
     assert not {i for i in items if "warmup_only" in i}, items

@@ -145,7 +145,6 @@ def params_file(tmp_path: Path, rows: int = 40) -> Path:
         "env": {"id": ENV, "max_episode_steps": STEPS},
         "seeds": [0],
         "methods": ["mapex_td3"],
-        "extract_variants": ["mapex"],
         "import_specialists": {"collect_rows": rows},
     }
     path = tmp_path / "params.yaml"

@@ -229,16 +229,20 @@ def test_interpolation_is_a_method_of_every_kind_with_its_own_stage_and_verdict(
     )
 
 
-def test_interpolate_from_is_derived_and_the_plan_names_its_params():
+def _interpolations(lists: dict) -> list[str]:
+    return [r["name"] for r in lists["method_runs"] if r["stage"] == "interpolate"]
+
+
+def test_interpolation_stages_are_derived_and_the_plan_names_their_params():
     lists = derived_lists(["mapex_td3", "interpolate_td3", "interpolate_pderl"], [0, 1])
-    assert lists["interpolate_from"] == ["td3", "pderl"]
+    assert _interpolations(lists) == ["interpolate_td3", "interpolate_pderl"]
     assert lists["td3_seeds"] == [0, 1] and lists["pderl_seeds"] == [0, 1]
-    assert derived_lists(["mapex_td3", "warmup_only_td3"], [0])["interpolate_from"] == []
-    with pytest.raises(ValueError, match="interpolate_from"):
-        section({"seeds": [0], "methods": ["mapex_td3"], "interpolate_from": ["td3"]}, "", RunParams)
+    assert _interpolations(derived_lists(["mapex_td3", "warmup_only_td3"], [0])) == []
+    with pytest.raises(ValueError, match="method_runs"):
+        section({"seeds": [0], "methods": ["mapex_td3"], "method_runs": []}, "", RunParams)
     synced = synced_text("seeds: [0]\nmethods: [mapex_td3, interpolate_td3]\nextract:\n  beta: 0.5\n")
     raw = yaml.safe_load(synced)
-    assert run_lists(raw)["interpolate_from"] == ["td3"]
+    assert _interpolations(run_lists(raw)) == ["interpolate_td3"]
     assert raw["interpolate"] == {"policies": None, "eval_episodes": None}
     assert {"iterations", "children_per_iteration", "eval_episodes"} <= set(raw["extract"])
     assert raw["extract"]["beta"] == 0.5 and "warmup_lr" not in raw["extract"]  # only the keys it reads

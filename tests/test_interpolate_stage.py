@@ -23,7 +23,7 @@ def test_dvc_repro_scores_the_interpolation_front(tmp_path):
     repo = make_repo(tmp_path / "repo", params)
     # its own chain only (the report's verdict pair is checked in tests/test_interpolate.py)
     out = run([DVC, "repro", "score@0-interpolate_td3"], repo)
-    assert ran(out) == {"train_specialist", "interpolate", "evaluate", "score"}
+    assert ran(out) == {"train_specialist", "interpolate_td3", "evaluate", "score"}
 
     k = params["extract"]["iterations"] * 2  # MAPEX's children: iterations x children_per_iteration
     members, meta = load_population(repo / "data/fronts/interpolate_td3/seed0/population.pt")

@@ -1,8 +1,8 @@
 """Every method of the table (pipeline/params/methods.py: METHODS) is wired into each of the six
 places docs/developing.md ("Adding a method") lists: (1) its algorithm's module, imported by its
 stage; (2) params models for the sections its stage reads, each in SECTION_MODELS; (3) its row,
-with a label and colour of its own, and a run list of derived_lists, declared in RUN_LISTS, that
-gives its stage an item; (4) a stage module that `mapex` finds as a subcommand; (5) a dvc.yaml
+with a label and colour of its own, and a stage of its own planned from its template (derived_lists'
+method_runs); (4) a stage module that `mapex` finds as a subcommand; (5) a dvc.yaml
 stage writing its front; (6) its sections in params.yaml, a test and docs/manual.md naming it.
 A new row that misses one fails here, naming the method and the place; a test below checks that
 the doc lists six places."""
@@ -16,7 +16,7 @@ import yaml
 
 from pipeline.core.codedeps import ROOT
 from pipeline.params import KNOWN_SECTIONS, SECTION_MODELS, RunParams
-from pipeline.params.methods import JOINT_VARIANTS, METHODS, RUN_LISTS, TRAINED_KINDS, method_name
+from pipeline.params.methods import METHODS, RUN_LISTS
 from pipeline.params.plan import CATALOGUE, catalogue_modules, code_deps
 from pipeline.params.registry import section_models
 from pipeline.params.runlists import derived_lists
@@ -28,17 +28,6 @@ PARAMS = yaml.safe_load((ROOT / "params.yaml").read_text())
 MANUAL = (ROOT / "docs" / "manual.md").read_text()
 TESTS = "".join(p.read_text() for p in sorted((ROOT / "tests").glob("test_*.py")))
 IMPORTS = [{"objective": k, "file": f"models/obj{k}.zip", "format": "sb3"} for k in (0, 1)]
-# lists every method's matrix reads whatever it is (not the method's own)
-SHARED_LISTS = {"run_seeds", "run_objectives", "run_methods"}
-
-
-def runnable(name: str) -> list[str]:
-    """`name` with the methods dvc.yaml's matrices need beside it (extract and warmup_only run the
-    whole product of joint variants x trained kinds)."""
-    m = METHODS[name]
-    if m.stage in ("extract", "warmup_only") and m.kind in TRAINED_KINDS:
-        return [method_name(v, m.kind) for v in JOINT_VARIANTS]
-    return [name]
 
 
 @pytest.mark.parametrize("name", list(METHODS))
@@ -52,11 +41,12 @@ def test_a_method_is_wired_into_every_place(name):
     command = re.match(r"mapex ([\w-]+)", stage["cmd"]).group(1)
     assert COMMANDS.get(command) == module, f"{name}: stage {m.stage} runs `mapex {command}`, not {module}"
     assert (ROOT / (module.replace(".", "/") + ".py")).is_file(), f"{name}: no {module}"
-    # a run list of derived_lists gives that stage an item when the method is listed
-    lists = derived_lists(runnable(name), [0], IMPORTS if m.kind == "imported" else None)
+    # listed alone, the plan gives it a stage of its own from that template, over the seeds
+    lists = derived_lists([name], [0], IMPORTS if m.kind == "imported" else None)
+    runs = [r for r in lists["method_runs"] if r["name"] == name]
+    assert [r["stage"] for r in runs] == [m.stage], f"{name}: the plan writes it no stage from template {m.stage}"
     matrix = [v[2:-1] for v in stage["matrix"].values()]
-    missing = [key for key in matrix if key not in SHARED_LISTS and not lists.get(key)]
-    assert not missing, f"{name}: derived_lists leaves {missing} (stage {m.stage}'s matrix) empty"
+    assert matrix == ["run_seeds"], f"{name}: template {m.stage}'s matrix is over {matrix}, not the seeds only"
     # the params sections its stage reads are known to params.yaml and have a model
     sections = {p.split(".")[0] for p in stage.get("params", []) if isinstance(p, str)}
     for s in sections:

@@ -43,7 +43,7 @@ def tiny_hopper(methods: list[str]) -> dict:
     params["morld"] = {**MORLD_TINY, "pop_size": 3}  # uniform weights need one agent per objective at least
     params["extract"] = {**TINY["extract"], "iterations": 3}
     params["evaluate"] = {"episodes": 1}
-    for key in ("td3_seeds", "pderl_seeds", "extract_from", "extract_variants", "warmup_from", "posthoc_from"):
+    for key in ("td3_seeds", "pderl_seeds", "fidelity_from", "posthoc_from", "method_runs"):
         params.pop(key, None)
     return with_lists(params)
 
@@ -56,8 +56,8 @@ def hopper3(tmp_path_factory) -> Path:
     assert ran(out) == {
         "train_specialist",
         "critic_fidelity",
-        "extract",
-        "warmup_only",
+        "mapex_td3",
+        "warmup_only_td3",
         "evaluate",
         "score",
         "render",

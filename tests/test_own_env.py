@@ -144,7 +144,7 @@ def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_
     run(["git", "add", "examples"], root)
     run(["git", "commit", "-qm", "the user's env"], root)
     out = run([str(BIN / "dvc"), "repro"], root)
-    assert {"train_specialist", "extract", "evaluate", "score", "render", "report"} <= ran(out)
+    assert {"train_specialist", "mapex_td3", "evaluate", "score", "render", "report"} <= ran(out)
     report = (root / "data" / "report" / "report.md").read_text()
     assert RUNNER in report and "speed" in report and "energy" in report
     # the point came from the run's own starting policies, and the report says so
@@ -164,7 +164,7 @@ def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_
     save_params(root / "params.yaml", edited)
     from test_dvc_methods import stale_stages
 
-    assert {"train_specialist", "extract", "evaluate", "render", "report"} <= stale_stages(root)
+    assert {"train_specialist", "mapex_td3", "evaluate", "render", "report"} <= stale_stages(root)
 
 
 def test_auto_reference_point_rule_and_where_it_applies(tmp_path):

@@ -249,12 +249,23 @@ def test_repository_params_file_validates():
     assert td3.learning_starts < cfg.total_steps
 
 
+def _run(name, stage, variant, kind, specialists=None, of=None):
+    """One entry of derived_lists' method_runs."""
+    return {
+        "name": name,
+        "stage": stage,
+        "variant": variant,
+        "kind": kind,
+        "specialists": specialists or kind,
+        "of": of,
+    }
+
+
 def test_run_lists_are_derived_from_methods_and_checked():
     ok = {
         "seeds": [0, 1],
         "pderl_seeds": [0, 1],
-        "extract_from": ["td3", "pderl"],
-        "extract_variants": ["mapex"],
+        "fidelity_from": ["td3", "pderl"],
         "posthoc_from": ["pderl"],
         "methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"],
     }
@@ -267,14 +278,14 @@ def test_run_lists_are_derived_from_methods_and_checked():
         "import_collect": [],
         "import_buffered": [],
         "import_train": [],
-        "mopderl_seeds": [],
-        "morld_seeds": [],
         "export_methods": [],
-        "warmup_from": [],
-        "interpolate_from": [],
         "specialist_variants": [],
-        "extract_variant_runs": [],
-        "interpolate_variant_runs": [],
+        # one stage per method, from its base's template
+        "method_runs": [
+            _run("mapex_td3", "extract", "mapex", "td3"),
+            _run("mapex_pderl", "extract", "mapex", "pderl"),
+            _run("mapex_posthoc_pderl", "extract_posthoc", "mapex_posthoc", "pderl"),
+        ],
         "run_seeds": [0, 1],
         "run_objectives": [0, 1],
         "run_methods": ["mapex_td3", "mapex_pderl", "mapex_posthoc_pderl"],
@@ -291,39 +302,29 @@ def test_run_lists_are_derived_from_methods_and_checked():
     assert section(
         {"seeds": [0], "pderl_seeds": [0], "methods": ["mapex_td3", "warmup_only_td3"]}, "", RunParams
     ).pderl_seeds == [0]
-    # stage extract runs a matrix of variants x kinds: a method set that is not a full product is refused
-    with pytest.raises(ParamsError, match=r"so add \['warmup_only_pderl'\]"):
-        section({**ok, "methods": ["mapex_td3", "warmup_only_td3", "mapex_pderl"]}, "", RunParams)
     with pytest.raises(ParamsError, match=r"unknown methods \['mapex_awr_td3'\]"):
         section({**ok, "methods": ["mapex_awr_td3"]}, "", RunParams)
     with pytest.raises(ParamsError, match="posthoc_from"):
         section({**ok, "posthoc_from": ["sac"]}, "", RunParams)
 
 
-def test_warmup_only_imported_adds_imported_to_warmup_from_outside_the_product():
+def test_any_set_of_methods_plans_one_stage_each():
+    """Each method has a stage of its own, so no set of methods needs another beside it (the
+    matrices over variants x kinds, which did, are gone): MAPEX from PDERL specialists without
+    warm-up only, warm-up only from imported specialists alone."""
+    lists = derived_lists(["mapex_td3", "warmup_only_td3", "mapex_pderl"], [0])
+    assert [r["name"] for r in lists["method_runs"]] == ["mapex_td3", "warmup_only_td3", "mapex_pderl"]
+    assert lists["fidelity_from"] == ["td3", "pderl"] and lists["pderl_seeds"] == [0]
     imports = [{"objective": k, "file": f"models/td3_obj{k}.zip", "format": "sb3"} for k in (0, 1)]
-    lists = derived_lists(["mapex_posthoc_imported", "warmup_only_imported"], [0, 1], imports)
-    assert lists["warmup_from"] == ["imported"] and lists["posthoc_from"] == ["imported"]
-    assert lists["extract_from"] == [] and lists["extract_variants"] == [] and lists["td3_seeds"] == []
-    assert lists["imported_seeds"] == [0, 1]
-    # with TD3 methods beside it: the td3 product is unchanged and needs no warmup_only_td3 for it
+    alone = derived_lists(["mapex_posthoc_imported", "warmup_only_imported"], [0, 1], imports)
+    assert alone["method_runs"] == [
+        _run("mapex_posthoc_imported", "extract_posthoc", "mapex_posthoc", "imported"),
+        _run("warmup_only_imported", "warmup_only", "warmup_only", "imported"),
+    ]
+    assert alone["posthoc_from"] == ["imported"] and alone["fidelity_from"] == [] and alone["td3_seeds"] == []
+    assert alone["imported_seeds"] == [0, 1]
     both = derived_lists(["mapex_td3", "warmup_only_imported", "mapex_posthoc_imported"], [0], imports)
-    assert both["warmup_from"] == ["imported"] and both["extract_from"] == ["td3"]
-    assert both["extract_variants"] == ["mapex"]
-    full = derived_lists(["mapex_td3", "warmup_only_td3", "warmup_only_imported"], [0], imports)
-    assert full["warmup_from"] == ["td3", "imported"]
-    # the td3/pderl product rule still holds with an imported warm-up beside it
-    with pytest.raises(ValueError, match=r"so add \['warmup_only_pderl'\]"):
-        derived_lists(["mapex_td3", "warmup_only_td3", "mapex_pderl", "warmup_only_imported"], [0], imports)
-    # the validated section accepts the imported kind in warmup_from, and refuses a stale list
-    ok = {"seeds": [0], "methods": ["mapex_posthoc_imported", "warmup_only_imported"], **lists} | {
-        "imported_seeds": [0],
-        "run_seeds": [0],
-    }
-    ctx = {"imports": imports}
-    assert RunParams.model_validate(ok, context=ctx).warmup_from == ["imported"]
-    with pytest.raises(ValueError, match=r"warmup_from = \[\], but .* make it \['imported'\]"):
-        RunParams.model_validate({**ok, "warmup_from": []}, context=ctx)
+    assert both["fidelity_from"] == ["td3"] and both["td3_seeds"] == [0]
 
 
 def test_imports_may_leave_objectives_to_be_trained_here():
@@ -369,13 +370,14 @@ def test_imports_may_leave_objectives_to_be_trained_here():
 def test_plan_keeps_the_users_file_and_drops_derived_lists_and_an_old_generated_block():
     text = (
         "# my comment\nseeds: [0, 1]   # two seeds\nmethods: [mapex_pderl, warmup_only_pderl, mopderl]\n"
-        "extract_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n"
+        "fidelity_from: [td3]   # stale, hand-written\n\nextract:\n  beta: 0.5\n"
     )
     synced = synced_text(text)
     raw = yaml.safe_load(synced)
     assert not set(raw) & set(DERIVED_KEYS)  # nothing derived in the file the user edits
     lists = run_lists(raw)
-    assert lists["extract_from"] == ["pderl"] and lists["pderl_seeds"] == [0, 1] and lists["mopderl_seeds"] == [0, 1]
+    assert lists["fidelity_from"] == ["pderl"] and lists["pderl_seeds"] == [0, 1]
+    assert [r["name"] for r in lists["method_runs"]] == ["mapex_pderl", "warmup_only_pderl", "mopderl"]
     # the extract keys stage warmup_only tracks are filled in at their defaults; beta stays
     assert raw["extract"] == {"beta": 0.5} | {k: ExtractParams.model_fields[k].default for k in WARMUP_ONLY_KEYS}
     assert synced.startswith("# my comment\nseeds: [0, 1]   # two seeds\nmethods:") and "stale" not in synced
@@ -388,7 +390,7 @@ def test_plan_keeps_the_users_file_and_drops_derived_lists_and_an_old_generated_
     assert "td3_seeds" not in synced_text(old) and "generated" not in synced_text(old)
     # without a warm-up-only method nothing is filled in
     plain = yaml.safe_load(synced_text("seeds: [0]\nmethods: [mapex_td3]\nextract:\n  beta: 0.5\n"))
-    assert plain["extract"] == {"beta": 0.5} and run_lists(plain)["extract_variants"] == ["mapex"]
+    assert plain["extract"] == {"beta": 0.5} and run_lists(plain)["method_runs"][0]["stage"] == "extract"
     with pytest.raises(ValueError, match="f.yaml: unknown methods"):
         synced_text("methods: [nope]\n", "f.yaml")
 
@@ -407,16 +409,17 @@ def test_the_plan_is_written_beside_and_a_stale_one_is_one_line(tmp_path, cli):
     assert sorted(stages) == [
         "critic_fidelity",
         "evaluate",
-        "extract",
+        "mapex_td3",
         "render",
         "report",
         "score",
         "train_specialist",
-        "warmup_only",
+        "warmup_only_td3",
     ]
+    assert stages["mapex_td3"]["matrix"] == {"seed": [0, 1]}  # a method's stage: over the seeds only
     assert stages["train_specialist"]["matrix"] == {"seed": [0, 1]}
     assert "planned 8 stages" in result.stderr
-    assert load_params(params)["warmup_from"] == ["td3"]
+    assert load_params(params)["fidelity_from"] == ["td3"]
     params.write_text("seeds: [0, 1, 2]\nmethods: [mapex_td3, warmup_only_td3]\n")
     with pytest.raises(ParamsError) as err:
         load_params(params)

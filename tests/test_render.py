@@ -86,7 +86,6 @@ def params_file(root: Path, **render) -> Path:
         "env": {"id": ENV, "max_episode_steps": STEPS},
         "seeds": [0],
         "methods": ["mapex_td3"],
-        "extract_variants": ["mapex"],
         "export": {"methods": ["mapex_td3"]},
         "export_methods": ["mapex_td3"],
         "render": {"methods": ["mapex_td3"], "frames": FRAMES, "width": WIDTH, "height": HEIGHT} | render,

@@ -41,7 +41,7 @@ BIN = Path(sys.executable).parent
 
 # The first sweep the Ray tests run: the whole pipeline (14 stage items) of one cell.
 GRID = {"envs": ["mo-hopper-2obj-v5"], "seeds": [0]}
-DIES = "mo-hopper-2obj-v5/extract@0-td3-mapex"  # this task's worker dies once, after its stage ran
+DIES = "mo-hopper-2obj-v5/mapex_td3@0"  # this task's worker dies once, after its stage ran
 
 
 def git(cwd: Path, *args: str) -> str:
@@ -139,7 +139,7 @@ def test_cells_merge_presets_overrides_and_seeds(tmp_path, source):
         "seeds": [1, 2],
         "overrides": {
             "joint": {},
-            "posthoc": {"extract_variants": [], "posthoc_from": ["td3"], "methods": ["mapex_posthoc_td3"]},
+            "posthoc": {"methods": ["mapex_posthoc_td3"]},
         },
     }
     path = write_grid(tmp_path / "grid.yaml", grid)
@@ -204,18 +204,18 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     assert items["report"].upstream == (
         "evaluate@0-mapex_td3",
         "evaluate@0-warmup_only_td3",
-        "extract@0-td3-mapex",
+        "mapex_td3@0",
         "render",
         "score@0-mapex_td3",
         "score@0-warmup_only_td3",
-        "warmup_only@0-td3",
+        "warmup_only_td3@0",
     )
     assert "data/evaluate/mapex_td3/seed0/evaluation.json" in items["report"].pull  # outputs inside its folder deps
     assert "data/score/warmup_only_td3/seed0/metrics.json" in items["report"].pull
     order = list(items)
     assert all(order.index(u) < order.index(n) for n, i in items.items() for u in i.upstream)
-    sub = [i.name for i in stage_items(ws, ["extract@0-td3-mapex"])]
-    assert sorted(sub) == ["extract@0-td3-mapex", "train_specialist@0"]  # posthoc_from: [] -> no post-hoc fits
+    sub = [i.name for i in stage_items(ws, ["mapex_td3@0"])]
+    assert sorted(sub) == ["mapex_td3@0", "train_specialist@0"]  # posthoc_from: [] -> no post-hoc fits
     with pytest.raises(ValueError, match="target 'nope' is no stage"):
         stage_items(ws, ["nope"])
     bad = write_grid(
@@ -234,7 +234,7 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     save_params(ws / "params.yaml", params, sort_keys=False)
     changed = {i.name: i for i in stage_items(ws)}
     same = {n for n in items if changed[n].signature == items[n].signature}
-    warmup = {"warmup_only@0-td3", "evaluate@0-warmup_only_td3", "score@0-warmup_only_td3"}
+    warmup = {"warmup_only_td3@0", "evaluate@0-warmup_only_td3", "score@0-warmup_only_td3"}
     assert same == {"train_specialist@0"} | warmup | {n for n in items if n.startswith("critic_fidelity")}
 
     # with post-hoc critics on, MAPEX-PostHoc depends on their fits and the joint-critic
@@ -242,14 +242,14 @@ def test_dry_run_prepares_workspaces_and_reads_the_dag_from_dvc(tmp_path, source
     params.update(methods=[*params["methods"], "mapex_posthoc_td3"])
     save_params(ws / "params.yaml", params, sort_keys=False)
     write_plan(params, ws / "params.yaml", ws)  # `mapex plan`
-    assert sorted(i.name for i in stage_items(ws, ["extract@0-td3-mapex"])) == [
-        "extract@0-td3-mapex",
+    assert sorted(i.name for i in stage_items(ws, ["mapex_td3@0"])) == [
+        "mapex_td3@0",
         "train_specialist@0",
     ]
-    assert sorted(i.name for i in stage_items(ws, ["extract_posthoc@0-td3"])) == [
-        "extract_posthoc@0-td3",
+    assert sorted(i.name for i in stage_items(ws, ["mapex_posthoc_td3@0"])) == [
         "fit_critics@0-td3-0",
         "fit_critics@0-td3-1",
+        "mapex_posthoc_td3@0",
         "train_specialist@0",
     ]
     assert {"critic_fidelity_posthoc@0-td3-0", "evaluate@0-mapex_posthoc_td3"} <= {i.name for i in stage_items(ws)}
@@ -378,7 +378,7 @@ def test_sweep_survives_a_dead_worker_and_writes_the_serial_lock(swept, cluster)
     assert cluster.exists(), "the fault hook never fired"  # the DIES task's worker did die once
     out = result.output
     assert "ray: 2 CPU, 0 GPU, 2 node(s)" in out
-    assert "mo-hopper-2obj-v5 extract@0-td3-mapex: ran" in out  # by its retry
+    assert "mo-hopper-2obj-v5 mapex_td3@0: ran" in out  # by its retry
     assert "mo-hopper-2obj-v5: done (11 ran, 0 restored)" in out  # 10 stage items and render
     ws = base / "work" / "mo-hopper-2obj-v5"
     assert (ws / "data" / "report" / "report.md").is_file()
@@ -562,13 +562,9 @@ def test_a_sweep_on_an_s3_remote_matches_the_local_remote(swept, source, tmp_pat
 
 
 def test_resume_root_gives_each_task_its_own_shared_progress_dir(tmp_path):
-    task = StageTask(
-        "hopper.a", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path)
-    )
-    assert task_resume_dir(task) == tmp_path / "hopper.a" / "extract_0-td3-mapex"
-    other = StageTask(
-        "hopper.b", "extract@0-td3-mapex", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path)
-    )
+    task = StageTask("hopper.a", "mapex_td3@0", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
+    assert task_resume_dir(task) == tmp_path / "hopper.a" / "mapex_td3_0"
+    other = StageTask("hopper.b", "mapex_td3@0", "src", "c0ffee", "", "remote", (), 1, 0.0, None, (), str(tmp_path))
     assert task_resume_dir(other) != task_resume_dir(task)  # cells never share progress
     assert task_resume_dir(StageTask("c", "i", "s", "c", "", "r", (), 1, 0.0)) is None  # default: in the clone
 
@@ -710,24 +706,24 @@ def test_every_stage_that_trains_or_extracts_is_planned_with_a_gpu(tmp_path):
     by_stage: dict[str, set[float]] = {}
     for name, g in gpus.items():
         by_stage.setdefault(name.split("@")[0], set()).add(g)
-    # extract_variant: the variant told device: cpu is its one item a seed without a GPU
-    variant_items = [g for n, g in gpus.items() if n.startswith("extract_variant@")]
-    assert variant_items.count(0.0) == len(params["seeds"]) and variant_items.count(1.0) == 2 * len(params["seeds"])
-    by_stage["extract_variant"] = {1.0}
+    # every method has a stage of its own: the variant told device: cpu gets no GPU, its base does
+    assert by_stage["hybrid_cpu"] == {0.0} and by_stage["hybrid"] == {1.0}
     trains = {
         "train_specialist",
         "train_specialist_variant",
         "train_pderl",
         "fit_critics",
-        "extract",
-        "warmup_only",
-        "extract_posthoc",
-        "extract_variant",
+        "mapex_td3",
+        "warmup_only_td3",
+        "mapex_pderl",
+        "mapex_posthoc_td3",
+        "hybrid",
+        "warm",
         "mopderl",
         "morld",
     }
     assert trains <= set(by_stage), sorted(set(trains) - set(by_stage))
     for stage in trains:
         assert by_stage[stage] == {1.0}, (stage, by_stage[stage])
-    for stage in ("evaluate", "score", "critic_fidelity", "interpolate", "interpolate_variant", "report"):
+    for stage in ("evaluate", "score", "critic_fidelity", "interpolate_td3", "interp_shared", "report"):
         assert by_stage[stage] == {0.0}, (stage, by_stage[stage])

@@ -32,30 +32,66 @@ def test_variants_add_their_own_run_lists():
     methods = ["mapex_td3", "warmup_only_td3", "mapex_td3_gentle", "interpolate_td3_shared", "warmup_shared"]
     lists = derived_lists(methods, [0, 1], variants=VARIANTS)
     assert lists["specialist_variants"] == ["td3_shared"]
-    assert lists["extract_variant_runs"] == [
-        {"name": "mapex_td3_gentle", "variant": "mapex", "kind": "td3", "specialists": "td3"},
-        {"name": "warmup_shared", "variant": "warmup_only", "kind": "td3", "specialists": "td3_shared"},
+    # one stage per method, a variant's from its base's template, naming the base it varies
+    assert lists["method_runs"] == [
+        {"name": "mapex_td3", "stage": "extract", "variant": "mapex", "kind": "td3", "specialists": "td3", "of": None},
+        {
+            "name": "warmup_only_td3",
+            "stage": "warmup_only",
+            "variant": "warmup_only",
+            "kind": "td3",
+            "specialists": "td3",
+            "of": None,
+        },
+        {
+            "name": "mapex_td3_gentle",
+            "stage": "extract",
+            "variant": "mapex",
+            "kind": "td3",
+            "specialists": "td3",
+            "of": "mapex_td3",
+        },
+        {
+            "name": "interpolate_td3_shared",
+            "stage": "interpolate",
+            "variant": None,
+            "kind": "td3",
+            "specialists": "td3_shared",
+            "of": "interpolate_td3",
+        },
+        {
+            "name": "warmup_shared",
+            "stage": "warmup_only",
+            "variant": "warmup_only",
+            "kind": "td3",
+            "specialists": "td3_shared",
+            "of": "warmup_only_td3",
+        },
     ]
-    assert lists["interpolate_variant_runs"] == [
-        {"name": "interpolate_td3_shared", "kind": "td3", "specialists": "td3_shared"}
-    ]
-    # the plain lists are those of the plain methods: no interpolate_td3 listed, none in interpolate_from
-    assert lists["interpolate_from"] == [] and lists["extract_variants"] == ["mapex"]
     # a variant from a kind's own specialists trains that kind even with no plain method of it
     alone = derived_lists(["gentle_pderl"], [3], variants={"gentle_pderl": {"of": "mapex_pderl"}})
-    assert alone["pderl_seeds"] == [3] and alone["extract_variant_runs"][0]["kind"] == "pderl"
+    assert alone["pderl_seeds"] == [3] and alone["method_runs"][0]["kind"] == "pderl"
     # validated with the top-level lists: a stale derived list names the command that fixes it
     ok = {"seeds": [0], "methods": methods, "variants": VARIANTS, **derived_lists(methods, [0], variants=VARIANTS)}
     assert section(ok, "", RunParams).variants == VARIANTS
-    with pytest.raises(ParamsError, match=r"extract_variant_runs = \[\], but .*they are derived"):
-        section({**ok, "extract_variant_runs": []}, "", RunParams)
+    with pytest.raises(ParamsError, match=r"method_runs = \[\], but .*they are derived"):
+        section({**ok, "method_runs": []}, "", RunParams)
 
 
 @pytest.mark.parametrize(
     "variants, methods, message",
     [
         ({"g": {"of": "mapex_sac"}}, ["g"], r"variants\.g\.of = 'mapex_sac': expected a method of"),
-        ({"g": {"of": "mopderl"}}, ["g"], r"variants\.g\.of = 'mopderl': variants can be made of"),
+        (
+            {"g": {"of": "mopderl", "td3": {"tau": 0.1}}},
+            ["g"],
+            r"variants\.g: key 'td3' is not one of \['of', 'label', 'specialists', 'mopderl'\]",
+        ),
+        (
+            {"s": {"of": "td3"}, "g": {"of": "mapex_posthoc_td3", "specialists": "s"}},
+            ["g"],
+            r"variants\.g\.specialists = 's': a variant of mapex_posthoc_td3 starts from its own kind's specialists",
+        ),
         ({"g": {"of": "mapex_td3", "td3": {"tau": 0.1}}}, ["g"], r"variants\.g: key 'td3' is not one of"),
         ({"g": {"of": "mapex_td3", "specialists": "pderl"}}, ["g"], r"variants\.g\.specialists = 'pderl'"),
         ({"g": {"of": "mapex_td3", "extract": 3}}, ["g"], r"variants\.g\.extract = 3: expected a mapping"),
@@ -148,3 +184,29 @@ def test_a_stage_run_as_a_variant_checks_the_name_and_its_base(tmp_path, cli, wr
         and "extract.epochs = -2" in r.output
     )
     assert not (tmp_path / "out").exists()
+
+
+def test_a_variant_of_any_base_is_a_stage_of_its_own_from_params_alone():
+    """MAPEX-PostHoc and MORL/D had no variant stage; now the plan writes every method that runs a
+    stage of its own from its base's template, so a variant of either is an edit of params (the
+    test params EVERY_STAGE list one of each): the stage is named for the variant, runs its base's
+    command with --method, tracks variants.<name> and writes data/fronts/<name>/."""
+    import yaml
+    from support.tiny_params import EVERY_STAGE
+
+    from pipeline.params.plan import plan_text
+
+    stages = yaml.safe_load(plan_text(EVERY_STAGE))["stages"]
+    posthoc, morld = stages["mapex_posthoc_td3_gentle"], stages["morld_small"]
+    assert posthoc["cmd"].startswith(
+        "mapex extract --seed ${item.seed} --variant mapex_posthoc --kind td3 --method mapex_posthoc_td3_gentle"
+    )
+    assert "data/posthoc/td3/seed${item.seed}" in posthoc["deps"]  # the kind's post-hoc critics, fitted once
+    assert "variants.mapex_posthoc_td3_gentle" in posthoc["params"]
+    assert morld["cmd"].startswith(
+        "mapex morld --seed ${item.seed} --method morld_small --out data/fronts/morld_small/"
+    )
+    assert "variants.morld_small" in morld["params"] and "variants.morld_small" not in stages["morld"]["params"]
+    assert morld["matrix"] == posthoc["matrix"] == {"seed": EVERY_STAGE["seeds"]}
+    # the report's matrices list them like any method
+    assert {"mapex_posthoc_td3_gentle", "morld_small"} <= set(stages["evaluate"]["matrix"]["method"])

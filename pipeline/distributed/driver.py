@@ -231,15 +231,17 @@ def _log_plan(todo: list[CellPlan], results: dict[str, CellResult], log: Callabl
 
 
 def _stage_names(ws: Path) -> set[str]:
-    """Every stage the pipeline knows in workspace `ws` (its stage catalogue), those the cell's
-    plan leaves out included."""
-    from pipeline.params.plan import stage_blocks
+    """Every stage the pipeline knows in workspace `ws`, those the cell's plan leaves out
+    included: its stage catalogue's stages and a stage per built-in method (the catalogue's
+    method templates are not stages: the plan writes one stage per method from them)."""
+    from pipeline.params.methods import METHODS
+    from pipeline.params.plan import TEMPLATES, stage_blocks
 
     try:
         _, blocks, _ = stage_blocks((ws / "pipeline" / "params" / "stage_catalogue.yaml").read_text())
     except (OSError, ValueError):
         return set()
-    return {name for name, _ in blocks}
+    return {name for name, _ in blocks if name not in TEMPLATES} | set(METHODS)
 
 
 def _start_ray(ray, address: str | None, workers: int | None) -> bool:

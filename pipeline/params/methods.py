@@ -5,7 +5,9 @@ A method is what `methods` in params.yaml lists and what data/fronts/<method>/ h
 extraction variant run from one kind of specialists (`mapex_td3` is variant `mapex` from TD3
 specialists), or a baseline. Its `variant` is what `mapex extract --variant` takes (None for a
 baseline), its `kind` the specialists it starts from (None for MORL/D, which starts from
-nothing), its `stage` the dvc.yaml stage that writes its front.
+nothing), its `stage` the template of the stage catalogue (pipeline/params/stage_catalogue.yaml)
+that `mapex plan` writes its stage from: one stage per method that runs, named for the method,
+and one per named variant of it (pipeline/params/variants.py), a matrix over seeds only.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ class Method(NamedTuple):
     name: str  # in params.yaml's `methods`, data/fronts/<name>/, every artifact's "method" key
     variant: str | None  # extraction variant (mapex, mapex_posthoc, warmup_only); None for a baseline
     kind: str | None  # the specialists it starts from: td3, pderl; None if none
-    stage: str  # the dvc.yaml stage writing data/fronts/<name>/
+    stage: str  # the catalogue template its stage (named <name>, writing data/fronts/<name>/) is planned from
 
 
 # What each method computes. How the report shows it (label, colour, row order) is presentation,
@@ -47,15 +49,12 @@ METHODS: dict[str, Method] = {
     )
 }
 
-# Extraction variants (stage extract --variant): what each changes in section `extract`.
+# Extraction variants (`mapex extract --variant`): what each changes in section `extract`. Each
+# method has a stage of its own, so MAPEX with joint critics does not depend on post-hoc critics
+# (its stage lists no data/posthoc dep) and warm-up only tracks only the extract keys it reads
+# (pipeline.params.extract.WARMUP_ONLY_KEYS): DVC deps and params cannot depend on a matrix value.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
-# The variants run from the specialists' own directories (stages extract and warmup_only), in
-# one product with the kinds of extract_from (the trained kinds; warmup_only_imported, which
-# reads no critics, is outside the product: stage warmup_only runs it when it is listed). mapex_posthoc reads critics fitted post hoc and
-# has its own stage (extract_posthoc), so that extraction with joint critics does not depend on
-# post-hoc critics: DVC deps cannot depend on a matrix value. warmup_only has its own stage too,
-# whose params are only the extract keys it reads (pipeline.params.extract.WARMUP_ONLY_KEYS):
-# DVC params cannot depend on a matrix value either.
+# The variants that read the specialists' joint critics or none (templates extract, warmup_only).
 JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
 # train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
@@ -162,23 +161,11 @@ RUN_LISTS: dict[str, tuple[Any, Any]] = {
             "kind stage train_specialist_imported trains here by TD3",
         ),
     ),
-    "extract_from": (
+    "fidelity_from": (
         list[Literal["td3", "pderl"]],
-        Field(["td3"], description="derived: kinds of specialists stage extract starts from (td3, pderl)"),
-    ),
-    "extract_variants": (
-        list[Literal["mapex"]],
         Field(
-            ["mapex"],
-            description="derived: variants stage extract runs from each kind, with the joint critics",
-        ),
-    ),
-    "warmup_from": (
-        list[Literal["td3", "pderl", "imported"]] | None,
-        Field(
-            None,
-            description="derived: kinds of specialists stage warmup_only (the warm-up-only ablation) starts from; "
-            "dvc.yaml needs it written, validation accepts it left out",
+            ["td3"],
+            description="derived: kinds of trained specialists whose joint critics stage critic_fidelity scores",
         ),
     ),
     "posthoc_from": (
@@ -187,12 +174,6 @@ RUN_LISTS: dict[str, tuple[Any, Any]] = {
             [], description="derived: kinds to fit post-hoc critics for (stage fit_critics) and run MAPEX-PostHoc from"
         ),
     ),
-    "interpolate_from": (
-        list[Literal["td3", "pderl", "imported"]],
-        Field([], description="derived: kinds of specialists the interpolation baseline mixes (stage interpolate)"),
-    ),
-    "mopderl_seeds": (list[int], Field([], description="derived: seeds of the MOPDERL baseline (stage mopderl)")),
-    "morld_seeds": (list[int], Field([], description="derived: seeds of the MORL/D baseline (stage morld)")),
     "export_methods": (list[str], Field([], description="derived: export.methods, the fronts stage export writes")),
     "specialist_variants": (
         list[str],
@@ -201,13 +182,12 @@ RUN_LISTS: dict[str, tuple[Any, Any]] = {
             description="derived: the specialists variants the method variants start from (train_specialist_variant)",
         ),
     ),
-    "extract_variant_runs": (
+    "method_runs": (
         list[dict],
-        Field([], description="derived: method variants of MAPEX and warm-up only (stage extract_variant)"),
-    ),
-    "interpolate_variant_runs": (
-        list[dict],
-        Field([], description="derived: method variants of the interpolation baseline (stage interpolate_variant)"),
+        Field(
+            [],
+            description="derived: one stage per method that runs (name, template stage, variant, kind, specialists, of)",
+        ),
     ),
     "run_seeds": (list[int], Field([], description="derived: seeds, as dvc.yaml's matrices read them")),
     "run_objectives": (list[int], Field([], description="derived: objectives, as dvc.yaml's matrices read them")),

@@ -3,8 +3,9 @@
 The pipeline's stages live in one catalogue beside this module (stage_catalogue.yaml: each
 stage's matrix, cmd, params, outs and data deps, its matrices over named run lists). From a
 params file's methods, variants, seeds, objectives, import entries and export methods
-(pipeline.params.planned.plan_inputs) the plan keeps the stages that run (a stage whose matrix
-has an empty list runs nothing and is left out), writes each list into its matrix as a literal,
+(pipeline.params.planned.plan_inputs) the plan writes one stage per method that runs, named for
+it, from its base's template (`method_block`), keeps the other stages that run (a stage whose
+matrix has an empty list runs nothing and is left out), writes each list into its matrix as a literal,
 expands the catalogue's `${labels}` and `${export_and_labels}` params lines to the keys stages
 render and report track, and appends each stage's code deps: the import closure of the module
 its `mapex` command runs (pipeline.core.codedeps) plus stages/cli.py. The inputs go at the top of
@@ -21,9 +22,12 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.codedeps import ROOT, module_closure
+from pipeline.params.methods import METHODS
 from pipeline.params.planned import dvc_yaml_beside, input_lines, plan_inputs
 
 CATALOGUE = Path(__file__).with_name("stage_catalogue.yaml")
+# The catalogue's method templates: each METHODS row's stage, written once per method that runs.
+TEMPLATES = frozenset(m.stage for m in METHODS.values())
 # The line above each stage's code deps in dvc.yaml: the plan writes them, not a person.
 CODE_MARKER = "      # planned: the code this stage imports (`mapex plan`); do not edit\n"
 HEADER = (
@@ -79,11 +83,39 @@ def plan_text(raw: dict[str, Any], source: str = "params.yaml", root: Path = ROO
     inputs = plan_inputs(raw)
     _, blocks, tail = stage_blocks((root / CATALOGUE.relative_to(ROOT)).read_text())
     out = [HEADER.format(source=source), input_lines(inputs), "stages:\n"]
-    for _, block in blocks:
+    for name, block in blocks:
+        if name in TEMPLATES:
+            for run in (r for r in inputs["method_runs"] if r["stage"] == name):
+                out += _planned_block(method_block(block, run), inputs, root) or []
+            continue
         planned = _planned_block(block, inputs, root)
         if planned is not None:
             out += planned
     return "".join(out + tail)
+
+
+def method_block(template: list[str], run: dict[str, Any]) -> list[str]:
+    """A method template's lines written for one method that runs (an entry of the method_runs
+    list, pipeline.params.runlists.method_run): the stage named for the method, its placeholders
+    filled in, and for a named variant its --method option and its `variants.<name>` params key."""
+    name, variant = run["name"], run["of"] is not None
+    fill = {
+        "{method}": name,
+        "{kind}": str(run["kind"]),
+        "{specialists}": str(run["specialists"]),
+        "{variant}": str(run["variant"]),
+        "{method_option}": f" --method {name}" if variant else "",
+    }
+    out = [f"  {name}:\n"]
+    for line in template[1:]:
+        if line.strip() == "- {variant_params}":
+            if variant:
+                out.append(line.replace("{variant_params}", f"variants.{name}"))
+            continue
+        for key, value in fill.items():
+            line = line.replace(key, value)
+        out.append(line)
+    return out
 
 
 def _planned_block(block: list[str], inputs: dict[str, Any], root: Path) -> list[str] | None:

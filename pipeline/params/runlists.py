@@ -9,15 +9,10 @@ here neither of the two imports the other's reader, so the params package has no
 
 from __future__ import annotations
 
-from pipeline.params.methods import (
-    JOINT_VARIANTS,
-    METHODS,
-    SPECIALIST_KINDS,
-    TRAINED_KINDS,
-    _import_item,
-    method_name,
-)
-from pipeline.params.variants import parse_variants
+from typing import Any
+
+from pipeline.params.methods import METHODS, SPECIALIST_KINDS, TRAINED_KINDS, _import_item
+from pipeline.params.variants import Variant, parse_variants
 
 
 def derived_lists(
@@ -28,36 +23,30 @@ def derived_lists(
     objectives: list[int] | tuple[int, ...] = (0, 1),
     variants: dict | None = None,
 ) -> dict[str, list]:
-    """The run lists dvc.yaml fans its producing stages out over, derived from `methods`,
-    `seeds` and `imports` (import_specialists.policies, as dicts): td3_seeds, pderl_seeds,
-    imported_seeds, import_collect, import_buffered, import_train, extract_from, extract_variants (stage
-    extract's), warmup_from (stage warmup_only's kinds), posthoc_from, mopderl_seeds,
-    morld_seeds, and export_methods from `export` (section export's methods, each of which must
-    be in `methods`). DVC cannot filter a matrix, so each
-    producing stage needs a list of its own.
+    """The lists dvc.yaml is planned from, derived from `methods`, `seeds`, `imports`
+    (import_specialists.policies, as dicts), `export` (section export's methods, each of which
+    must be in `methods`), `objectives` and `variants` (params' mapping of named variants,
+    pipeline/params/variants.py, which `methods` may list beside the plain methods):
 
-    extract and warmup_only run every joint variant from every trained kind of `extract_from`
-    (a matrix), so their methods from td3 and pderl specialists must form that whole product;
-    raises ValueError naming the missing method otherwise. warmup_only_imported is outside the
-    product: it adds "imported" to warmup_from alone. Unknown methods raise ValueError too, and
-    so does an imported method without import_specialists.policies. extract_from also drives
-    critic_fidelity (the joint critics' scores): with no joint-critic method it names the
-    trained kinds the methods start from (td3 when none does, unless only imported
-    specialists are used). import_collect / import_buffered split the import entries into those
-    whose buffer is collected and those that bring one (their stages differ in a DVC dep); each
-    item also names its observation statistics (`_import_item`), found on disk in rl-zoo3's
-    layout where the entry names none (`normalize_file`).
+    - method_runs: one entry per method that runs (`method_run`): the plan writes each its own
+      stage, named for it, from its base's template, with a matrix over run_seeds;
+    - td3_seeds, pderl_seeds, imported_seeds: the seeds of the specialists some method starts
+      from (train_specialist, train_pderl, import_specialist); specialist_variants: the
+      specialists variants method variants start from (train_specialist_variant);
+    - import_collect / import_buffered: the import entries whose buffer is collected and those
+      that bring one (their stages differ in a DVC dep); each item also names its observation
+      statistics (`_import_item`), found on disk in rl-zoo3's layout where the entry names none
+      (`normalize_file`); import_train: the objectives of `objectives` (RunParams' default
+      [0, 1]) without an entry, whose slots of the imported kind train_specialist_imported
+      trains here by TD3 (an entry for an objective outside `objectives` raises ValueError);
+    - fidelity_from: the trained kinds whose joint critics critic_fidelity scores (those
+      joint-critic extraction starts from; with none, the trained kinds the methods start
+      from, td3 when none does, unless only imported specialists are used); posthoc_from: the
+      kinds MAPEX-PostHoc (or a variant of it) starts from, whose critics fit_critics fits;
+    - export_methods, run_seeds, run_objectives, run_methods, variant_labels.
 
-    The entries may cover only some of `objectives` (the top-level list; RunParams' default
-    [0, 1]): import_train lists the others, whose slots of the imported kind stage
-    train_specialist_imported trains here by TD3. An entry for an objective outside
-    `objectives` raises ValueError naming it.
-
-    `variants` (params' mapping of named variants, pipeline/params/variants.py) names the
-    method variants `methods` may list: each runs in its base stage's variant twin
-    (extract_variant_runs, interpolate_variant_runs: {name, kind, specialists, ...}) from the
-    specialists it names, whose specialists variants train in train_specialist_variant
-    (specialist_variants); a variant from a kind's own specialists needs that kind trained."""
+    Unknown methods raise ValueError naming them, and so does an imported method without
+    import_specialists.policies or a listed specialists variant."""
 
     parsed = parse_variants(variants)
     listed_specialists = [m for m in methods if m in parsed and parsed[m].is_specialists]
@@ -71,30 +60,28 @@ def derived_lists(
     unknown = [m for m in methods if m not in METHODS and m not in parsed]
     if unknown:
         raise ValueError(f"unknown methods {unknown}: expected entries of {list(METHODS)} or names in variants")
-    listed, methods = list(methods), [m for m in methods if m not in parsed]  # the plain methods, from here on
-    chosen = [METHODS[m] for m in methods]
+    listed = list(methods)
+    # every method that runs, plain or a variant, as the base it is planned from
+    bases = [METHODS[parsed[m].of] if m in parsed else METHODS[m] for m in listed]
     from_kind = {v.kind for v in named if v.specialists == v.kind}  # variants from a kind's own specialists
-    extract = [m for m in chosen if m.stage in ("extract", "warmup_only") and m.kind in TRAINED_KINDS]
-    kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in extract)]
-    variants = [v for v in JOINT_VARIANTS if any(m.variant == v for m in extract)]
-    missing = [method_name(v, k) for k in kinds for v in variants if method_name(v, k) not in methods]
-    if missing:
-        raise ValueError(
-            f"methods = {methods}: stage extract runs every variant of {variants} from every kind of {kinds} "
-            f"(a DVC matrix), so add {missing} (or drop the methods that need them)"
-        )
-    uses_imported = any(m.kind == "imported" for m in chosen)
-    if not kinds:  # no joint-critic extraction: extract runs no item, and critic_fidelity (a matrix over
-        # extract_from) scores the joint critics of the trained specialists the methods start from
-        kinds = [k for k in TRAINED_KINDS if any(m.kind == k for m in chosen) or k in from_kind] or (
+    joint = [b for b in bases if b.stage in ("extract", "warmup_only") and b.kind in TRAINED_KINDS]
+    # the trained kinds whose joint critics stage critic_fidelity scores: those joint-critic
+    # extraction starts from; with none, the trained kinds the methods start from (td3 when none
+    # does, unless only imported specialists are used)
+    kinds = [k for k in TRAINED_KINDS if any(b.kind == k for b in joint)]
+    uses_imported = any(b.kind == "imported" for b in bases)
+    if not kinds:
+        kinds = [k for k in TRAINED_KINDS if any(b.kind == k for b in bases) or k in from_kind] or (
             [] if uses_imported else ["td3"]
         )
-    posthoc = [k for k in SPECIALIST_KINDS if method_name("mapex_posthoc", k) in methods]
-    needs_pderl = any(m.kind == "pderl" for m in chosen) or "pderl" in from_kind
+    posthoc = [k for k in SPECIALIST_KINDS if any(b.stage == "extract_posthoc" and b.kind == k for b in bases)]
+    # the kinds trained here that some method starts from as they are (a variant from a specialists
+    # variant starts from that variant's, stage train_specialist_variant)
+    own = {METHODS[m].kind for m in listed if m in METHODS} | from_kind
     entries = [dict(e) for e in imports or []]
     if uses_imported and not entries:
         raise ValueError(
-            f"methods = {methods} start from imported specialists, but import_specialists.policies is empty: "
+            f"methods = {listed} start from imported specialists, but import_specialists.policies is empty: "
             "name the policy file of at least one objective (docs/import_export.md)"
         )
     stray_objectives = [e["objective"] for e in entries if e.get("objective") not in objectives]
@@ -110,10 +97,8 @@ def derived_lists(
     if stray:
         raise ValueError(f"export.methods lists {stray}, which methods = {listed} does not run")
     return {
-        "td3_seeds": list(seeds)
-        if "td3" in kinds or any(m.kind == "td3" for m in chosen) or "td3" in from_kind
-        else [],
-        "pderl_seeds": list(seeds) if needs_pderl else [],
+        "td3_seeds": list(seeds) if "td3" in kinds or "td3" in own else [],
+        "pderl_seeds": list(seeds) if "pderl" in own else [],
         "imported_seeds": imported_seeds,
         "import_collect": [_import_item(e, "objective", "file", "format") for e in entries if not e.get("buffer")]
         if uses_imported
@@ -124,26 +109,12 @@ def derived_lists(
         if uses_imported
         else [],
         "import_train": import_train,
-        "extract_from": kinds,
-        "extract_variants": [v for v in variants if v != "warmup_only"],
-        "warmup_from": (kinds if "warmup_only" in variants else [])
-        + (["imported"] if method_name("warmup_only", "imported") in methods else []),
+        "fidelity_from": kinds,
         "posthoc_from": posthoc,
-        "interpolate_from": [k for k in SPECIALIST_KINDS if method_name("interpolate", k) in methods],
-        "mopderl_seeds": list(seeds) if "mopderl" in methods else [],
-        "morld_seeds": list(seeds) if "morld" in methods else [],
         "export_methods": list(export or []),
         "specialist_variants": list(dict.fromkeys(v.specialists for v in named if v.specialists != v.kind)),
-        "extract_variant_runs": [
-            {"name": v.name, "variant": METHODS[v.of].variant, "kind": v.kind, "specialists": v.specialists}
-            for v in named
-            if v.stage == "extract_variant"
-        ],
-        "interpolate_variant_runs": [
-            {"name": v.name, "kind": v.kind, "specialists": v.specialists}
-            for v in named
-            if v.stage == "interpolate_variant"
-        ],
+        # one stage per method that runs, planned from its base's template (pipeline/params/plan.py)
+        "method_runs": [method_run(m, parsed.get(m)) for m in listed],
         # every matrix of dvc.yaml reads this file only (a stale file still gives a consistent graph)
         "run_seeds": list(seeds),
         "run_objectives": list(objectives),
@@ -151,4 +122,21 @@ def derived_lists(
         # the report's and the explorer's names of the variants run (their stages track this)
         "variant_labels": {v.name: v.label for v in named}
         | {v.specialists: parsed[v.specialists].label for v in named if v.specialists != v.kind},
+    }
+
+
+def method_run(name: str, variant: Variant | None) -> dict[str, Any]:
+    """One method's stage as the plan writes it: its name (the stage's and data/fronts/<name>/),
+    the template it is planned from (its base's stage in METHODS), the extraction variant its
+    command takes, its kind, the specialists it starts from (data/specialists/<specialists>/),
+    and for a named variant the base it varies (`of`: its command then takes --method and its
+    stage tracks variants.<name>)."""
+    base = METHODS[variant.of] if variant is not None else METHODS[name]
+    return {
+        "name": name,
+        "stage": base.stage,
+        "variant": base.variant,
+        "kind": base.kind,
+        "specialists": variant.specialists if variant is not None else base.kind,
+        "of": variant.of if variant is not None else None,
     }

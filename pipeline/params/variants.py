@@ -19,9 +19,9 @@ here). Only the sections the base's stage reads may be overridden (VARIANT_SECTI
 override always changes what runs.
 
 A mapping, not entries of the `methods` list, because DVC tracks params by key path: the
-variant's stage lists `variants.<name>` (dvc.yaml: extract_variant, interpolate_variant,
-train_specialist_variant), so changing one variant's override reruns that variant's stages and
-nothing else, and `dvc exp run -S variants.<name>.extract.epochs=3` needs no regeneration.
+variant's stage (one stage per method that runs, named for it, planned by `mapex plan`; a
+specialists variant's: train_specialist_variant) lists `variants.<name>`, so changing one
+variant's override reruns that variant's stages and nothing else, and `dvc exp run -S variants.<name>.extract.epochs=3` needs no regeneration.
 
 Where a variant's values come from: the stage reads the base sections of the file with the
 variant's overrides merged in (`with_overrides`), and validates the result with the section's
@@ -39,31 +39,35 @@ from typing import Any, NamedTuple
 
 from pipeline.params.methods import METHODS, SPECIALIST_KINDS, SPECIALISTS_ROWS
 
-# What each base stage's variants may override (the sections that stage reads), and the dvc.yaml
-# stage that runs them. Variants of other bases (MAPEX-PostHoc, MOPDERL, MORL/D, the imported kind)
-# are refused with one line: their stages have no variant twin yet.
+# What a variant of each base may override (the sections that base's stage reads). Every method of
+# METHODS may be varied: the plan gives each variant a stage of its own, planned from its base's
+# template (pipeline/params/stage_catalogue.yaml), so a variant of any base is an edit of params.yaml.
 VARIANT_SECTIONS: dict[str, tuple[str, ...]] = {
     "extract": ("extract",),
     "warmup_only": ("extract",),
+    "extract_posthoc": ("extract",),
     "interpolate": ("interpolate", "extract"),
+    "mopderl": ("mopderl",),
+    "morld": ("morld",),
 }
-VARIANT_STAGES = {"extract": "extract_variant", "warmup_only": "extract_variant", "interpolate": "interpolate_variant"}
 # Specialists variants, by kind: the sections their training stage reads, and that stage.
 SPECIALIST_VARIANT_SECTIONS: dict[str, tuple[str, ...]] = {"td3": ("td3", "train_specialist")}
 SPECIALIST_VARIANT_STAGES = {"td3": "train_specialist_variant"}
-# Kinds a method variant may start from: the plain specialists trained here (not imported ones).
-VARIANT_KINDS = ("td3", "pderl")
+# Bases whose variants may start from a specialists variant (`specialists`): those that read the
+# specialists alone. MAPEX-PostHoc reads critics fitted for its kind's own specialists (stage
+# fit_critics) and MOPDERL the PDERL specialists, so their variants start from the kind's own.
+FROM_SPECIALIST_VARIANTS = ("extract", "warmup_only", "interpolate")
 NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 
 class Variant(NamedTuple):
     name: str
     of: str  # the base: a METHODS name, or a kind of specialists for a specialists variant
-    kind: str  # the kind of specialists (td3, pderl)
-    specialists: str  # what it starts from (data/specialists/<specialists>/): a kind or a specialists variant
+    kind: str | None  # the kind of specialists (td3, pderl, imported); None for MORL/D's, which starts from none
+    specialists: str | None  # what it starts from (data/specialists/<specialists>/): a kind or a specialists variant
     label: str  # its name in the report
     overrides: dict[str, dict]  # section -> keys set to other values
-    stage: str  # the dvc.yaml stage that runs it
+    stage: str  # the template its stage is planned from (its base's, METHODS' stage); train_specialist_variant
 
     @property
     def is_specialists(self) -> bool:
@@ -99,17 +103,17 @@ def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
             allowed = ("of", "label", *sections)
         elif of in METHODS:
             base = METHODS[of]
-            base_stage = base.stage
-            if base_stage not in VARIANT_SECTIONS or base.kind not in VARIANT_KINDS:
-                supported = [
-                    m.name for m in METHODS.values() if m.stage in VARIANT_SECTIONS and m.kind in VARIANT_KINDS
-                ]
-                raise ValueError(f"{here}.of = {of!r}: variants can be made of {supported} (and of kinds td3)")
-            sections = VARIANT_SECTIONS[base_stage]
-            kind, stage = base.kind, VARIANT_STAGES[base_stage]
+            sections = VARIANT_SECTIONS[base.stage]
+            kind, stage = base.kind, base.stage
             specialists = body.get("specialists", kind)
             if specialists != kind:
                 spec = out.get(specialists)
+                if base.stage not in FROM_SPECIALIST_VARIANTS:
+                    raise ValueError(
+                        f"{here}.specialists = {specialists!r}: a variant of {of} starts from its own kind's "
+                        f"specialists ({kind!r}); variants of {[m.name for m in METHODS.values() if m.stage in FROM_SPECIALIST_VARIANTS]} "
+                        "may start from a specialists variant"
+                    )
                 if spec is None or not spec.is_specialists or spec.kind != kind:
                     raise ValueError(
                         f"{here}.specialists = {specialists!r}: expected {kind!r} or the name of a specialists variant "

@@ -73,13 +73,14 @@ def with_lists(params: dict) -> dict:
     lists = derived_lists(params["methods"], params["seeds"], imports, export, objectives, params.get("variants"))
     out = {**params, **lists}
     out.setdefault("render", {"methods": []})  # stage render tracks the section (no clips unless asked)
-    tracked = (WARMUP_ONLY_KEYS if out["warmup_from"] else ()) + (
-        INTERPOLATE_EXTRACT_KEYS if out["interpolate_from"] or out["interpolate_variant_runs"] else ()
+    templates = {run["stage"] for run in out["method_runs"]}
+    tracked = (WARMUP_ONLY_KEYS if "warmup_only" in templates else ()) + (
+        INTERPOLATE_EXTRACT_KEYS if "interpolate" in templates else ()
     )
     if tracked:
         fields = ExtractParams.model_fields
         out["extract"] = {k: fields[k].default for k in tracked} | (params.get("extract") or {})
-    if out["interpolate_from"] or out["interpolate_variant_runs"]:
+    if "interpolate" in templates:
         out.setdefault("interpolate", {"policies": None, "eval_episodes": None})
     if out["pderl_seeds"]:  # stages train_pderl and mopderl list the td3 keys their agents read
         fields = TD3Params.model_fields
@@ -201,8 +202,8 @@ def save_params(path: Path, params: dict[str, Any], **dump: Any) -> Path:
 
 
 # Params that plan every stage of the catalogue (pipeline/params/stage_catalogue.yaml): TINY_ALL's
-# methods, the interpolation baseline, a specialists variant, method variants of MAPEX and of the
-# interpolation (one with a label), two imported objectives (one collects its buffer, one brings
+# methods, the interpolation baseline, a specialists variant, method variants of MAPEX, of the
+# interpolation (one with a label), of MAPEX-PostHoc and of MORL/D, two imported objectives (one collects its buffer, one brings
 # it; the third objective is trained here) and an export. For the plan only: nothing runs them.
 EVERY_STAGE = with_lists(
     merge(
@@ -215,6 +216,8 @@ EVERY_STAGE = with_lists(
                 "mapex_posthoc_imported",
                 "mapex_td3_wide",
                 "interpolate_td3_halfway",
+                "mapex_posthoc_td3_gentle",
+                "morld_small",
             ],
             "variants": {
                 "td3_wide": {"of": "td3", "td3": {"hidden_sizes": [24, 24]}},
@@ -224,6 +227,9 @@ EVERY_STAGE = with_lists(
                     "label": "halfway",
                     "interpolate": {"policies": 3},
                 },
+                # variants of the bases that had no variant stage before the plan wrote one per method
+                "mapex_posthoc_td3_gentle": {"of": "mapex_posthoc_td3", "extract": {"beta": 0.5}},
+                "morld_small": {"of": "morld", "label": "MORL/D, 2 agents", "morld": {"pop_size": 2}},
             },
             "import_specialists": {
                 "policies": [
