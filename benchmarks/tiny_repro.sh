@@ -23,11 +23,14 @@ python - > "$work/tiny.json" <<PY
 import json, sys
 sys.path.insert(0, "$here/tests")
 from support.tiny_params import TINY_ALL
-print(json.dumps(TINY_ALL))
+from pipeline.params.common import DERIVED_KEYS
+# the keys this checkout derives, which a planning REF strips too (its own list may be older)
+print(json.dumps({**TINY_ALL, "_derived_here": list(DERIVED_KEYS)}))
 PY
 cd "$work" && PYTHONPATH="$work" python - "$work/params.yaml" "$work/tiny.json" <<'PY'
 import json, os, sys, yaml
 params = json.load(open(sys.argv[2]))
+derived_here = params.pop("_derived_here")
 work = os.path.dirname(sys.argv[1])
 if not os.path.exists(os.path.join(work, "pipeline", "params", "td3.py")):  # REF predates the td3 section
     params["train_specialist"] = {**params.pop("td3", {}), **params.get("train_specialist", {})}
@@ -36,7 +39,8 @@ if os.path.exists(os.path.join(work, "pipeline", "params", "plan.py")):
     from pipeline.params.plan import write_plan
     from pipeline.params.planned import without_derived
     from pipeline.params.tracked import tidied_text
-    open(sys.argv[1], "w").write(tidied_text(yaml.safe_dump(without_derived(params), sort_keys=False)))
+    own = {k: v for k, v in without_derived(params).items() if k not in derived_here}
+    open(sys.argv[1], "w").write(tidied_text(yaml.safe_dump(own, sort_keys=False)))
     write_plan(yaml.safe_load(open(sys.argv[1])), sys.argv[1])
 elif "params.gen.yaml" in open(os.path.join(work, "dvc.yaml")).read():
     # REF keeps the derived run lists in a generated file: write both as `mapex sync-params` would
