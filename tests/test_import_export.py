@@ -588,7 +588,7 @@ def test_export_writes_onnx_when_installed(cli, spec, tmp_path):
 
 @pytest.mark.slow  # two dvc repro chains (all imported, then mixed sources): slow keeps `make test` within 8 min
 def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
-    """import_specialist -> fit_critics -> extract_posthoc, and warmup_only (no critics) ->
+    """import_specialist -> fit_critics -> mapex_posthoc_imported, and warmup_only_imported (no critics) ->
     evaluate -> score -> export -> report on a tiny preset, whose report pairs MAPEX-PostHoc with
     warm-up only in a verdict, nothing trained here. Then the paper's case, mixed sources: the
     energy entry dropped, objective 1's slot is a TD3 specialist trained here (stage
@@ -650,8 +650,8 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     assert {
         "import_specialist@0-policy0",
         "import_specialist@0-policy1",
-        "extract_posthoc@0-imported",
-        "warmup_only@0-imported",
+        "mapex_posthoc_imported@0",
+        "warmup_only_imported@0",
         "report",
     } <= ran
     assert not any(s.startswith("train_specialist") for s in ran)  # nothing trained here
@@ -681,8 +681,8 @@ def test_dvc_repro_from_imported_specialists(sb3_models, tmp_path):
     assert {
         "train_specialist_imported@0-1",
         "fit_critics@0-imported-1",
-        "extract_posthoc@0-imported",
-        "warmup_only@0-imported",
+        "mapex_posthoc_imported@0",
+        "warmup_only_imported@0",
         "report",
     } <= again
     assert "import_specialist@0-policy0" not in again and "fit_critics@0-imported-0" not in again

@@ -41,6 +41,6 @@ def test_dvc_repro_scores_the_interpolation_front(tmp_path):
     assert len(curve) == 1 + 1 + params["extract"]["iterations"]  # header, the start, each iteration
     # changing an advantage-weighted key of extract leaves it up to date; the children's count reruns it
     (repo / "params.yaml").write_text((repo / "params.yaml").read_text().replace("beta: 1.0", "beta: 0.5"))
-    assert "changed" not in run([DVC, "status", "interpolate"], repo)
+    assert "changed" not in run([DVC, "status", "interpolate_td3"], repo)
     (repo / "params.yaml").write_text((repo / "params.yaml").read_text().replace("iterations: 2", "iterations: 3"))
-    assert "extract.iterations" in run([DVC, "status", "interpolate"], repo)
+    assert "extract.iterations" in run([DVC, "status", "interpolate_td3"], repo)
