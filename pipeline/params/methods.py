@@ -54,8 +54,6 @@ METHODS: dict[str, Method] = {
 # (its stage lists no data/posthoc dep) and warm-up only tracks only the extract keys it reads
 # (pipeline.params.extract.WARMUP_ONLY_KEYS): DVC deps and params cannot depend on a matrix value.
 EXTRACT_VARIANTS = ("mapex", "mapex_posthoc", "warmup_only")
-# The variants that read the specialists' joint critics or none (templates extract, warmup_only).
-JOINT_VARIANTS = ("mapex", "warmup_only")
 # Kinds of specialists extraction can start from: td3 (stage train_specialist), pderl (stage
 # train_pderl) and imported (stage import_specialist: trained elsewhere, no joint critics, so
 # only MAPEX-PostHoc and warm-up only, which reads no critics, extract from them; an objective

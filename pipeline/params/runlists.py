@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pipeline.params.methods import METHODS, SPECIALIST_KINDS, TRAINED_KINDS, _import_item
+from pipeline.params.methods import METHODS, SPECIALIST_KINDS, TRAINED_KINDS, Method, _import_item
 from pipeline.params.variants import Variant, parse_variants
 
 
@@ -71,9 +71,7 @@ def derived_lists(
     kinds = [k for k in TRAINED_KINDS if any(b.kind == k for b in joint)]
     uses_imported = any(b.kind == "imported" for b in bases)
     if not kinds:
-        kinds = [k for k in TRAINED_KINDS if any(b.kind == k for b in bases) or k in from_kind] or (
-            [] if uses_imported else ["td3"]
-        )
+        kinds = [k for k in TRAINED_KINDS if any(b.kind == k for b in bases)] or ([] if uses_imported else ["td3"])
     posthoc = [k for k in SPECIALIST_KINDS if any(b.stage == "extract_posthoc" and b.kind == k for b in bases)]
     # the kinds trained here that some method starts from as they are (a variant from a specialists
     # variant starts from that variant's, stage train_specialist_variant)
@@ -114,7 +112,7 @@ def derived_lists(
         "export_methods": list(export or []),
         "specialist_variants": list(dict.fromkeys(v.specialists for v in named if v.specialists != v.kind)),
         # one stage per method that runs, planned from its base's template (pipeline/params/plan.py)
-        "method_runs": [method_run(m, parsed.get(m)) for m in listed],
+        "method_runs": [method_run(m, b, parsed.get(m)) for m, b in zip(listed, bases)],
         # every matrix of dvc.yaml reads this file only (a stale file still gives a consistent graph)
         "run_seeds": list(seeds),
         "run_objectives": list(objectives),
@@ -125,13 +123,13 @@ def derived_lists(
     }
 
 
-def method_run(name: str, variant: Variant | None) -> dict[str, Any]:
+def method_run(name: str, base: Method, variant: Variant | None) -> dict[str, Any]:
     """One method's stage as the plan writes it: its name (the stage's and data/fronts/<name>/),
     the template it is planned from (its base's stage in METHODS), the extraction variant its
     command takes, its kind, the specialists it starts from (data/specialists/<specialists>/),
     and for a named variant the base it varies (`of`: its command then takes --method and its
-    stage tracks variants.<name>)."""
-    base = METHODS[variant.of] if variant is not None else METHODS[name]
+    stage tracks variants.<name>). `base` is the METHODS row it is planned from (the variant's
+    `of`, or the method itself)."""
     return {
         "name": name,
         "stage": base.stage,
