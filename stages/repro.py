@@ -1,6 +1,8 @@
-"""`mapex repro`: `dvc repro` with independent stage items side by side on this machine.
+"""`mapex repro [PLAN]`: the one way to run a plan (this checkout's params.yaml, a preset or a
+grid), its stage items side by side on this machine, or on Ray with --ray and --remote.
 
-Not a DVC stage: it drives DVC (pipeline/distributed/local.py says how, and why it is safe).
+Not a DVC stage: it drives DVC (pipeline/distributed/local.py says how items run side by side and
+why it is safe; pipeline/distributed/onebox.py how a grid's cells run here; driver.py on Ray).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+import yaml
 
 from pipeline.distributed.local import Terminated, repro_parallel, summary_table
 from pipeline.distributed.workspace import _dvc_bin, stage_items
@@ -29,10 +32,43 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
+PLAN_SUFFIXES = (".yaml", ".yml")
+
+
+def split_plan(args: list[str]) -> tuple[Path | None, list[str]]:
+    """`mapex repro`'s positional arguments as (PLAN, targets): a first argument naming a YAML
+    file is the plan, the rest (or all, without one) are stage targets."""
+    if args and args[0].endswith(PLAN_SUFFIXES):
+        return Path(args[0]), list(args[1:])
+    return None, list(args)
+
+
+def _replan_if_stale(root: Path) -> None:
+    """Write dvc.yaml again when it was planned for other params (the plan is generated from
+    params.yaml: rewriting it is this command's job, not the user's); one line says so."""
+    from pipeline.params import load_params
+    from pipeline.params.plan import write_plan
+    from pipeline.params.planned import stale_input
+
+    params, dvc = root / "params.yaml", root / "dvc.yaml"
+    if not params.is_file() or not dvc.is_file():
+        return
+    raw = load_params(params, check_plan=False)
+    why = stale_input(raw, dvc.read_text())
+    if why and "stale:" in why:
+        write_plan(raw, params)  # as `mapex plan` does
+        typer.echo(f"{dvc}: {why.split(': run')[0]}; planned again from {params}", err=True)
+
+
 @reports_errors
 def repro(
-    targets: Optional[list[str]] = typer.Argument(
-        None, help="stages or stage items to reproduce with everything upstream of them (default: the whole dvc.yaml)"
+    args: Optional[list[str]] = typer.Argument(
+        None,
+        metavar="[PLAN] [TARGETS]...",
+        help="PLAN: params.yaml (the default: this checkout's pipeline), a preset or a grid file "
+        "(each cell in a workspace of its own under --workdir; a preset is a grid of one cell and is "
+        "never copied over params.yaml). TARGETS: stages or stage items to reproduce with everything "
+        "upstream of them (default: all)",
     ),
     jobs: int = typer.Option(
         0,
@@ -42,22 +78,55 @@ def repro(
         help="stage items at most side by side (default 0: one per core of this machine, at most 8); 1 is plain `dvc repro`",
     ),
     root: Path = typer.Option(Path("."), "--root", help="the DVC workspace (the repository root)"),
+    workdir: Optional[Path] = typer.Option(
+        None,
+        "--workdir",
+        help="with a preset or grid: where each cell's workspace goes (default: sweeps/<PLAN name>)",
+    ),
+    seed: Optional[list[int]] = typer.Option(
+        None, "--seed", min=0, help="with a preset or grid: run only this seed (repeatable) instead of its seeds"
+    ),
+    ray: Optional[str] = typer.Option(
+        None,
+        "--ray",
+        metavar="ADDRESS",
+        help="with a grid or preset: run its stage items as tasks on this Ray cluster ('auto', host:6379, "
+        "or 'local' to start one here), the artifacts in --remote (what `mapex sweep` does; docs/sweeps.md)",
+    ),
+    remote: Optional[str] = typer.Option(
+        None, "--remote", help="with --ray: the DVC remote every worker reaches (a directory or a URL)"
+    ),
 ) -> None:
-    """`dvc repro`, with independent stage items side by side.
+    """Reproduce a plan: this checkout's pipeline, a preset or a grid, its stage items side by side.
 
     Each stage item runs as `dvc repro --single-item ITEM` once every item upstream of it has
     finished, at most --jobs at a time: on 2 cores the two seeds' extractions, evaluations and
     scores run together instead of one after another. DVC decides for each item, as in `dvc
     repro`, whether it reruns, is restored from the run-cache or is skipped as unchanged, and the
     outputs are the same bytes (every stage is a pure command; one torch thread a process).
-    Items' output goes to .dvc/tmp/mapex-repro/ITEM.log; a line here as each starts and ends, the
-    end of a failed item's log, and a table of every item's wall time at the end. After a failure
-    nothing new starts; Ctrl-C (or SIGTERM) reaches the running items, which stop as under
-    `dvc repro` (nothing half-written); it exits 130 (143).
+    Without PLAN (or with params.yaml) it runs this checkout's dvc.yaml, planned again first if
+    params.yaml changed what runs. With a preset or a grid, each cell is a clone of the commit
+    under --workdir with its params.yaml and dvc.yaml, all cells sharing this checkout's DVC
+    cache (an item two cells share runs once); a grid of several cells ends with its cross-cell
+    report in WORKDIR/report. Items' output goes to .dvc/tmp/mapex-repro/ITEM.log of their
+    workspace; a line here as each starts and ends, the end of a failed item's log, and a table
+    of every item's wall time at the end. After a failure nothing new starts; Ctrl-C (or
+    SIGTERM) reaches the running items, which stop as under `dvc repro` (nothing half-written);
+    it exits 130 (143).
     """
+    plan, targets = split_plan(list(args or []))
+    if plan is not None and plan.name != "params.yaml":
+        _repro_plan(plan, root, jobs, targets, workdir, seed, ray, remote)
+        return
+    if ray or remote or workdir or seed:
+        typer.echo("error: --ray, --remote, --workdir and --seed go with a preset or grid PLAN", err=True)
+        raise typer.Exit(code=2)
+    if plan is not None:
+        root = plan.parent
     jobs = jobs or min(_cores(), MAX_DEFAULT_JOBS)
     if not (root / "dvc.yaml").is_file():
         raise FileNotFoundError(f"{root / 'dvc.yaml'}: no dvc.yaml here (--root names the DVC workspace)")
+    _replan_if_stale(root)
     if jobs == 1:
         rc = subprocess.call([_dvc_bin(), "repro", *(targets or [])], cwd=root)
         raise typer.Exit(code=rc)
@@ -67,17 +136,98 @@ def repro(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from None
     typer.echo(f"{len(items)} stage items, at most {jobs} side by side (logs: .dvc/tmp/mapex-repro/)", err=True)
+    _finish(lambda: repro_parallel(root, items, jobs, echo=lambda line: typer.echo(line, err=True)))
+
+
+def _finish(run) -> None:
+    """Run `run` (a repro_parallel call), then print its table; the exit codes of an interrupt,
+    a SIGTERM or a failed item."""
     try:
-        result = repro_parallel(root, items, jobs, echo=lambda line: typer.echo(line, err=True))
+        result = run()
     except KeyboardInterrupt:
         typer.echo("stopped: the running stage items were interrupted; rerun to go on", err=True)
         raise typer.Exit(code=130) from None
     except Terminated:
         typer.echo("stopped by SIGTERM: it reached the running stage items; rerun to go on", err=True)
         raise typer.Exit(code=143) from None
+    if result is None:
+        return
     typer.echo(summary_table(result), err=True)
     if result.failed:
         names = ", ".join(r.name for r in result.failed)
         left = f"; not started: {', '.join(result.not_started)}" if result.not_started else ""
         typer.echo(f"error: {names} failed{left}", err=True)
         raise typer.Exit(code=1)
+
+
+def _repro_plan(
+    plan: Path,
+    root: Path,
+    jobs: int,
+    targets: list[str],
+    workdir: Path | None,
+    seeds: list[int] | None,
+    ray: str | None,
+    remote: str | None,
+) -> None:
+    """A preset or grid: its cells on Ray (--ray, --remote) or here, then its report."""
+    from pipeline.distributed.errors import SweepError
+    from pipeline.distributed.onebox import load_plan, run_plan_here
+
+    echo = lambda line: typer.echo(line, err=True)  # noqa: E731
+    try:
+        if ray or remote:
+            if not (ray and remote):
+                raise SweepError("--ray and --remote go together: the cluster's workers share the remote", 2)
+            if targets:
+                raise SweepError("with --ray the grid file's `targets` say what runs (no TARGETS here)", 2)
+            from pipeline.distributed.driver import SweepSettings, run_sweep
+
+            grid_path = plan
+            if "envs" not in (yaml.safe_load(plan.read_text()) or {}):
+                grid_path = _one_cell_grid(plan, root)
+            settings = SweepSettings(
+                remote,
+                repo=root,
+                workdir=workdir or Path(root) / "sweeps" / plan.stem,
+                address=None if ray == "local" else ray,
+                seeds=seeds,
+            )
+            results = run_sweep(grid_path, settings, log=echo)
+            names = [r.name for r in results]
+            work = settings.workdir
+        else:
+            jobs = jobs or min(_cores(), MAX_DEFAULT_JOBS)
+            load_plan(plan, Path(root).resolve())  # a bad plan file is named before anything else
+            out = run_plan_here(plan, root, jobs, workdir=workdir, seeds=seeds, targets=targets or None, log=echo)
+            names, work = out.cells, out.workdir
+            _finish(lambda: out.repro)
+    except SweepError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(code=exc.exit_code) from None
+    _report(Path(work), names)
+
+
+def _one_cell_grid(preset: Path, root: Path) -> Path:
+    """A grid file of one cell for a preset (--ray), in the checkout's .dvc/tmp (never tracked)."""
+    from pipeline.distributed.onebox import load_plan
+
+    grid, _ = load_plan(preset, Path(root).resolve())
+    path = Path(root) / ".dvc" / "tmp" / "mapex-repro" / f"{preset.stem}.grid.yaml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(grid.model_dump(exclude_defaults=True), sort_keys=False))
+    return path
+
+
+def _report(workdir: Path, cells: list[str]) -> None:
+    """Where the report is: a cell's own, or for several cells their cross-cell report, written
+    to WORKDIR/report (as `mapex grid-report WORKDIR --out WORKDIR/report`)."""
+    if len(cells) == 1:
+        typer.echo(f"report: {workdir / cells[0] / 'data' / 'report' / 'report.md'}", err=True)
+        return
+    from stages.grid_report import grid_report
+
+    if not all((workdir / c / "data" / "score").is_dir() for c in cells):
+        typer.echo(f"no cross-cell report: not every cell of {workdir} was scored (targets)", err=True)
+        return
+    grid_report(workdir, workdir / "report", width=13.0, dpi=110, pair=None)

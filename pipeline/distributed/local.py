@@ -23,10 +23,11 @@ import os
 import re
 import signal
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Callable, Protocol, Sequence
+from typing import IO, Callable, Mapping, Protocol, Sequence
 
 from pipeline.distributed.workspace import StageItem, _dvc_bin
 
@@ -208,10 +209,16 @@ def repro_parallel(
     jobs: int,
     echo: Callable[[str], None],
     log_dir: Path | None = None,
+    places: Mapping[str, tuple[Path, str]] | None = None,
 ) -> ReproResult:
     """Run `items` of the DVC workspace at `root` with run_items, each as `dvc --wait-for-lock
     repro --single-item ITEM`, its output to LOG_DIR/ITEM.log (default: .dvc/tmp/mapex-repro, DVC's
-    scratch folder, never tracked); `echo` gets a line as each starts and ends."""
+    scratch folder, never tracked); `echo` gets a line as each starts and ends.
+
+    `places` (item name -> (workspace, DVC's item name)) runs items in other workspaces instead,
+    the cells of a grid (pipeline.distributed.onebox): each in its workspace with that
+    workspace's code first on PYTHONPATH (a cell is a clone of a commit), its log in that
+    workspace's .dvc/tmp/mapex-repro/."""
     log_dir = log_dir or root / ".dvc" / "tmp" / "mapex-repro"
     log_dir.mkdir(parents=True, exist_ok=True)
     files: dict[str, tuple[Path, IO[bytes]]] = {}
@@ -221,16 +228,26 @@ def repro_parallel(
     env = {k: v for k, v in os.environ.items() if k != "DVC_STAGE"}
 
     def launch(item: StageItem) -> Process:
-        path = log_dir / f"{_safe_name(item.name)}.log"
+        cwd, dvc_name, item_env, where = root, item.name, env, log_dir
+        if places is not None:
+            cwd, dvc_name = places[item.name]
+            where = cwd / ".dvc" / "tmp" / "mapex-repro"
+            where.mkdir(parents=True, exist_ok=True)
+            item_env = {
+                **env,
+                "PATH": f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}",
+                "PYTHONPATH": os.pathsep.join(p for p in (str(cwd), env.get("PYTHONPATH", "")) if p),
+            }
+        path = where / f"{_safe_name(dvc_name)}.log"
         fh = open(path, "wb")  # noqa: SIM115 (closed when the item ends)
         files[item.name] = (path, fh)
         return subprocess.Popen(
-            [_dvc_bin(), "--wait-for-lock", "repro", "--single-item", item.name],
-            cwd=root,
+            [_dvc_bin(), "--wait-for-lock", "repro", "--single-item", dvc_name],
+            cwd=cwd,
             stdout=fh,
             stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL,
-            env=env,
+            env=item_env,
             # a process group of its own, so that Ctrl-C reaches each item once, from here: DVC
             # ignores SIGINT while its stage's command runs and counts on the command getting it,
             # as a terminal's Ctrl-C does to a whole group (stop_group below)
