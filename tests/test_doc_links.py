@@ -35,11 +35,12 @@ def anchors(path: Path) -> set[str]:
 
 
 def documents() -> list[Path]:
-    """The tracked Markdown prose. Not the studies' reports kept under docs/<study>/: they are
-    data/report/report.md copied out of a run, whose links lead into that run's data/render."""
+    """The tracked Markdown prose. Not the studies' evidence under presets/studies/evidence/: its
+    reports are data/report/report.md copied out of a run, whose links lead into that run's
+    data/render and to figures git does not keep (docs/figures/ keeps those a document shows)."""
     listed = subprocess.run(["git", "ls-files", "*.md"], cwd=ROOT, capture_output=True, text=True, check=True)
     paths = [Path(p) for p in listed.stdout.split()]
-    prose = [p for p in paths if not (p.name == "report.md" and len(p.parts) > 2 and p.parts[0] == "docs")]
+    prose = [p for p in paths if p.parts[:3] != ("presets", "studies", "evidence")]
     return [ROOT / p for p in prose if (ROOT / p).is_file()]
 
 
