@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 from pathlib import Path
 from typing import Optional
 
@@ -225,9 +226,13 @@ def _report(workdir: Path, cells: list[str]) -> None:
     if len(cells) == 1:
         typer.echo(f"report: {workdir / cells[0] / 'data' / 'report' / 'report.md'}", err=True)
         return
-    from stages.grid_report import grid_report
-
     if not all((workdir / c / "data" / "score").is_dir() for c in cells):
         typer.echo(f"no cross-cell report: not every cell of {workdir} was scored (targets)", err=True)
         return
-    grid_report(workdir, workdir / "report", width=13.0, dpi=110, pair=None)
+    # the command itself, as a user runs it (a stage command never imports another's module)
+    mapex = Path(sys.executable).with_name("mapex")
+    rc = subprocess.call(
+        [str(mapex) if mapex.is_file() else "mapex", "grid-report", str(workdir), "--out", str(workdir / "report")]
+    )
+    if rc != 0:
+        raise typer.Exit(code=rc)

@@ -13,17 +13,15 @@ from pipeline.core.drive import drive
 from pipeline.core.envs import EnvSpec
 from pipeline.core.policyset import save_policy_set
 from pipeline.core.precision import resolve, without_fp32
-from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
-from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.evaluation.preflight import specialists_to_train
-from pipeline.params import EnvParams, ParamsError, section
+from pipeline.params import EnvParams
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_pderl import TrainPderlParams
 from pipeline.specialists.pderl import PderlResult, PderlRun
+from pipeline.specialists.preamble import training_inputs
 from stages.common import PARAMS_OPTION, PROVENANCE_OPTION, progress, read_params, reports_errors, run_parts
 
 CHECKPOINT_PREFIX = "pderl_state_"  # + obj{K}.pt
@@ -75,15 +73,16 @@ def train_pderl(
     generation and what went bad, and exit code 3; that objective writes nothing and its last
     good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    raw, env_p, cfg, run_p = read_params(params, "train_pderl", TrainPderlParams)
-    td3 = section(raw, "td3", TD3Params, params)
-    if td3.learning_starts >= cfg.total_frames:
-        raise ParamsError(
-            f"{params}: td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
-            f"({cfg.total_frames}), or the RL agent is never trained"
-        )
-    spec, objectives, names = specialists_to_train(env_p, params, objective, run_p.objectives)
-    device = select_device(cfg.device)
+    t = training_inputs(read_params(params, "train_pderl", TrainPderlParams), params, objective, check_budget)
+    env_p, cfg, td3, spec, objectives, names, device = (
+        t.params.env,
+        t.params.cfg,
+        t.td3,
+        t.spec,
+        t.objectives,
+        t.names,
+        t.device,
+    )
     parts = split_evenly(objectives, cfg.processes)
     what = ", ".join(f"obj {k} ({names[k]})" for k in objectives)
     bar = progress(
@@ -100,7 +99,16 @@ def train_pderl(
             prefix="",
         )
         bar.total = bar.n  # the final evaluations overshoot the frame budget
-    write_provenance(provenance, "train_pderl", device, resolve(cfg.precision, device, max(td3.hidden_sizes)))
+    t.record(provenance, "train_pderl")
+
+
+def check_budget(cfg: TrainPderlParams, td3: TD3Params) -> None:
+    """The RL agent must get frames to learn from within the run's budget."""
+    if td3.learning_starts >= cfg.total_frames:
+        raise ValueError(
+            f"td3.learning_starts ({td3.learning_starts}) must be < train_pderl.total_frames "
+            f"({cfg.total_frames}), or the RL agent is never trained"
+        )
 
 
 def train_part(

@@ -13,17 +13,15 @@ from pipeline.core.drive import drive
 from pipeline.core.envs import make_env
 from pipeline.core.envstate import env_checkpoint_problem
 from pipeline.core.precision import resolve, without_fp32
-from pipeline.core.provenance import write_provenance
 from pipeline.core.resume import Checkpoint, checkpoint_dir, run_fingerprint
-from pipeline.core.seeding import select_device
 from pipeline.core.signals import sigterm_deferred
 from pipeline.core.specialist import save_specialist, specialist_meta
 from pipeline.core.workers import split_evenly
-from pipeline.evaluation.preflight import specialists_to_train
-from pipeline.params import EnvParams, ParamsError, section
+from pipeline.params import EnvParams, ParamsError
 from pipeline.params.td3 import TD3Params
 from pipeline.params.train_specialist import TrainSpecialistParams, check_against_td3
 from pipeline.specialists.keep_best import KeepBest, keep_best_hook
+from pipeline.specialists.preamble import training_inputs
 from pipeline.specialists.td3_training import SpecialistResult, SpecialistsRun
 from stages.common import (
     PARAMS_OPTION,
@@ -101,20 +99,17 @@ def train_specialist(
     seed, objective, step and what went bad, and exit code 3; the diverged specialists write
     nothing and their last good checkpoint stays (docs/manual.md, "When training diverges").
     """
-    raw, env_p, cfg, run_p = read_params(params, "train_specialist", TrainSpecialistParams, variant)
+    t = training_inputs(
+        read_params(params, "train_specialist", TrainSpecialistParams, variant), params, objective, check_against_td3
+    )
+    raw, env_p, cfg, td3 = t.params.raw, t.params.env, t.params.cfg, t.td3
     if variant is not None and ((of := named_variant(raw, variant, params).of) != "td3" or kind != "td3"):
         raise ParamsError(f"--variant {variant}: variants.{variant}.of is {of!r}; expected td3 (and --kind td3)")
-    td3 = section(raw, "td3", TD3Params, params)
-    try:
-        check_against_td3(cfg, td3)
-    except ValueError as exc:
-        raise ParamsError(f"{params}: {exc}") from None
     if kind not in SLOT_SOURCES:
         raise ParamsError(f"--kind {kind!r}: expected one of {', '.join(SLOT_SOURCES)}")
     if kind == "imported" and not objective:
         raise ParamsError("--kind imported: name the objectives to train (--objective), those without an import entry")
-    spec, objectives, names = specialists_to_train(env_p, params, objective, run_p.objectives)
-    device = select_device(cfg.device)
+    spec, objectives, names, device = t.spec, t.objectives, t.names, t.device
     parts = plan(objectives, cfg)
     weights = prefix_weights(td3, spec.n_objectives, params)
     shared = td3.shared_prefix_steps
@@ -139,7 +134,7 @@ def train_specialist(
     remove_stale_checkpoints(out, objectives)
     if weights is not None:
         prefix_checkpoint(out, seed, env_p, td3, cfg, device, weights).clear()
-    write_provenance(provenance, "train_specialist", device, resolve(cfg.precision, device, max(td3.hidden_sizes)))
+    t.record(provenance, "train_specialist")
 
 
 def plan(objectives: Sequence[int], cfg: TrainSpecialistParams) -> list[list[list[int]]]:
