@@ -5,8 +5,9 @@ Playwright):
 
     python benchmarks/explorer_picture.py data/render/explorer.html docs/explorer.png --pick 0.5
 
---pick chooses the point by its place along a method's front of the first seed (--method, default
-the first drawn; 0: the left end, 1: the right end). The page and its clips are the render's, unchanged.
+--pick chooses the point by its place along the plot of one seed (--seed, default the first) among
+one method's points (--method, default all; 0: the left end, 1: the right end); choose a seed and
+method the render filmed (render.seeds, render.methods). The page and its clips are the render's, unchanged.
 """
 
 from __future__ import annotations
@@ -24,7 +25,11 @@ def main() -> int:
     ap.add_argument("explorer", type=Path, help="a render's explorer.html")
     ap.add_argument("out", type=Path, help="PNG to write")
     ap.add_argument("--pick", type=float, default=0.5, help="which point of the first front to play (0..1)")
-    ap.add_argument("--method", default=None, help="whose front's point to play (default: the first drawn)")
+    ap.add_argument("--method", default=None, help="whose front's point to play (default: any method's)")
+    ap.add_argument("--seed", type=int, default=None, help="the seed's plot to pick from (default: the first)")
+    ap.add_argument(
+        "--only", nargs="*", default=None, help="methods left shown (the others hidden with their legend buttons)"
+    )
     ap.add_argument("--width", type=int, default=1280)
     ap.add_argument("--height", type=int, default=820)
     ap.add_argument("--seconds", type=float, default=3.0, help="how long the clip plays before the shot")
@@ -45,25 +50,33 @@ def main() -> int:
         page = browser.new_context(offline=True, viewport={"width": args.width, "height": args.height}).new_page()
         page.goto(args.explorer.resolve().as_uri())
         page.wait_for_load_state("load")
-        points = page.locator("section").first.locator(".pt")
+        if args.only is not None:
+            for button in page.locator("#legend button[data-method]").all():
+                if button.get_attribute("data-method") not in args.only:
+                    button.click()
+        section = (
+            page.locator(f"section[data-seed='{args.seed}']")
+            if args.seed is not None
+            else page.locator("section").first
+        )
+        points = section.locator(f".pt[data-key^='{args.method}/']" if args.method else ".pt")
         n = points.count()
         if n == 0:
-            print(f"error: {args.explorer}: the page shows no front points", file=sys.stderr)
+            print(f"error: {args.explorer}: no front points there (--seed, --method)", file=sys.stderr)
             return 1
-        # the points of the first method, ordered along the first objective
-        xs = points.evaluate_all("ps => ps.map(p => [p.getBoundingClientRect().x, p.dataset.key || ''])")
-        first = f"{args.method}/0" if args.method else (xs[0][1].rsplit("/", 1)[0] if "/" in xs[0][1] else None)
-        chosen = [(x, k) for x, k in xs if first is None or k.startswith(first + "/")] or xs
-        chosen.sort()
-        x, key = chosen[min(len(chosen) - 1, max(0, round(args.pick * (len(chosen) - 1))))]
-        target = points.nth([k for _, k in xs].index(key)) if key else points.nth(0)
+        # the points in order along the first objective (left to right)
+        xs = points.evaluate_all("ps => ps.map((p, i) => [p.getBoundingClientRect().x, i, p.dataset.key || ''])")
+        xs.sort()
+        _, index, key = xs[min(len(xs) - 1, max(0, round(args.pick * (len(xs) - 1))))]
+        target = points.nth(index)
+        section.scroll_into_view_if_needed()
         target.dispatch_event("mouseenter")
         target.click(force=True)
         page.wait_for_timeout(args.seconds * 1000)
         args.out.parent.mkdir(parents=True, exist_ok=True)
         page.screenshot(path=str(args.out), full_page=False)
         browser.close()
-    print(f"{args.out}: the explorer with point {key or 0} of {n} playing")
+    print(f"{args.out}: the explorer with point {key or index} ({n} to pick from) playing")
     return 0
 
 
