@@ -229,7 +229,10 @@ def test_study_grid_plans_its_cells(path):
     header = path.read_text().split("\n", 1)[0]
     assert header.startswith("# Study (docs/results.md"), f"{path}: the first line names the results section"
     text = path.read_text()  # its command: `mapex repro GRID` (here) or `mapex sweep GRID --remote` (Ray)
-    assert f"mapex repro presets/studies/{path.name}" in text or f"mapex sweep presets/studies/{path.name} --remote" in text
+    assert (
+        f"mapex repro presets/studies/{path.name}" in text
+        or f"mapex sweep presets/studies/{path.name} --remote" in text
+    )
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
     cells = plan_cells(load_grid(path), path, ROOT, head.stdout.strip())
     assert cells, path

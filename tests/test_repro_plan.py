@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +18,7 @@ import pytest
 import yaml
 from support.tiny_params import TINY_CHAIN as TINY
 from support.tiny_params import save_params
+from test_sweep import source  # noqa: F401  (the fixture: a git + DVC copy of the code with the tiny params)
 from typer.testing import CliRunner
 
 from pipeline.distributed.errors import GridError
@@ -54,7 +54,7 @@ def test_a_preset_is_a_grid_of_one_cell_and_a_grid_is_itself(tmp_path):
 
 
 def test_bad_plan_files_are_named(tmp_path):
-    with pytest.raises(GridError, match=r"nothere\.yaml: plan file not found"):
+    with pytest.raises(GridError, match=r"nothere\.yaml: plan file .* not found"):
         load_plan(tmp_path / "nothere.yaml", tmp_path)
     listy = tmp_path / "list.yaml"
     listy.write_text("- a\n- b\n")
@@ -117,33 +117,13 @@ def git(cwd: Path, *args: str) -> str:
     return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True, text=True).stdout.strip()
 
 
-@pytest.fixture(scope="module")
-def source(tmp_path_factory) -> Path:
-    """A git + DVC repository holding the project's code and the tiny params."""
-    root = tmp_path_factory.mktemp("source")
-    for name in ("pipeline", "stages"):
-        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__"))
-    shutil.copy(ROOT / "dvc.yaml", root / "dvc.yaml")
-    (root / "presets").mkdir()
-    shutil.copy(ROOT / "presets" / "envs.yaml", root / "presets" / "envs.yaml")
-    save_params(root / "params.yaml", TINY, sort_keys=False)
-    (root / ".gitignore").write_text("/data/\n__pycache__/\nMUJOCO_LOG.TXT\n/sweeps/\n")
-    git(root, "init", "-q")
-    git(root, "config", "user.email", "test@example.com")
-    git(root, "config", "user.name", "test")
-    subprocess.run([str(BIN / "dvc"), "init", "-q"], cwd=root, check=True)
-    git(root, "add", "-A")
-    git(root, "commit", "-qm", "tiny pipeline")
-    return root
-
-
 def mapex(args: list[str], cwd: Path) -> subprocess.CompletedProcess:
     env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}", "MAPEX_TORCH_THREADS": "1"}
     return subprocess.run([str(BIN / "mapex"), *args], cwd=cwd, env=env, capture_output=True, text=True)
 
 
 @pytest.mark.slow  # two cells of the tiny pipeline and a serial dvc repro: `make test-slow` (CI runs it)
-def test_a_grid_runs_here_bitwise_as_serial_dvc_repro_and_shares_its_runs(source, tmp_path):
+def test_a_grid_runs_here_bitwise_as_serial_dvc_repro_and_shares_its_runs(source, tmp_path):  # noqa: F811
     from test_sweep import without_measured
 
     grid = {

@@ -109,17 +109,24 @@ class Grid(_Strict):
         return v
 
 
-def load_grid(path: Path) -> Grid:
-    """Read and validate a grid file; every problem becomes one GridError naming file and key."""
-    path = Path(path)
+def read_mapping(path: Path, what: str, expected: str) -> dict[str, Any]:
+    """A YAML file's mapping; a missing file, bad YAML or another shape is one GridError naming
+    the file (`what` the file is, `expected` what its mapping holds)."""
     if not path.is_file():
-        raise GridError(f"{path}: grid file not found")
+        raise GridError(f"{path}: {what} not found")
     try:
         raw = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
         raise GridError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(raw, dict):
-        raise GridError(f"{path}: expected a mapping with keys envs, seeds, overrides, base, resources")
+        raise GridError(f"{path}: expected a mapping {expected}")
+    return raw
+
+
+def load_grid(path: Path) -> Grid:
+    """Read and validate a grid file; every problem becomes one GridError naming file and key."""
+    path = Path(path)
+    raw = read_mapping(path, "grid file", "with keys envs, seeds, overrides, base, resources")
     try:
         return Grid.model_validate(raw)
     except ValidationError as exc:

@@ -26,10 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import yaml
-
 from pipeline.distributed.errors import GridError, SweepError
-from pipeline.distributed.grid import EnvSpec, Grid, load_grid, plan_cells, with_seeds
+from pipeline.distributed.grid import EnvSpec, Grid, load_grid, plan_cells, read_mapping, with_seeds
 from pipeline.distributed.local import ReproResult, repro_parallel
 from pipeline.distributed.workspace import StageItem, _git, prepare_workspace, stage_items
 
@@ -39,14 +37,9 @@ def load_plan(path: Path, repo: Path) -> tuple[Grid, str]:
     a grid file (a mapping with `envs`) as it is, a preset (a params file) as a grid of one cell.
     A preset must lie inside `repo` (the cell reads it at the commit)."""
     path = Path(path)
-    if not path.is_file():
-        raise GridError(f"{path}: plan file not found (expected params.yaml, a preset or a grid file)")
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise GridError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(raw, dict):
-        raise GridError(f"{path}: expected a mapping (a params file, a preset, or a grid with `envs`)")
+    raw = read_mapping(
+        path, "plan file (params.yaml, a preset or a grid file)", "(a params file, a preset, or a grid with `envs`)"
+    )
     if "envs" in raw:
         return load_grid(path), path.stem
     try:
