@@ -11,7 +11,7 @@ from pipeline.core.artifacts import ArtifactError, atomic_path
 from pipeline.core.envs import objective_names
 from pipeline.params import ParamsError
 from pipeline.params.report import ReportParams
-from pipeline.params.variants import parse_variants
+from pipeline.params.variants import is_hybrid, parse_variants
 from pipeline.reporting.cost import method_core_seconds, read_specialist_costs
 from pipeline.reporting.figures import (
     barrier_figure,
@@ -70,7 +70,9 @@ def report(
     """
     raw, env_p, cfg, run_p = read_params(params, "report", ReportParams)
     seeds, methods = run_p.seeds, run_p.methods
-    use_variants(parse_variants(run_p.variants))  # the variants' labels, colours and pairs
+    variants = parse_variants(run_p.variants)
+    # the variants' labels, colours and pairs, and which methods are hybrids (from the params, not guessed)
+    use_variants(variants, {m for m in methods if is_hybrid(raw, m, variants)})
     for i, pair in enumerate(cfg.pairs or []):
         stray = [m for m in pair if m not in methods]
         if stray:

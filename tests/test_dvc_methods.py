@@ -34,6 +34,8 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     methods += ["warmup_only_td3", "warmup_only_pderl", "interpolate_td3", "interpolate_pderl"]
     # a variant of MAPEX-PostHoc, added by params alone: the plan writes it a stage of its own
     methods += ["posthoc_gentle"]
+    # the hybrid, a built-in variant: no variants entry, its definition is METHODS'
+    methods += ["hybrid_td3"]
     params = {
         **TINY,
         "methods": methods,
@@ -52,6 +54,11 @@ def test_every_method_is_scored_by_one_chain(tmp_path_factory):
     for m in methods:
         metrics = json.loads((root / "data" / "score" / m / "seed0" / "metrics.json").read_text())
         assert metrics["method"] == m and metrics["front"]["cardinality"] >= 1
+    # the hybrid ran with its keys (interpolated starts, the population seeded with the grid) and
+    # the report names it with its label, against the method it varies
+    hybrid = json.loads((root / "data" / "score" / "hybrid_td3" / "seed0" / "metrics.json").read_text())
+    assert "init_fallbacks" in hybrid and "seed_interpolation" in hybrid, sorted(hybrid)
+    assert "hybrid (interpolated start)" in (root / "data" / "report" / "report.md").read_text()
     # PDERL's policy sets start the PDERL methods (population + RL actor per objective); TD3 one each
     assert (
         json.loads((root / "data" / "score" / "mapex_pderl" / "seed0" / "metrics.json").read_text())[

@@ -25,8 +25,9 @@ from pipeline.evaluation.episodes import eval_seeds, evaluate_policy
 from pipeline.evaluation.metrics import hypervolume, mean_sem
 from pipeline.params import section
 from pipeline.params.report import ReportParams
+from pipeline.params.variants import is_hybrid
 from pipeline.reporting.cost import verdict_cost_table
-from pipeline.reporting.presentation import specialist_kind
+from pipeline.reporting.presentation import specialist_kind, use_variants
 from pipeline.reporting.runs import Run, load_runs
 from pipeline.reporting.specialists import own_returns_table, sources_line, weak_sentence, weak_specialists
 from pipeline.reporting.tables import (
@@ -553,18 +554,25 @@ def _runs(mapex_hv: list[float], warm_hv: list[float]) -> list[Run]:
 
 
 def test_a_hybrid_run_against_warm_up_only_is_not_called_the_advantage_weighted_phase():
-    """MAPEX run with extract.init: interpolate (its metrics.json records init_fallbacks) differs
-    from warm-up only in its start and seeds too: the verdict names the method and its start, not
-    'the advantage-weighted phase'; the paper form's verdict keeps that name."""
+    """MAPEX run with extract.init: interpolate differs from warm-up only in its start and seeds
+    too: the verdict names the method and its start, not 'the advantage-weighted phase'; the paper
+    form's verdict keeps that name. Which methods are hybrids comes from the params (the report
+    stage's use_variants, from pipeline.params.variants.is_hybrid), not from their metrics."""
     runs = _runs([3.0, 5.1, 7.9], [2.0, 4.0, 7.0])
     assert "the advantage-weighted phase (MAPEX-TD3) beat warm-up only" in hv_verdict(runs).sentence
     for r in runs[:3]:
-        r.metrics["init_fallbacks"] = {}
-    sentence = hv_verdict(runs).sentence
-    assert "advantage-weighted" not in sentence, sentence
-    assert "MAPEX-TD3, started from interpolated weights, beat warm-up only" in sentence, sentence
-    # a pair given by name (report.pairs) is named by its label alone, as before
-    assert "(3 seeds, up to 4 iterations), MAPEX-TD3 beat" in hv_verdict(runs, what="MAPEX-TD3").sentence
+        r.metrics["init_fallbacks"] = {}  # what the report used to guess from: no longer read
+    assert "the advantage-weighted phase (MAPEX-TD3) beat warm-up only" in hv_verdict(runs).sentence
+    raw = {"extract": {"init": "interpolate"}}
+    use_variants({}, {m for m in ("mapex_td3", "warmup_only_td3") if is_hybrid(raw, m, {})})
+    try:
+        sentence = hv_verdict(runs).sentence
+        assert "advantage-weighted" not in sentence, sentence
+        assert "MAPEX-TD3, started from interpolated weights, beat warm-up only" in sentence, sentence
+        # a pair given by name (report.pairs) is named by its label alone, as before
+        assert "(3 seeds, up to 4 iterations), MAPEX-TD3 beat" in hv_verdict(runs, what="MAPEX-TD3").sentence
+    finally:
+        use_variants({})
 
 
 def test_sources_line_names_the_imported_and_the_trained_objectives():

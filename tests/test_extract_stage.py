@@ -160,7 +160,13 @@ def _population_equal(a: Path, b: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("k", "sig"), [(1, signal.SIGKILL), (2, signal.SIGKILL), (1, signal.SIGTERM)], ids=["kill", "kill-k2", "term"]
+    ("k", "sig"),
+    [
+        pytest.param(1, signal.SIGKILL, id="kill"),
+        # the two other cases in the slow tier (CI runs it): about 35 s that `make test` need not repeat
+        pytest.param(2, signal.SIGKILL, id="kill-k2", marks=pytest.mark.slow),
+        pytest.param(1, signal.SIGTERM, id="term", marks=pytest.mark.slow),
+    ],
 )
 def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k, sig):
     """k = 2 also stands for a sweep's retry on another node: no --resume-dir, progress on shared

@@ -125,7 +125,7 @@ def test_a_bad_objective_key_stops_planning_and_training_in_one_line(tmp_path):
     assert not (tmp_path / "data").exists()
 
 
-@pytest.mark.integration
+@pytest.mark.slow  # about 50 s alone: the slow tier (CI runs it) keeps `make test` under 8 minutes
 def test_dvc_repro_on_a_non_mujoco_env_reaches_the_report_and_the_explorer_with_clips(tmp_path):
     """The quickstart-sized pipeline on examples/pointrunner (no MuJoCo), objectives from its
     reward terms: specialists, extraction, evaluation, the report with the terms' names, and the

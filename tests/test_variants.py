@@ -3,6 +3,8 @@ how its overrides reach a stage's sections, and the report's pairs of two forms 
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -210,3 +212,92 @@ def test_a_variant_of_any_base_is_a_stage_of_its_own_from_params_alone():
     assert morld["matrix"] == posthoc["matrix"] == {"seed": EVERY_STAGE["seeds"]}
     # the report's matrices list them like any method
     assert {"mapex_posthoc_td3_gentle", "morld_small"} <= set(stages["evaluate"]["matrix"]["method"])
+
+
+# ---------------------------------------------------------------- the built-in hybrid
+
+
+def test_the_hybrid_is_a_built_in_method_planned_with_no_variants_entry(tmp_path):
+    """`methods: [hybrid_td3]` runs MAPEX-TD3 with the hybrid's keys (METHODS' row), its stage
+    passing --method and tracking no variants.hybrid_td3 (the file has none: the definition is code)."""
+    from pipeline.params.methods import HYBRID, METHODS
+
+    assert METHODS["hybrid_td3"].of == "mapex_td3" and METHODS["hybrid_td3"].overrides == {"extract": HYBRID}
+    lists = derived_lists(["mapex_td3", "hybrid_td3"], [0], variants=None)
+    (run,) = [r for r in lists["method_runs"] if r["name"] == "hybrid_td3"]
+    assert run == {
+        "name": "hybrid_td3",
+        "stage": "extract",
+        "variant": "mapex",
+        "kind": "td3",
+        "specialists": "td3",
+        "of": "mapex_td3",
+        "builtin": True,
+    }
+    built = parse_variants(None)["hybrid_td3"]
+    resolved = section(with_overrides({"extract": {"epochs": 3}}, built), "extract", ExtractParams)
+    assert (resolved.init, resolved.seed_interpolation, resolved.epochs) == ("interpolate", 48, 3)
+    from pipeline.params.plan import method_block, plan_text
+
+    template = [
+        "  extract:\n",
+        "    cmd: mapex extract{method_option}\n",
+        "    params:\n",
+        "      - {variant_params}\n",
+    ]
+    assert method_block(template, run) == [
+        "  hybrid_td3:\n",
+        "    cmd: mapex extract --method hybrid_td3\n",
+        "    params:\n",
+    ]
+    text = plan_text({"methods": ["mapex_td3", "hybrid_td3"], "seeds": [0]}, "params.yaml")
+    stage = re.search(r"\n  hybrid_td3:\n(.*?)\n  \w+:\n", text, flags=re.S).group(1)
+    assert "--method hybrid_td3" in stage and "variants.hybrid_td3" not in stage
+
+
+def test_an_entry_named_for_the_hybrid_refines_it_and_keeps_its_stage():
+    """The study presets' `hybrid_td3: {of: mapex_td3, extract: {...}}` entries: accepted, merged
+    over the built-in's keys, and tracked (variants.hybrid_td3) as before it had a name."""
+    entry = {"of": "mapex_td3", "label": "hybrid (grid)", "extract": {"init": "interpolate", "seed_interpolation": 12}}
+    parsed = parse_variants({"hybrid_td3": entry})
+    assert parsed["hybrid_td3"].overrides == {"extract": {"init": "interpolate", "seed_interpolation": 12}}
+    assert parsed["hybrid_td3"].label == "hybrid (grid)"
+    (run,) = [r for r in derived_lists(["hybrid_td3"], [0], variants={"hybrid_td3": entry})["method_runs"]]
+    assert "builtin" not in run and run["of"] == "mapex_td3"
+    # a variant of the hybrid is a variant of its base with the hybrid's keys
+    further = parse_variants({"hybrid_e2": {"of": "hybrid_td3", "extract": {"epochs": 2}}})["hybrid_e2"]
+    assert further.of == "mapex_td3"
+    assert further.overrides == {"extract": {"init": "interpolate", "seed_interpolation": 48, "epochs": 2}}
+
+
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ({"of": "mapex_pderl"}, "variants.hybrid_td3.of = 'mapex_pderl': hybrid_td3 is the built-in hybrid"),
+        ({"of": "mapex_td3", "extract": {"init": "warmup"}}, "variants.hybrid_td3.extract.init = 'warmup'"),
+    ],
+)
+def test_an_entry_that_would_unmake_the_hybrid_is_one_line(entry, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        parse_variants({"hybrid_td3": entry})
+
+
+def test_the_report_knows_a_hybrid_from_the_params_and_shows_it_once():
+    from pipeline.params.variants import is_hybrid
+
+    variants = parse_variants({"mine": {"of": "mapex_posthoc_td3", "extract": {"init": "interpolate"}}})
+    raw = {"extract": {"init": "warmup"}}
+    got = [
+        m
+        for m in ("mapex_td3", "hybrid_td3", "mine", "warmup_only_td3", "interpolate_td3")
+        if is_hybrid(raw, m, variants)
+    ]
+    assert got == ["hybrid_td3", "mine"]
+    # with the file's own section interpolating, the plain method is a hybrid too (warm-up only never)
+    assert is_hybrid({"extract": {"init": "interpolate"}}, "mapex_td3", {})
+    assert not is_hybrid({"extract": {"init": "interpolate"}}, "warmup_only_td3", {})
+    use_variants(variants)
+    assert label("hybrid_td3") == "hybrid (interpolated start)" and label("mine") == "mine"
+    empty = np.zeros(0)
+    runs = [Run(m, 0, {}, np.zeros((0, 2)), empty, empty, empty, {}, None) for m in ("hybrid_td3", "mapex_td3")]
+    assert methods_in(runs) == ["mapex_td3", "hybrid_td3"]

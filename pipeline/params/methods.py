@@ -24,7 +24,16 @@ class Method(NamedTuple):
     variant: str | None  # extraction variant (mapex, mapex_posthoc, warmup_only); None for a baseline
     kind: str | None  # the specialists it starts from: td3, pderl; None if none
     stage: str  # the catalogue template its stage (named <name>, writing data/fronts/<name>/) is planned from
+    # A built-in variant (the hybrid): the method it varies and what it sets in that method's
+    # sections; None for a method of its own. Planned and run as a named variant of `of`
+    # (pipeline/params/variants.py), whose definition is here instead of in params.yaml.
+    of: str | None = None
+    overrides: dict[str, dict] | None = None
 
+
+# What the hybrid sets in section extract (its identity: a run whose resolved extract.init is
+# interpolate is a hybrid, whatever its name).
+HYBRID = {"init": "interpolate", "seed_interpolation": 48}
 
 # What each method computes. How the report shows it (label, colour, row order) is presentation,
 # kept on the reporting side (pipeline/reporting/presentation.py): this file is in the code
@@ -38,6 +47,11 @@ METHODS: dict[str, Method] = {
         Method("mapex_td3", "mapex", "td3", "extract"),
         Method("mapex_posthoc_td3", "mapex_posthoc", "td3", "extract_posthoc"),
         Method("warmup_only_td3", "warmup_only", "td3", "warmup_only"),
+        # the hybrid extraction (not in the paper; docs/manual.md, "Hybrid extraction"): MAPEX-TD3
+        # whose children start from their parents' mixed weights, its population seeded with the
+        # interpolation grid (48 seeds: the studies' form, as many as interpolate_td3 makes at 64
+        # units). A params.yaml entry variants.hybrid_td3 {of: mapex_td3, ...} may refine it.
+        Method("hybrid_td3", "mapex", "td3", "extract", "mapex_td3", {"extract": HYBRID}),
         Method("mapex_posthoc_imported", "mapex_posthoc", "imported", "extract_posthoc"),
         Method("warmup_only_imported", "warmup_only", "imported", "warmup_only"),
         # the weight-space interpolation baseline (not in the paper): pipeline/baselines/interpolate.py
@@ -64,6 +78,8 @@ SPECIALIST_KINDS = ("td3", "pderl", "imported")
 # The kinds trained here with critics of their own (stage extract's joint variants read them).
 TRAINED_KINDS = ("td3", "pderl")
 BASELINES = tuple(m.name for m in METHODS.values() if m.variant is None)
+# The built-in variants (rows with `of`): the hybrid.
+BUILTIN_VARIANTS = tuple(m.name for m in METHODS.values() if m.of is not None)
 # The report's rows for the starting policies alone (no method made them): names a variant may
 # not take (their labels: pipeline/reporting/presentation.py).
 SPECIALISTS_ROWS = tuple(f"specialists_{k}" for k in SPECIALIST_KINDS)

@@ -97,7 +97,8 @@ def plan_text(raw: dict[str, Any], source: str = "params.yaml", root: Path = ROO
 def method_block(template: list[str], run: dict[str, Any]) -> list[str]:
     """A method template's lines written for one method that runs (an entry of the method_runs
     list, pipeline.params.runlists.method_run): the stage named for the method, its placeholders
-    filled in, and for a named variant its --method option and its `variants.<name>` params key."""
+    filled in, and for a named variant its --method option and its `variants.<name>` params key
+    (none for a built-in variant the file does not refine: its definition is code)."""
     name, variant = run["name"], run["of"] is not None
     fill = {
         "{method}": name,
@@ -109,7 +110,7 @@ def method_block(template: list[str], run: dict[str, Any]) -> list[str]:
     out = [f"  {name}:\n"]
     for line in template[1:]:
         if line.strip() == "- {variant_params}":
-            if variant:
+            if variant and not run.get("builtin"):
                 out.append(line.replace("{variant_params}", f"variants.{name}"))
             continue
         for key, value in fill.items():

@@ -112,7 +112,7 @@ def derived_lists(
         "export_methods": list(export or []),
         "specialist_variants": list(dict.fromkeys(v.specialists for v in named if v.specialists != v.kind)),
         # one stage per method that runs, planned from its base's template (pipeline/params/plan.py)
-        "method_runs": [method_run(m, b, parsed.get(m)) for m, b in zip(listed, bases)],
+        "method_runs": [method_run(m, b, parsed.get(m), m in (variants or {})) for m, b in zip(listed, bases)],
         # every matrix of dvc.yaml reads this file only (a stale file still gives a consistent graph)
         "run_seeds": list(seeds),
         "run_objectives": list(objectives),
@@ -123,14 +123,16 @@ def derived_lists(
     }
 
 
-def method_run(name: str, base: Method, variant: Variant | None) -> dict[str, Any]:
+def method_run(name: str, base: Method, variant: Variant | None, in_file: bool = True) -> dict[str, Any]:
     """One method's stage as the plan writes it: its name (the stage's and data/fronts/<name>/),
     the template it is planned from (its base's stage in METHODS), the extraction variant its
     command takes, its kind, the specialists it starts from (data/specialists/<specialists>/),
     and for a named variant the base it varies (`of`: its command then takes --method and its
     stage tracks variants.<name>). `base` is the METHODS row it is planned from (the variant's
-    `of`, or the method itself)."""
-    return {
+    `of`, or the method itself). A built-in variant (the hybrid) that params' `variants` does
+    not refine (`in_file` false) is marked `builtin`: its stage tracks no variants.<name>, which
+    the file lacks (its definition is code, a dep of the stage)."""
+    run = {
         "name": name,
         "stage": base.stage,
         "variant": base.variant,
@@ -138,3 +140,4 @@ def method_run(name: str, base: Method, variant: Variant | None) -> dict[str, An
         "specialists": variant.specialists if variant is not None else base.kind,
         "of": variant.of if variant is not None else None,
     }
+    return run | {"builtin": True} if variant is not None and not in_file else run

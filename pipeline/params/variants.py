@@ -29,6 +29,14 @@ own model (a bad override is named with its `variants.<name>` path). DVC tracks 
 and `variants.<name>`: together they fix the resolved values. A change to a base key that a
 variant overrides still reruns the variant (harmless: it computes the same numbers, and the
 stage's outputs then leave everything after it up to date).
+
+Built-in variants: a METHODS row with `of` (the hybrid, `hybrid_td3`) is a variant whose
+definition is in code, so `methods: [hybrid_td3]` runs it with no `variants` entry (its stage
+then tracks no `variants.hybrid_td3`: the definition is a code dep). An entry of that name
+refines it (its overrides merged over the built-in's; `of` must stay the built-in's base and the
+hybrid's extract.init interpolate), and a variant `of: hybrid_td3` is a variant of its base with
+the hybrid's keys set: the studies' presets, written before the hybrid had a name, keep their
+entries and so their stages unchanged.
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ import copy
 import re
 from typing import Any, NamedTuple
 
-from pipeline.params.methods import METHODS, SPECIALIST_KINDS, SPECIALISTS_ROWS
+from pipeline.params.methods import BUILTIN_VARIANTS, METHODS, SPECIALIST_KINDS, SPECIALISTS_ROWS
 
 # What a variant of each base may override (the sections that base's stage reads). Every method of
 # METHODS may be varied: the plan gives each variant a stage of its own, planned from its base's
@@ -79,7 +87,7 @@ def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
     first resolved so that method variants can point at them. ValueError, one line naming the
     key path, value and what was expected, on a bad entry."""
     if raw is None:
-        return {}
+        raw = {}
     if not isinstance(raw, dict):
         raise ValueError(f"{where} = {raw!r}: expected a mapping of name -> {{of: <method or kind>, ...}}")
     out: dict[str, Variant] = {}
@@ -88,11 +96,17 @@ def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
         body, here = raw[name], f"{where}.{name}"
         if not isinstance(name, str) or not NAME.match(name):
             raise ValueError(f"{where}: name {name!r}: expected lower-case letters, digits and _ (a folder name)")
-        if name in METHODS or name in SPECIALIST_KINDS or name in SPECIALISTS_ROWS:
+        builtin = METHODS.get(name) if name in BUILTIN_VARIANTS else None
+        if (name in METHODS and builtin is None) or name in SPECIALIST_KINDS or name in SPECIALISTS_ROWS:
             raise ValueError(f"{here}: the name is taken by a built-in method or kind; choose another")
         if not isinstance(body, dict) or "of" not in body:
             raise ValueError(f"{here} = {body!r}: expected a mapping with `of` (the method or kind it varies)")
         of = body["of"]
+        if builtin is not None and of != builtin.of:
+            raise ValueError(
+                f"{here}.of = {of!r}: {name} is the built-in hybrid, a variant of {builtin.of!r}; an entry of "
+                f"that name refines it (of: {builtin.of}); name a variant of {of} of your own instead"
+            )
         if of in SPECIALIST_KINDS:
             sections = SPECIALIST_VARIANT_SECTIONS.get(of)
             if sections is None:
@@ -135,11 +149,52 @@ def parse_variants(raw: Any, where: str = "variants") -> dict[str, Variant]:
         for s, value in overrides.items():
             if not isinstance(value, dict):
                 raise ValueError(f"{here}.{s} = {value!r}: expected a mapping of that section's keys")
+        if builtin is not None:
+            overrides = _refined(builtin, overrides, here)
+        elif of in BUILTIN_VARIANTS:  # a variant of the hybrid: a variant of its base, the hybrid's keys set
+            overrides, of = _refined(METHODS[of], overrides, here), METHODS[of].of
         label = body.get("label", name)
         if not isinstance(label, str) or not label:
             raise ValueError(f"{here}.label = {label!r}: expected a non-empty string")
         out[name] = Variant(name, of, kind, specialists, label, overrides, stage)
-    return {n: out[n] for n in raw}  # in the file's order
+    # in the file's order, then the built-in variants the file does not refine
+    return {n: out[n] for n in raw} | {n: builtin_variant(n) for n in BUILTIN_VARIANTS if n not in raw}
+
+
+def builtin_variant(name: str) -> Variant:
+    """Built-in variant `name` of METHODS (the hybrid) as its definition in code gives it."""
+    m = METHODS[name]
+    assert m.of is not None and m.overrides is not None, name
+    base = METHODS[m.of]
+    return Variant(name, m.of, base.kind, base.kind, name, copy.deepcopy(m.overrides), base.stage)
+
+
+def _refined(builtin: Any, overrides: dict[str, dict], where: str) -> dict[str, dict]:
+    """A params entry's `overrides` of built-in variant `builtin` merged over the built-in's own;
+    the keys that make it what it is (the hybrid's extract.init) may not be set otherwise."""
+    out = copy.deepcopy(builtin.overrides)
+    for section, over in overrides.items():
+        out[section] = {**out.get(section, {}), **copy.deepcopy(over)}
+    for section, fixed in builtin.overrides.items():
+        if "init" in fixed and out[section].get("init") != fixed["init"]:
+            raise ValueError(
+                f"{where}.{section}.init = {out[section].get('init')!r}: {builtin.name} is the built-in hybrid, "
+                f"whose children start from interpolated weights ({section}.init: {fixed['init']}); name a variant "
+                f"of {builtin.of} of your own for another start"
+            )
+    return out
+
+
+def is_hybrid(raw: dict[str, Any], method: str, variants: dict[str, Variant]) -> bool:
+    """Does `method` (a METHODS name or a variant of `variants`, parse_variants of the loaded
+    params `raw`) run the hybrid extraction: an extraction (MAPEX or MAPEX-PostHoc) whose
+    resolved extract.init, the file's section with the variant's overrides, is interpolate?"""
+    v = variants.get(method)
+    base = METHODS.get(v.of if v is not None else method)
+    if base is None or base.stage not in ("extract", "extract_posthoc"):
+        return False
+    resolved = with_overrides(raw, v) if v is not None else raw
+    return (resolved.get("extract") or {}).get("init") == "interpolate"
 
 
 def with_overrides(raw: dict[str, Any], variant: Variant) -> dict[str, Any]:

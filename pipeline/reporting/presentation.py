@@ -28,6 +28,7 @@ LOOKS: dict[str, Look] = {
     "mapex_td3": Look("MAPEX-TD3", "tab:green"),
     "mapex_posthoc_td3": Look("MAPEX-TD3-PostHoc", "tab:olive"),
     "warmup_only_td3": Look("warm-up only (TD3)", "tab:orange"),
+    "hybrid_td3": Look("hybrid (interpolated start)", "darkgreen"),
     "mapex_posthoc_imported": Look("MAPEX-PostHoc (imported)", "tab:brown"),
     "warmup_only_imported": Look("warm-up only (imported)", "tab:pink"),
     "interpolate_pderl": Look("interpolation (PDERL)", "darkcyan"),
@@ -54,21 +55,33 @@ VARIANT_METHODS: dict[str, Method] = {}
 VARIANT_LOOKS: dict[str, Look] = {}
 VARIANT_BASES: dict[str, str] = {}  # method variant -> the method it varies
 SPECIALIST_VARIANT_LABELS: dict[str, str] = {}
+# The methods of the report that run the hybrid extraction (resolved extract.init: interpolate;
+# pipeline.params.variants.is_hybrid): their verdicts against warm-up only name the start.
+HYBRID_METHODS: set[str] = set()
 # The variants' colours in the figures, in the order they are declared (none of LOOKS').
 VARIANT_COLOURS = ("tab:pink", "black", "darkorange", "mediumseagreen", "slateblue", "crimson", "teal", "olive")
 
 
-def use_variants(variants: dict) -> None:
+def use_variants(variants: dict, hybrids: set[str] | frozenset[str] = frozenset()) -> None:
     """Make the report name, colour and order the method variants of `variants` (name -> a
-    pipeline.params.variants.Variant) and their specialists (specialists_<name> rows)."""
+    pipeline.params.variants.Variant) and their specialists (specialists_<name> rows); `hybrids`:
+    the methods that run the hybrid extraction. A built-in variant (the hybrid) keeps its row of
+    LOOKS (its colour; its label unless the params entry gives one)."""
     VARIANT_METHODS.clear()
     VARIANT_LOOKS.clear()
     VARIANT_BASES.clear()
     SPECIALIST_VARIANT_LABELS.clear()
+    HYBRID_METHODS.clear()
+    HYBRID_METHODS.update(hybrids)
     method_variants = [v for v in variants.values() if not v.is_specialists]
-    for i, v in enumerate(method_variants):
+    own = [v for v in method_variants if v.name not in LOOKS]  # the colours go to the file's own
+    for v in method_variants:
         VARIANT_METHODS[v.name] = Method(v.name, METHODS[v.of].variant, v.specialists, v.stage)
-        VARIANT_LOOKS[v.name] = Look(v.label, VARIANT_COLOURS[i % len(VARIANT_COLOURS)])
+        if v.name in LOOKS:
+            builtin = LOOKS[v.name]
+            VARIANT_LOOKS[v.name] = Look(builtin.label if v.label == v.name else v.label, builtin.colour)
+        else:
+            VARIANT_LOOKS[v.name] = Look(v.label, VARIANT_COLOURS[own.index(v) % len(VARIANT_COLOURS)])
         VARIANT_BASES[v.name] = v.of
     for v in variants.values():
         if v.is_specialists:
@@ -77,14 +90,14 @@ def use_variants(variants: dict) -> None:
 
 def label(method: str) -> str:
     """The method's name in the report (its own name if it is not in the table)."""
-    look = LOOKS.get(method) or VARIANT_LOOKS.get(method)
+    look = VARIANT_LOOKS.get(method) or LOOKS.get(method)
     if look:
         return look.label
     return SPECIALISTS_LABELS.get(method) or SPECIALIST_VARIANT_LABELS.get(method, method)
 
 
 def colour(method: str) -> str:
-    look = LOOKS.get(method) or VARIANT_LOOKS.get(method)
+    look = VARIANT_LOOKS.get(method) or LOOKS.get(method)
     return look.colour if look else "grey"
 
 

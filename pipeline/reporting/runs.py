@@ -77,7 +77,8 @@ class Run:
 def methods_in(runs: list[Run]) -> list[str]:
     """Variants present, the known ones first in their usual order."""
     present = {r.method for r in runs}
-    order = (*METHOD_ORDER, *VARIANT_METHODS)  # the variants of the params file after the built-in methods
+    # the variants of the params file after the built-in methods (a built-in variant is both: once)
+    order = tuple(dict.fromkeys((*METHOD_ORDER, *VARIANT_METHODS)))
     return [v for v in order if v in present] + sorted(present - set(order))
 
 

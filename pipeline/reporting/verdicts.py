@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.evaluation.metrics import mean_sem
-from pipeline.reporting.presentation import VARIANT_BASES, VARIANT_METHODS, label
+from pipeline.reporting.presentation import HYBRID_METHODS, VARIANT_BASES, VARIANT_METHODS, label
 from pipeline.reporting.runs import Run
 from pipeline.reporting.tables import fmt_num
 
@@ -84,10 +84,10 @@ def hv_verdict(
     """
     la, lb = label(a), label(b)
     what = what or next((w for x, y, w in VERDICT_PAIRS if (x, y) == (a, b)), la)
-    if what.startswith(ABLATION) and any("init_fallbacks" in r.metrics for r in runs if r.method == a):
-        # a hybrid run (extract.init: interpolate; its metrics.json records init_fallbacks): against
-        # warm-up only it differs in the start and the seeds too, so the pair is no ablation of the
-        # advantage-weighted phase alone, and the sentence does not call it one
+    if what.startswith(ABLATION) and a in HYBRID_METHODS:
+        # a hybrid (resolved extract.init: interpolate, as the params say: presentation.use_variants):
+        # against warm-up only it differs in the start and the seeds too, so the pair is no ablation
+        # of the advantage-weighted phase alone, and the sentence does not call it one
         what = f"{la}, started from interpolated weights,"
     hv = {(r.method, r.seed): r.metrics["front"]["hypervolume"] for r in runs}
     seeds = sorted(s for (v, s) in hv if v == a and (b, s) in hv)
