@@ -5,7 +5,7 @@
 
 FRONTS is a method's fronts folder holding seedS/population.pt, e.g. data/fronts/mapex_td3 of a
 `dvc repro` of presets/nobj/mo-hopper-v5-facets.yaml, or sweeps/facets/hopper3/data/fronts/mapex_td3
-of `mapex sweep presets/studies/facets.yaml`. For each seed's population and each iteration i, the
+of `mapex repro presets/studies/facets.yaml`. For each seed's population and each iteration i, the
 population the parents of iteration i were drawn from is every member made before it (iteration < i),
 with the returns measured during extraction (what the roulette saw). Prints, per iteration, the number
 of gaps without the rule (every facet of the front mesh), with it at --ratio, whether the two sets

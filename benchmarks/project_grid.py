@@ -1,5 +1,5 @@
 """The paper's grid (5 envs x 5 seeds) projected from per-core figures measured on one CPU core:
-core-hours in fp32 and bf16, and the wall time of `mapex sweep` on C cores. Arithmetic only:
+core-hours in fp32 and bf16, and the wall time of `mapex repro --ray` on C cores. Arithmetic only:
 nothing is run; every input figure is a constant below with the command and date it came from
 (docs/benchmarks.md), so a new measurement is one edit and a rerun.
 
@@ -22,7 +22,7 @@ Model (each assumption is printed with the tables):
   over the env's phase-2 frames; evolution and episodes left out.
 - MORL/D (fp32 only: morl-baselines' code): at least the quickstart's 106 frames/s (64 units)
   over 4M frames (Swimmer 2M), a lower bound (its 256-unit SAC updates cost more).
-- `mapex sweep` on C cores: each env x seed runs its specialists (2 processes on 2 cores, one
+- `mapex repro --ray` on C cores: each env x seed runs its specialists (2 processes on 2 cores, one
   per objective, `train_specialist.processes: 2`) and then its extraction (1 core; sequential
   over its iterations, so more cores do not shorten it); tasks start in the order they become
   ready whenever enough cores are free (all specialists first, as submitted; a 1-core task may
@@ -210,7 +210,7 @@ def main() -> None:
           f"{PDERL_FACTOR * totals['spec bf16']:,.0f} |")  # fmt: skip
     print(f"| MOPDERL phase 2 (from the PDERL specialists) | {totals['mop fp32']:,.0f} | {totals['mop bf16']:,.0f} |")
     print(f"| MORL/D | >= {totals['morld']:,.0f} | (fp32 only) |")
-    print("\nMAPEX-TD3 through `mapex sweep`, wall hours (25 chains: specialists on 2 cores, then extraction on 1):\n")
+    print("\nMAPEX-TD3 through `mapex repro --ray`, wall hours (25 chains: specialists on 2 cores, then extraction on 1):\n")
     head = " | ".join(f"{c} cores" for c in args.cores)
     print(f"| K | precision | {head} | longest chain (bound) | core-hours / cores (bound) |")
     print("|---:|---|" + "---:|" * len(args.cores) + "---:|---|")

@@ -1,6 +1,6 @@
 """`mapex grid-report`: one report across the cells of a sweep (docs/sweeps.md).
 
-Not a DVC stage: it reads the workspaces `mapex sweep` leaves behind (one per grid cell, each
+Not a DVC stage: it reads the workspaces `mapex repro --ray` leaves behind (one per grid cell, each
 with its params.yaml and its restored data/score, data/evaluate and data/provenance) and writes
 one folder.
 """
@@ -85,7 +85,7 @@ def grid_report(
     workdir: Path = typer.Argument(
         ...,
         help="a sweep's work directory: one workspace per grid cell (default of "
-        "`mapex sweep`: sweeps/<grid file name>)",
+        "`mapex repro --ray`: sweeps/<grid file name>)",
     ),
     out: Path = typer.Option(..., help="report folder to write (replaced as a whole)"),
     width: float = typer.Option(13.0, min=4, help="figure width in inches"),

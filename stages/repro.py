@@ -92,10 +92,51 @@ def repro(
         "--ray",
         metavar="ADDRESS",
         help="with a grid or preset: run its stage items as tasks on this Ray cluster ('auto', host:6379, "
-        "or 'local' to start one here), the artifacts in --remote (what `mapex sweep` does; docs/sweeps.md)",
+        "or 'local' to start one on this machine), one DVC workspace per cell under --workdir and the artifacts "
+        "in --remote; workers run --root's HEAD commit, so commit first (docs/sweeps.md)",
     ),
     remote: Optional[str] = typer.Option(
-        None, "--remote", help="with --ray: the DVC remote every worker reaches (a directory or a URL)"
+        None,
+        "--remote",
+        help="with --ray: the shared DVC remote every worker reaches, holding every output and the run-cache: "
+        "a directory (created if missing) or a URL such as s3://bucket/path",
+    ),
+    workers: Optional[int] = typer.Option(
+        None, "--workers", min=1, help="with --ray local: CPUs of the local Ray cluster (default: every core)"
+    ),
+    git_url: Optional[str] = typer.Option(
+        None,
+        "--git-url",
+        help="with --ray: where workers clone --root's HEAD commit from (default: --root's path, fine on one "
+        "machine or a shared filesystem; else a git URL every node can reach)",
+    ),
+    scratch: Optional[str] = typer.Option(
+        None,
+        "--scratch",
+        help="with --ray: directory on each worker for its temporary clones (default: <tmp>/mapex-sweep)",
+    ),
+    max_retries: int = typer.Option(
+        3,
+        "--max-retries",
+        min=0,
+        help="with --ray: retries of a task whose worker or node died; a stage that exits with an error is not retried",
+    ),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="with --ray: prepare the cells' workspaces, print every cell's stage items and stop"
+    ),
+    resume_root: Optional[Path] = typer.Option(
+        None,
+        "--resume-root",
+        help="with --ray: a directory every node reaches (shared filesystem) where long stages keep their resume "
+        "progress, one folder per stage item, so a task retried after its node died resumes there "
+        "(default: progress lives in the worker's clone and dies with it)",
+    ),
+    remote_option: Optional[list[str]] = typer.Option(
+        None,
+        "--remote-option",
+        help="with --ray: KEY=VALUE setting of the DVC remote besides its URL, repeatable; e.g. for an "
+        "S3-compatible server endpointurl=http://host:9000 (credentials: access_key_id, secret_access_key, or the "
+        "usual AWS_* environment on every node). Written to each workspace's .dvc/config.local, never to git",
     ),
 ) -> None:
     """Reproduce a plan: this checkout's pipeline, a preset or a grid, its stage items side by side.
@@ -114,10 +155,40 @@ def repro(
     of every item's wall time at the end. After a failure nothing new starts; Ctrl-C (or
     SIGTERM) reaches the running items, which stop as under `dvc repro` (nothing half-written);
     it exits 130 (143).
+
+    With --ray and --remote the cells' stage items run as Ray tasks, each `dvc repro
+    --single-item --pull` in a clone of its own that pushes outputs and run-cache to the remote;
+    each cell's dvc.lock is then written once, restoring every stage from the run-cache. Run it
+    again to resume: finished items are restored, not recomputed.
     """
     plan, targets = split_plan(list(args or []))
+    cluster = {
+        "workers": workers,
+        "git_url": git_url,
+        "scratch": scratch,
+        "max_retries": max_retries,
+        "dry_run": dry_run,
+        "resume_root": resume_root,
+        "remote_options": _remote_options(remote_option or []),
+    }
+    given = [
+        flag
+        for flag, value in (
+            ("--workers", workers),
+            ("--git-url", git_url),
+            ("--scratch", scratch),
+            ("--max-retries", max_retries != 3 or None),
+            ("--dry-run", dry_run or None),
+            ("--resume-root", resume_root),
+            ("--remote-option", remote_option),
+        )
+        if value
+    ]
+    if given and not ray:
+        typer.echo(f"error: {', '.join(given)} go with --ray (a run on a Ray cluster)", err=True)
+        raise typer.Exit(code=2)
     if plan is not None and plan.name != "params.yaml":
-        _repro_plan(plan, root, jobs, targets, workdir, seed, ray, remote)
+        _repro_plan(plan, root, jobs, targets, workdir, seed, ray, remote, cluster)
         return
     if ray or remote or workdir or seed:
         typer.echo("error: --ray, --remote, --workdir and --seed go with a preset or grid PLAN", err=True)
@@ -170,8 +241,10 @@ def _repro_plan(
     seeds: list[int] | None,
     ray: str | None,
     remote: str | None,
+    cluster: dict,
 ) -> None:
-    """A preset or grid: its cells on Ray (--ray, --remote) or here, then its report."""
+    """A preset or grid: its cells on Ray (--ray, --remote; `cluster` holds the other options of a
+    Ray run, as SweepSettings names them) or here, then its report."""
     from pipeline.distributed.errors import SweepError
     from pipeline.distributed.onebox import load_plan, run_plan_here
 
@@ -187,14 +260,21 @@ def _repro_plan(
             grid_path = plan
             if "envs" not in (yaml.safe_load(plan.read_text()) or {}):
                 grid_path = _one_cell_grid(plan, root)
+            if cluster["workers"] and ray != "local":
+                raise SweepError("--workers sizes a local Ray cluster (--ray local); a cluster has its own CPUs", 2)
             settings = SweepSettings(
                 remote,
                 repo=root,
                 workdir=workdir or Path(root) / "sweeps" / plan.stem,
                 address=None if ray == "local" else ray,
                 seeds=seeds,
+                **cluster,
             )
             results = run_sweep(grid_path, settings, log=echo)
+            for r in results:
+                echo(f"{r.name}: {r.status} ({len(r.executed)} ran, {len(r.restored)} restored) {r.workspace}")
+            if settings.dry_run:
+                return
             names = [r.name for r in results]
             work = settings.workdir
         else:
@@ -207,6 +287,18 @@ def _repro_plan(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=exc.exit_code) from None
     _report(Path(work), names)
+
+
+def _remote_options(items: list[str]) -> dict[str, str]:
+    """--remote-option KEY=VALUE pairs as a dict; a malformed one stops the run (exit 2)."""
+    options = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            typer.echo(f"error: --remote-option {item!r}: expected KEY=VALUE", err=True)
+            raise typer.Exit(code=2)
+        options[key.strip()] = value.strip()
+    return options
 
 
 def _one_cell_grid(preset: Path, root: Path) -> Path:

@@ -900,7 +900,7 @@ def test_verdicts_cover_every_pair_that_ran_and_specialists_per_kind():
 
 
 def test_grid_report_puts_every_cell_in_one_table(runs, tmp_path):
-    """Two cell workspaces (as `mapex sweep` leaves them) -> one Table 1 row each, figures, provenance;
+    """Two cell workspaces (as `mapex repro --ray` leaves them) -> one Table 1 row each, figures, provenance;
     a cell without scores is skipped and said so."""
     work = tmp_path / "sweeps" / "grid"
     for cell, seeds in (("cheetah.a", [0, 1]), ("cheetah.b", [1])):

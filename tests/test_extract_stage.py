@@ -170,7 +170,7 @@ def _population_equal(a: Path, b: Path) -> None:
 )
 def test_killed_extract_resumes_to_identical_artifacts(specialists, tmp_path, k, sig):
     """k = 2 also stands for a sweep's retry on another node: no --resume-dir, progress on shared
-    storage ($MAPEX_RESUME_ROOT, as `mapex sweep --resume-root` sets it), and the rerun in
+    storage ($MAPEX_RESUME_ROOT, as `mapex repro --ray --resume-root` sets it), and the rerun in
     another working directory. SIGTERM (a scheduler's warning): the stage stops once the
     iteration it is in is checkpointed, says so in one line and exits with 143."""
     params = write_params(tmp_path / "params.yaml", iterations=8, warmup_steps=200, children_per_iteration=k)

@@ -222,17 +222,14 @@ def test_dvc_resolves_the_pipeline_of_every_params_file(path, tmp_path):
 @pytest.mark.parametrize("path", STUDIES, ids=lambda p: p.stem)
 def test_study_grid_plans_its_cells(path):
     """Each study grid names its command in its header and expands, at the repository's HEAD (what
-    `mapex sweep` runs), into cells whose params validate with the stages' models; every method a
+    `mapex repro --ray` runs), into cells whose params validate with the stages' models; every method a
     cell lists is reported, and every pair the report compares is of methods the cell runs."""
     from pipeline.distributed.grid import load_grid, plan_cells
 
     header = path.read_text().split("\n", 1)[0]
     assert header.startswith("# Study (docs/results.md"), f"{path}: the first line names the results section"
-    text = path.read_text()  # its command: `mapex repro GRID` (here) or `mapex sweep GRID --remote` (Ray)
-    assert (
-        f"mapex repro presets/studies/{path.name}" in text
-        or f"mapex sweep presets/studies/{path.name} --remote" in text
-    )
+    text = path.read_text()  # its command: `mapex repro GRID` (here, or on Ray with --ray)
+    assert f"mapex repro presets/studies/{path.name}" in text
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
     cells = plan_cells(load_grid(path), path, ROOT, head.stdout.strip())
     assert cells, path

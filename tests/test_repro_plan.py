@@ -107,6 +107,13 @@ def test_option_rules_are_one_line_errors(tmp_path):
     assert r.exit_code == 2 and "--ray and --remote go together" in r.output
     r = cli("--seed", "1", "--root", str(tmp_path))
     assert r.exit_code == 2 and "go with a preset or grid PLAN" in r.output
+    # the cluster options (what `mapex sweep` had) are named when given without --ray
+    r = cli(str(grid), "--workers", "2", "--dry-run", "--max-retries", "1")
+    assert r.exit_code == 2 and "--workers, --max-retries, --dry-run go with --ray" in r.output
+    r = cli(str(grid), "--ray", "auto", "--remote", str(tmp_path / "r"), "--workers", "2")
+    assert r.exit_code == 2 and "--workers sizes a local Ray cluster (--ray local)" in r.output
+    r = cli(str(grid), "--ray", "local", "--remote", str(tmp_path / "r"), "--remote-option", "endpointurl")
+    assert r.exit_code == 2 and "--remote-option 'endpointurl': expected KEY=VALUE" in r.output
 
 
 # ------------------------------------------------------------------------------------------

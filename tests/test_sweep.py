@@ -1,4 +1,4 @@
-"""`mapex sweep` (pipeline/distributed/) on a local two-node Ray cluster and a local-directory DVC
+"""`mapex repro GRID --ray` (pipeline/distributed/) on a local two-node Ray cluster and a local-directory DVC
 remote, with the real dvc.yaml on a tiny preset in a temporary git + DVC copy of the project.
 
 Checks: grid files are validated with errors naming file and key; the DAG and each cell's
@@ -31,7 +31,7 @@ from pipeline.distributed.grid import Grid, load_grid, plan_cells
 from pipeline.distributed.task import DIE_ONCE_ENV, StageTask, task_resume_dir
 from pipeline.distributed.workspace import checkout_cell, stage_items
 from pipeline.params.plan import write_plan
-from stages.sweep import sweep
+from stages.repro import repro
 
 # Sweeps through Ray and DVC in a temporary repository: `make test-fast` leaves this file out.
 pytestmark = pytest.mark.integration
@@ -84,12 +84,15 @@ def cli_app() -> typer.Typer:
     def main() -> None:  # a group, so the command is invoked by name as under `mapex`
         pass
 
-    app.command("sweep")(sweep)
+    app.command("repro")(repro)
     return app
 
 
-def run_cli(*args) -> "typer.testing.Result":
-    return CliRunner().invoke(cli_app(), ["sweep", *map(str, args)])
+def run_cli(grid, *args) -> "typer.testing.Result":
+    """`mapex repro GRID --ray local ARGS` (the Ray run; --repo of ARGS is its --root). A cluster the
+    test started is found already initialised, as a driver inside a Ray job finds its own."""
+    args = ["--root" if a == "--repo" else str(a) for a in args]
+    return CliRunner().invoke(cli_app(), ["repro", str(grid), "--ray", "local", *args])
 
 
 # ------------------------------------------------------------------------------------------
@@ -271,7 +274,7 @@ def test_core_install_does_not_need_ray():
         "        raise ImportError('no ray')\n"
         "    return real(name, *a, **k)\n"
         "builtins.__import__ = block\n"
-        "import pipeline.distributed.driver, pipeline.distributed.errors, stages.sweep\n"
+        "import pipeline.distributed.driver, pipeline.distributed.errors, stages.repro\n"
         "try:\n"
         "    pipeline.distributed.driver._import_ray()\n"
         "except pipeline.distributed.errors.SweepError as e:\n"

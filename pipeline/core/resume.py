@@ -35,7 +35,7 @@ from pipeline.core.codedeps import closure_files
 from pipeline.core.provenance import library_versions
 from pipeline.core.signals import Stopped, stop_requested
 
-# Where progress goes when a sweep asks for shared storage: `mapex sweep --resume-root` sets it
+# Where progress goes when a sweep asks for shared storage: `mapex repro --ray --resume-root` sets it
 # to one directory per stage item, so a retry on another node resumes where a dead one stopped.
 RESUME_ROOT_ENV = "MAPEX_RESUME_ROOT"
 

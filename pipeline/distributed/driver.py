@@ -93,7 +93,7 @@ def _import_ray():
 
 @dataclass(frozen=True)
 class SweepSettings:
-    """How a sweep runs, as `mapex sweep`'s options give it (one place: the command builds it, the
+    """How a sweep runs, as `mapex repro --ray`'s options give it (one place: the command builds it, the
     driver and the task submission read it). `remote` is a directory or a URL; `remote_options`
     are extra DVC remote settings (KEY=VALUE, written to each workspace's config.local)."""
 

@@ -207,7 +207,7 @@ def with_run_lists(params: dict[str, Any], where: str) -> dict[str, Any]:
 
 
 def with_seeds(grid: Grid, path: Path, seeds: list[int]) -> Grid:
-    """The grid with its seeds replaced (`mapex sweep --seed`): a first look at one seed of a long
+    """The grid with its seeds replaced (`mapex repro --seed`): a first look at one seed of a long
     grid. Per-seed stage items do not read the seed list, so a later run of the grid's own seeds
     restores these from the remote's run-cache instead of recomputing them."""
     if len(set(seeds)) != len(seeds) or any(s < 0 for s in seeds):
@@ -257,7 +257,7 @@ def plan_cells(grid: Grid, grid_path: Path, repo: Path, commit: str) -> list[Cel
             cell_params = with_run_lists(cell_params, f"{grid_path}: cell {name}")
             validate_params(cell_params, f"{grid_path}: cell {name}")
             # No cell or grid name in the text, so that cells of equal params are equal checkouts.
-            text = "# params of a `mapex sweep` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(
+            text = "# params of a `mapex repro --ray` grid cell (docs/sweeps.md)\n" + yaml.safe_dump(
                 cell_params, sort_keys=False
             )
             cells.append(Cell(name, cell_params, text))

@@ -9,7 +9,7 @@ several `dvc --wait-for-lock repro --single-item ITEM` processes may run in one 
 once, each bookkeeping (dvc.lock, run-cache) under the repository lock in turn.
 
 This module orders the workspace's stage items by DVC's own DAG (the same items and upstream as
-`mapex sweep`'s tasks, pipeline.distributed.workspace.stage_items) and starts each item's
+`mapex repro --ray`'s tasks, pipeline.distributed.workspace.stage_items) and starts each item's
 `dvc repro --single-item` once every item upstream of it has finished, at most `jobs` at a time.
 Each item decides for itself, as in `dvc repro`, whether it runs, is restored from the
 run-cache or is skipped as unchanged; its outputs are the same bytes as under `dvc repro`

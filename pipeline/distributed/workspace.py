@@ -304,7 +304,7 @@ def write_lock(
     try:
         stub = stub_dir / "mapex"
         stub.write_text(
-            "#!/bin/sh\necho \"mapex sweep: this stage's run is not in the remote's run-cache; "
+            "#!/bin/sh\necho \"mapex repro --ray: this stage's run is not in the remote's run-cache; "
             'the driver does not compute stages (rerun the sweep)" >&2\nexit 3\n'
         )
         stub.chmod(0o755)
