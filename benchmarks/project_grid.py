@@ -210,7 +210,9 @@ def main() -> None:
           f"{PDERL_FACTOR * totals['spec bf16']:,.0f} |")  # fmt: skip
     print(f"| MOPDERL phase 2 (from the PDERL specialists) | {totals['mop fp32']:,.0f} | {totals['mop bf16']:,.0f} |")
     print(f"| MORL/D | >= {totals['morld']:,.0f} | (fp32 only) |")
-    print("\nMAPEX-TD3 through `mapex repro --ray`, wall hours (25 chains: specialists on 2 cores, then extraction on 1):\n")
+    print(
+        "\nMAPEX-TD3 through `mapex repro --ray`, wall hours (25 chains: specialists on 2 cores, then extraction on 1):\n"
+    )
     head = " | ".join(f"{c} cores" for c in args.cores)
     print(f"| K | precision | {head} | longest chain (bound) | core-hours / cores (bound) |")
     print("|---:|---|" + "---:|" * len(args.cores) + "---:|---|")
